@@ -1,0 +1,23 @@
+"""Differentiable Material Point Method on NVIDIA Warp (imports neither gymnasium nor torch).
+
+Newton-style split: a :class:`ModelBuilder` collects worlds, particles and end-effectors and
+``finalize()`` makes a :class:`Model` (static); ``model.state()`` gives a :class:`State`
+(time-varying), ``model.control()`` a :class:`Control` (one step's action); ``SolverMPM.step``
+advances every world by one substep. :class:`Rollout` makes multi-step runs differentiable.
+"""
+
+import warp as wp
+
+from .config import EndEffectorConfig, GridConfig, MaterialConfig, SolverConfig, TableConfig
+from .model import Control, Model, ModelBuilder, State
+from .rollout import Rollout
+from .sampling import sample_box, sample_cylinder, sample_mesh, sample_points, sample_sphere
+from .solver import GridScratch, SimulationDiverged, SolverMPM, UnstableTimeStep
+
+wp.config.quiet = True
+
+__all__ = [
+    "Control", "EndEffectorConfig", "GridConfig", "GridScratch", "MaterialConfig", "Model", "ModelBuilder",
+    "Rollout", "SimulationDiverged", "SolverConfig", "SolverMPM", "State", "TableConfig", "UnstableTimeStep",
+    "sample_box", "sample_cylinder", "sample_mesh", "sample_points", "sample_sphere",
+]

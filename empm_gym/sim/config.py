@@ -1,0 +1,199 @@
+"""Configuration dataclasses of the simulator: material, grid, table, end-effectors, solver.
+
+Every field carries its SI unit in its docstring. Each config validates itself on
+construction and raises ``ValueError`` naming the field, the value and what is
+allowed, so a bad parameter never turns into a NaN three layers later.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Optional, Sequence, Tuple
+
+__all__ = [
+    "MaterialConfig",
+    "GridConfig",
+    "TableConfig",
+    "EndEffectorConfig",
+    "SolverConfig",
+    "SHAPE_IDS",
+]
+
+#: End-effector shape names and their integer ids in the kernels.
+SHAPE_IDS = {"sphere": 0, "capsule": 1, "box": 2}
+
+
+def _finite(name: str, value: float) -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    return value
+
+
+@dataclass(frozen=True)
+class MaterialConfig:
+    """Constitutive parameters of one object (fixed-corotated elasticity, optional von Mises plasticity)."""
+
+    E: float = 1.0e5
+    """Young's modulus [Pa]; > 0."""
+    nu: float = 0.3
+    """Poisson's ratio [-]; in (-1, 0.5)."""
+    density: float = 1000.0
+    """Mass density [kg/m^3]; > 0."""
+    yield_stress: Optional[float] = None
+    """Uniaxial von Mises yield stress [Pa]; ``None`` for a purely elastic material, else >= 0."""
+
+    def __post_init__(self):
+        E = _finite("MaterialConfig.E", self.E)
+        nu = _finite("MaterialConfig.nu", self.nu)
+        rho = _finite("MaterialConfig.density", self.density)
+        if E <= 0.0:
+            raise ValueError(f"MaterialConfig.E must be > 0 Pa, got {self.E!r}")
+        if not (-1.0 < nu < 0.5):
+            raise ValueError(f"MaterialConfig.nu must lie in (-1, 0.5), got {self.nu!r}")
+        if rho <= 0.0:
+            raise ValueError(f"MaterialConfig.density must be > 0 kg/m^3, got {self.density!r}")
+        object.__setattr__(self, "E", E)
+        object.__setattr__(self, "nu", nu)
+        object.__setattr__(self, "density", rho)
+        if self.yield_stress is not None:
+            ys = _finite("MaterialConfig.yield_stress", self.yield_stress)
+            if ys < 0.0:
+                raise ValueError(f"MaterialConfig.yield_stress must be >= 0 Pa or None, got {self.yield_stress!r}")
+            object.__setattr__(self, "yield_stress", ys)
+
+    @property
+    def plastic(self) -> bool:
+        return self.yield_stress is not None
+
+    @property
+    def lame(self) -> Tuple[float, float]:
+        """(mu, lambda) [Pa]."""
+        mu = self.E / (2.0 * (1.0 + self.nu))
+        lam = self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
+        return mu, lam
+
+    @property
+    def wave_speed(self) -> float:
+        """P-wave speed sqrt((lambda + 2 mu) / rho) [m/s]."""
+        mu, lam = self.lame
+        return math.sqrt((lam + 2.0 * mu) / self.density)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "MaterialConfig":
+        """Build from a dict such as identification's ``material.json`` (extra keys are ignored)."""
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+
+@dataclass(frozen=True)
+class GridConfig:
+    """The Eulerian background grid shared by all worlds (each world has its own copy)."""
+
+    lower: Tuple[float, float, float] = (-0.5, -0.5, -0.05)
+    """Lower corner of the grid [m]."""
+    upper: Tuple[float, float, float] = (0.5, 0.5, 0.95)
+    """Upper corner of the grid [m]; rounded up to whole cells."""
+    dx: float = 0.02
+    """Cell size [m]; > 0."""
+    boundary_cells: int = 3
+    """Number of node layers at each wall where outward velocity is removed [-]; >= 2."""
+
+    def __post_init__(self):
+        dx = _finite("GridConfig.dx", self.dx)
+        if dx <= 0:
+            raise ValueError(f"GridConfig.dx must be > 0 m, got {self.dx!r}")
+        lo = tuple(_finite(f"GridConfig.lower[{i}]", v) for i, v in enumerate(self.lower))
+        hi = tuple(_finite(f"GridConfig.upper[{i}]", v) for i, v in enumerate(self.upper))
+        if len(lo) != 3 or len(hi) != 3:
+            raise ValueError("GridConfig.lower and upper must have 3 components")
+        for i in range(3):
+            if hi[i] - lo[i] < 6 * dx:
+                raise ValueError(
+                    f"GridConfig: upper[{i}] - lower[{i}] = {hi[i] - lo[i]:.4g} m is smaller than 6 cells of dx={dx} m"
+                )
+        if int(self.boundary_cells) < 2:
+            raise ValueError(f"GridConfig.boundary_cells must be >= 2, got {self.boundary_cells!r}")
+        object.__setattr__(self, "lower", lo)
+        object.__setattr__(self, "upper", hi)
+        object.__setattr__(self, "dx", dx)
+
+    @property
+    def resolution(self) -> Tuple[int, int, int]:
+        """Number of grid nodes along x, y, z."""
+        return tuple(int(math.ceil((self.upper[i] - self.lower[i]) / self.dx - 1e-6)) + 1 for i in range(3))
+
+
+@dataclass(frozen=True)
+class TableConfig:
+    """A horizontal table plane z = height with Coulomb friction."""
+
+    height: float = 0.0
+    """Height of the table plane [m]."""
+    friction: float = 0.5
+    """Coulomb friction coefficient between object and table [-]; >= 0."""
+
+    def __post_init__(self):
+        _finite("TableConfig.height", self.height)
+        mu = _finite("TableConfig.friction", self.friction)
+        if mu < 0:
+            raise ValueError(f"TableConfig.friction must be >= 0, got {self.friction!r}")
+
+
+@dataclass(frozen=True)
+class EndEffectorConfig:
+    """A kinematic end-effector (gripper finger, pusher, hand) of a fixed shape."""
+
+    shape: str = "sphere"
+    """One of "sphere", "capsule", "box"."""
+    radius: float = 0.02
+    """Radius [m] of a sphere or capsule."""
+    half_height: float = 0.02
+    """Half length [m] of a capsule's axis (local z)."""
+    half_extents: Tuple[float, float, float] = (0.02, 0.02, 0.02)
+    """Half sizes [m] of a box along its local axes."""
+    friction: float = 0.8
+    """Coulomb friction coefficient [-] between object and end-effector when not gripping; >= 0."""
+
+    def __post_init__(self):
+        if self.shape not in SHAPE_IDS:
+            raise ValueError(f"EndEffectorConfig.shape must be one of {sorted(SHAPE_IDS)}, got {self.shape!r}")
+        for name in ("radius", "half_height", "friction"):
+            v = _finite(f"EndEffectorConfig.{name}", getattr(self, name))
+            if v < 0 or (name == "radius" and self.shape in ("sphere", "capsule") and v <= 0):
+                raise ValueError(f"EndEffectorConfig.{name} must be > 0 (>= 0 for friction), got {v!r}")
+        he = tuple(_finite(f"EndEffectorConfig.half_extents[{i}]", v) for i, v in enumerate(self.half_extents))
+        if len(he) != 3 or (self.shape == "box" and min(he) <= 0):
+            raise ValueError(f"EndEffectorConfig.half_extents must be 3 positive lengths, got {self.half_extents!r}")
+        object.__setattr__(self, "half_extents", he)
+
+
+@dataclass
+class SolverConfig:
+    """Options of :class:`empm_gym.sim.SolverMPM`."""
+
+    cfl: float = 0.4
+    """CFL number C of the stable step dt <= C * dx / (c + |v|max) [-]; in (0, 1]."""
+    check_every: int = 1
+    """Check the state for non-finite values every this many steps [-]; 0 disables the check."""
+    max_speed: float = 50.0
+    """Particle speed [m/s] above which the state counts as diverged."""
+    plasticity_min_singular: float = 1e-3
+    """Lower clamp of singular values of F in the plastic return mapping [-]."""
+
+    def __post_init__(self):
+        if not (0 < self.cfl <= 1.0):
+            raise ValueError(f"SolverConfig.cfl must lie in (0, 1], got {self.cfl!r}")
+        if self.check_every < 0:
+            raise ValueError(f"SolverConfig.check_every must be >= 0, got {self.check_every!r}")
+
+
+def as_vec3(name: str, value: Sequence[float]) -> Tuple[float, float, float]:
+    vals = tuple(_finite(f"{name}[{i}]", v) for i, v in enumerate(value))
+    if len(vals) != 3:
+        raise ValueError(f"{name} must have 3 components, got {value!r}")
+    return vals

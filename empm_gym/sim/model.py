@@ -1,0 +1,325 @@
+"""Model (static), State (time-varying) and Control (per-step action) of a batch of MPM worlds."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import List, Optional, Sequence
+
+import numpy as np
+import warp as wp
+
+from .config import SHAPE_IDS, EndEffectorConfig, GridConfig, MaterialConfig, TableConfig, as_vec3
+
+__all__ = ["Model", "ModelBuilder", "State", "Control"]
+
+
+def _arr(a, dtype, device, requires_grad=False):
+    return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device, requires_grad=requires_grad)
+
+
+class State:
+    """Time-varying quantities: particle x [m], v [m/s], affine velocity C [1/s], elastic F [-],
+    end-effector positions [m] and orientations (quaternion x, y, z, w)."""
+
+    def __init__(self, model: "Model", requires_grad: bool = False):
+        n, e, d = model.particle_count, model.world_count * model.ee_count, model.device
+        self.requires_grad = requires_grad
+        self.particle_x = wp.zeros(n, dtype=wp.vec3, device=d, requires_grad=requires_grad)
+        self.particle_v = wp.zeros(n, dtype=wp.vec3, device=d, requires_grad=requires_grad)
+        self.particle_C = wp.zeros(n, dtype=wp.mat33, device=d, requires_grad=requires_grad)
+        self.particle_F = wp.zeros(n, dtype=wp.mat33, device=d, requires_grad=requires_grad)
+        self.ee_pos = wp.zeros(max(e, 1), dtype=wp.vec3, device=d, requires_grad=requires_grad)
+        self.ee_rot = wp.zeros(max(e, 1), dtype=wp.quat, device=d, requires_grad=requires_grad)
+
+    ARRAYS = ("particle_x", "particle_v", "particle_C", "particle_F", "ee_pos", "ee_rot")
+
+    def arrays(self):
+        return [getattr(self, a) for a in self.ARRAYS]
+
+    def assign(self, other: "State") -> "State":
+        """Copy the values (not the gradients) of another state into this one."""
+        for a, b in zip(self.arrays(), other.arrays()):
+            a.assign(b)
+        return self
+
+    def zero_grad(self):
+        for a in self.arrays():
+            if a.grad is not None:
+                a.grad.zero_()
+
+    def to_numpy(self) -> dict:
+        return {name: arr.numpy().copy() for name, arr in zip(self.ARRAYS, self.arrays())}
+
+    def from_numpy(self, data: dict) -> "State":
+        for name, arr in zip(self.ARRAYS, self.arrays()):
+            val = np.asarray(data[name], dtype=np.float32)
+            if val.shape != tuple(arr.numpy().shape):
+                raise ValueError(f"State.from_numpy: {name} has shape {val.shape}, expected {arr.numpy().shape}")
+            arr.assign(wp.array(val, dtype=arr.dtype, device=arr.device))
+        return self
+
+
+class Control:
+    """Action of one step: end-effector linear velocity [m/s], angular velocity [rad/s], grip flag."""
+
+    def __init__(self, model: "Model", requires_grad: bool = False):
+        e, d = max(model.world_count * model.ee_count, 1), model.device
+        self.model = model
+        self.ee_vel = wp.zeros(e, dtype=wp.vec3, device=d, requires_grad=requires_grad)
+        self.ee_omega = wp.zeros(e, dtype=wp.vec3, device=d, requires_grad=requires_grad)
+        self.ee_grip = wp.zeros(e, dtype=int, device=d)
+        self.max_speed = 0.0
+        """Largest commanded end-effector speed [m/s] (host copy, for the CFL check)."""
+
+    def set(self, velocity=None, omega=None, grip=None) -> "Control":
+        """Set end-effector commands from arrays shaped [worlds, ee_count, 3] (grip: [worlds, ee_count]).
+
+        Raises ``ValueError`` on a wrong shape or a NaN/inf value before anything reaches a kernel.
+        """
+        W, K = self.model.world_count, self.model.ee_count
+        if velocity is not None:
+            v = _checked(velocity, (W, K, 3), "Control.velocity")
+            self.ee_vel.assign(wp.array(v.reshape(-1, 3), dtype=wp.vec3, device=self.ee_vel.device))
+            self.max_speed = float(np.max(np.linalg.norm(v, axis=-1))) if v.size else 0.0
+        if omega is not None:
+            o = _checked(omega, (W, K, 3), "Control.omega")
+            self.ee_omega.assign(wp.array(o.reshape(-1, 3), dtype=wp.vec3, device=self.ee_vel.device))
+        if grip is not None:
+            g = _checked(grip, (W, K), "Control.grip")
+            if not np.all((g == 0) | (g == 1)):
+                raise ValueError(f"Control.grip must hold only 0 (open) or 1 (closed), got {np.unique(g)}")
+            self.ee_grip.assign(wp.array(g.reshape(-1).astype(np.int32), dtype=int, device=self.ee_vel.device))
+        return self
+
+
+def _checked(value, shape, name):
+    a = np.asarray(value, dtype=np.float32)
+    if a.shape != shape:
+        if a.size == int(np.prod(shape)):
+            a = a.reshape(shape)
+        else:
+            raise ValueError(f"{name} must have shape {shape}, got {np.shape(value)}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} holds non-finite values (NaN or inf): {a.reshape(-1)[~np.isfinite(a.reshape(-1))][:4]}")
+    return a
+
+
+@dataclass
+class _World:
+    material: MaterialConfig
+    table_friction: float
+    positions: List[np.ndarray]
+    volumes: List[np.ndarray]
+    stiffness: List[np.ndarray]
+    ee: List[tuple]
+
+
+class ModelBuilder:
+    """Collects worlds, particles and end-effectors, then :meth:`finalize` makes a :class:`Model`.
+
+    All worlds share the grid geometry; each has its own grid, material, particles and end-effectors,
+    and all advance together in one kernel launch per substep.
+    """
+
+    def __init__(
+        self,
+        grid: GridConfig = GridConfig(),
+        *,
+        gravity: Sequence[float] = (0.0, 0.0, -9.81),
+        table: Optional[TableConfig] = TableConfig(),
+    ):
+        self.grid = grid
+        self.gravity = as_vec3("gravity", gravity)
+        self.table = table
+        self.worlds: List[_World] = []
+
+    def add_world(self, material: MaterialConfig, *, table_friction: Optional[float] = None) -> int:
+        """Add a world with its material; returns the world index."""
+        if not isinstance(material, MaterialConfig):
+            raise TypeError(f"material must be a MaterialConfig, got {type(material).__name__}")
+        mu = self.table.friction if (table_friction is None and self.table is not None) else (table_friction or 0.0)
+        TableConfig(friction=mu)  # validates
+        self.worlds.append(_World(material, float(mu), [], [], [], []))
+        return len(self.worlds) - 1
+
+    def _world(self, world: int) -> _World:
+        if not (0 <= world < len(self.worlds)):
+            raise IndexError(f"world {world} does not exist (have {len(self.worlds)}); call add_world first")
+        return self.worlds[world]
+
+    def add_particles(self, world: int, positions, volumes, *, stiffness_scale=None) -> slice:
+        """Add particles at positions [n, 3] (m) with rest volumes [n] (m^3); returns their index range."""
+        w = self._world(world)
+        x = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        vol = np.broadcast_to(np.asarray(volumes, dtype=np.float64), (len(x),)).copy()
+        if not np.all(np.isfinite(x)):
+            raise ValueError("add_particles: positions hold non-finite values")
+        if np.any(vol <= 0) or not np.all(np.isfinite(vol)):
+            raise ValueError("add_particles: volumes must be finite and > 0 m^3")
+        lo = np.asarray(self.grid.lower) + 2 * self.grid.dx
+        hi = np.asarray(self.grid.upper) - 3 * self.grid.dx
+        bad = np.any((x < lo) | (x > hi), axis=1)
+        if np.any(bad):
+            raise ValueError(
+                f"add_particles: {int(bad.sum())} particles lie outside the usable grid box "
+                f"[{lo.round(4).tolist()}, {hi.round(4).tolist()}] m, e.g. {x[bad][0].round(4).tolist()}"
+            )
+        s = np.ones(len(x)) if stiffness_scale is None else np.broadcast_to(stiffness_scale, (len(x),)).astype(float)
+        if np.any(s <= 0):
+            raise ValueError("add_particles: stiffness_scale must be > 0")
+        start = sum(len(p) for p in w.positions)
+        w.positions.append(x)
+        w.volumes.append(vol)
+        w.stiffness.append(s)
+        return slice(start, start + len(x))
+
+    def add_end_effector(self, world: int, config: EndEffectorConfig, position, orientation=(0, 0, 0, 1)) -> int:
+        """Add a kinematic end-effector at position [m] with orientation quaternion (x, y, z, w)."""
+        w = self._world(world)
+        p = as_vec3("end-effector position", position)
+        q = np.asarray(orientation, dtype=np.float64)
+        if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-6:
+            raise ValueError(f"end-effector orientation must be a unit quaternion (x, y, z, w), got {orientation!r}")
+        w.ee.append((config, p, q / np.linalg.norm(q)))
+        return len(w.ee) - 1
+
+    def finalize(self, device=None, *, requires_grad: bool = False) -> "Model":
+        if not self.worlds:
+            raise ValueError("ModelBuilder.finalize: add at least one world")
+        for i, w in enumerate(self.worlds):
+            if not w.positions:
+                raise ValueError(f"ModelBuilder.finalize: world {i} has no particles")
+        return Model(self, device=device, requires_grad=requires_grad)
+
+
+class Model:
+    """What does not change during a rollout: grid, particle rest volumes, materials, end-effector shapes.
+
+    Material parameters are Warp arrays, one entry per world (``world_E`` [Pa], ``world_nu``,
+    ``world_density`` [kg/m^3], ``world_yield`` [Pa], ``world_table_friction``), plus a per-particle
+    stiffness multiplier ``particle_stiffness`` for spatially varying stiffness; with
+    ``requires_grad=True`` they carry gradients.
+    """
+
+    def __init__(self, builder: ModelBuilder, device=None, requires_grad: bool = False):
+        self.device = wp.get_device(device)
+        self.requires_grad = requires_grad
+        g = builder.grid
+        self.grid = g
+        self.dx = float(g.dx)
+        self.inv_dx = 1.0 / self.dx
+        self.grid_origin = tuple(float(v) for v in g.lower)
+        self.grid_res = g.resolution
+        self.gravity = builder.gravity
+        self.table = builder.table
+        self.world_count = len(builder.worlds)
+        self.ee_count = max(len(w.ee) for w in builder.worlds)
+
+        xs, vols, worlds, stiff = [], [], [], []
+        self.world_particle_start = []
+        for i, w in enumerate(builder.worlds):
+            self.world_particle_start.append(sum(len(x) for x in xs))
+            x = np.concatenate(w.positions)
+            xs.append(x)
+            vols.append(np.concatenate(w.volumes))
+            stiff.append(np.concatenate(w.stiffness))
+            worlds.append(np.full(len(x), i, dtype=np.int32))
+        self.world_particle_start.append(sum(len(x) for x in xs))
+        self.particle_count = self.world_particle_start[-1]
+        self._x0 = np.concatenate(xs).astype(np.float32)
+        d = self.device
+        self.particle_world = _arr(np.concatenate(worlds), int, d)
+        self.particle_vol = _arr(np.concatenate(vols).astype(np.float32), float, d)
+        self.particle_stiffness = _arr(np.concatenate(stiff).astype(np.float32), float, d, requires_grad)
+
+        self.materials = [w.material for w in builder.worlds]
+        self.world_E = wp.zeros(self.world_count, dtype=float, device=d, requires_grad=requires_grad)
+        self.world_nu = wp.zeros(self.world_count, dtype=float, device=d, requires_grad=requires_grad)
+        self.world_density = wp.zeros(self.world_count, dtype=float, device=d, requires_grad=requires_grad)
+        self.world_yield = wp.zeros(self.world_count, dtype=float, device=d, requires_grad=requires_grad)
+        self.world_plastic = wp.zeros(self.world_count, dtype=int, device=d)
+        self.world_table_friction = _arr(
+            np.array([w.table_friction for w in builder.worlds], np.float32), float, d, requires_grad
+        )
+        self.set_materials(self.materials)
+
+        K, W = self.ee_count, self.world_count
+        n = max(W * K, 1)
+        shape = -np.ones(n, np.int32)
+        radius = np.zeros(n, np.float32)
+        hh = np.zeros(n, np.float32)
+        he = np.zeros((n, 3), np.float32)
+        fr = np.zeros(n, np.float32)
+        self._ee_pos0 = np.zeros((n, 3), np.float32)
+        self._ee_rot0 = np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1))
+        self.ee_configs: List[List[EndEffectorConfig]] = []
+        for wi, w in enumerate(builder.worlds):
+            self.ee_configs.append([c for c, _, _ in w.ee])
+            for e, (cfg, p, q) in enumerate(w.ee):
+                s = wi * K + e
+                shape[s] = SHAPE_IDS[cfg.shape]
+                radius[s] = cfg.radius
+                hh[s] = cfg.half_height
+                he[s] = cfg.half_extents
+                fr[s] = cfg.friction
+                self._ee_pos0[s] = p
+                self._ee_rot0[s] = q
+        self.ee_shape = _arr(shape, int, d)
+        self.ee_radius = _arr(radius, float, d)
+        self.ee_half_height = _arr(hh, float, d)
+        self.ee_half_extents = _arr(he, wp.vec3, d)
+        self.ee_friction = _arr(fr, float, d, requires_grad)
+
+    # -- materials ---------------------------------------------------------
+    def set_materials(self, materials: Sequence[MaterialConfig]):
+        """Set every world's material (one MaterialConfig per world)."""
+        if len(materials) != self.world_count:
+            raise ValueError(f"set_materials: expected {self.world_count} materials, got {len(materials)}")
+        for m in materials:
+            if not isinstance(m, MaterialConfig):
+                raise TypeError(f"set_materials: expected MaterialConfig, got {type(m).__name__}")
+        self.materials = list(materials)
+        self.world_E.assign(np.array([m.E for m in materials], np.float32))
+        self.world_nu.assign(np.array([m.nu for m in materials], np.float32))
+        self.world_density.assign(np.array([m.density for m in materials], np.float32))
+        self.world_yield.assign(np.array([m.yield_stress or 0.0 for m in materials], np.float32))
+        self.world_plastic.assign(np.array([int(m.plastic) for m in materials], np.int32))
+
+    def sync_materials_from_device(self):
+        """Refresh the host copies (``materials``) after the device arrays were changed (e.g. by an optimiser)."""
+        E, nu, rho, ys = (a.numpy() for a in (self.world_E, self.world_nu, self.world_density, self.world_yield))
+        pl = self.world_plastic.numpy()
+        self.materials = [
+            MaterialConfig(E=float(E[i]), nu=float(nu[i]), density=float(rho[i]),
+                           yield_stress=float(ys[i]) if pl[i] else None)
+            for i in range(self.world_count)
+        ]
+
+    def max_wave_speed(self) -> float:
+        """Largest elastic P-wave speed over worlds [m/s], including the per-particle stiffness multiplier."""
+        smax = float(np.max(self.particle_stiffness.numpy())) if self.particle_count else 1.0
+        return max(m.wave_speed for m in self.materials) * np.sqrt(max(smax, 1e-12))
+
+    def particle_mass(self) -> np.ndarray:
+        """Particle masses [kg] (host copy)."""
+        rho = np.array([m.density for m in self.materials], np.float32)
+        return self.particle_vol.numpy() * rho[self.particle_world.numpy()]
+
+    # -- factories ---------------------------------------------------------
+    def state(self, requires_grad: Optional[bool] = None) -> State:
+        """A new State at the rest configuration given to the builder (F = I, v = 0)."""
+        rg = self.requires_grad if requires_grad is None else requires_grad
+        s = State(self, requires_grad=rg)
+        s.particle_x.assign(self._x0)
+        s.particle_F.assign(np.tile(np.eye(3, dtype=np.float32), (self.particle_count, 1, 1)))
+        s.ee_pos.assign(self._ee_pos0)
+        s.ee_rot.assign(self._ee_rot0)
+        return s
+
+    def control(self, requires_grad: Optional[bool] = None) -> Control:
+        rg = self.requires_grad if requires_grad is None else requires_grad
+        return Control(self, requires_grad=rg)
+
+    def world_slice(self, world: int) -> slice:
+        """Particle index range of one world."""
+        return slice(self.world_particle_start[world], self.world_particle_start[world + 1])

@@ -1,0 +1,198 @@
+"""Differentiable multi-step rollouts on ``wp.Tape``, with segment checkpointing for long horizons.
+
+A rollout advances ``steps`` substeps of dt from an initial state under a sequence of controls (one
+Control per control period of ``substeps_per_control`` substeps) and records particle positions every
+``record_every`` substeps. ``backward`` takes the gradient of a loss with respect to the recorded
+positions and accumulates the gradients of that loss into the model's material arrays
+(``world_E.grad`` ...), the controls (``ee_vel.grad``, ``ee_omega.grad``) and the initial state.
+
+With ``checkpoint_every=S`` only every S-th state is kept in the forward pass; the backward pass
+replays each segment of S substeps on a fresh tape (Warp's fluid-checkpoint pattern), so memory grows
+with S, not with the horizon. ``checkpoint_every=None`` tapes the whole rollout at once.
+"""
+
+from __future__ import annotations
+
+from typing import List, Optional, Sequence
+
+import numpy as np
+import warp as wp
+
+from .model import Control, Model, State
+from .solver import GridScratch, SolverMPM
+
+__all__ = ["Rollout"]
+
+
+def _add_grad(arr: wp.array, g):
+    """arr.grad += g (g: wp.array, numpy array or torch tensor of arr's shape; None adds nothing)."""
+    if g is None:
+        return
+    if not isinstance(g, wp.array):
+        if hasattr(g, "detach"):
+            g = g.detach().cpu().numpy()
+        shape = tuple(arr.shape) + tuple(getattr(arr.dtype, "_shape_", ()))
+        g = wp.array(np.asarray(g, dtype=np.float32).reshape(shape), dtype=arr.dtype, device=arr.device)
+    wp.launch(_axpy(arr.dtype), dim=arr.shape[0], inputs=[g, arr.grad], device=arr.device)
+
+
+_AXPY = {}
+
+
+def _axpy(dtype):
+    if dtype not in _AXPY:
+        @wp.kernel(module="unique")
+        def axpy(src: wp.array(dtype=dtype), dst: wp.array(dtype=dtype)):
+            """dst += src."""
+            i = wp.tid()
+            dst[i] = dst[i] + src[i]
+
+        _AXPY[dtype] = axpy
+    return _AXPY[dtype]
+
+
+class Rollout:
+    """A differentiable rollout of ``steps`` substeps of ``dt`` [s] (see the module docstring)."""
+
+    def __init__(self, model: Model, solver: SolverMPM, *, steps: int, dt: float,
+                 substeps_per_control: int = 1, record_every: int = 1, checkpoint_every: Optional[int] = None):
+        if steps <= 0 or substeps_per_control <= 0 or record_every <= 0:
+            raise ValueError("steps, substeps_per_control and record_every must be positive integers")
+        if checkpoint_every is not None and checkpoint_every <= 0:
+            raise ValueError(f"checkpoint_every must be a positive number of substeps or None, got {checkpoint_every}")
+        self.model, self.solver = model, solver
+        self.steps, self.dt = int(steps), float(dt)
+        self.substeps_per_control = int(substeps_per_control)
+        self.record_every = int(record_every)
+        self.segment = int(checkpoint_every) if checkpoint_every else self.steps
+        self.checkpointed = checkpoint_every is not None and checkpoint_every < steps
+        S = self.segment
+        self._states = [State(model, requires_grad=True) for _ in range(S + 1)]
+        self._grids = [GridScratch(model, requires_grad=True) for _ in range(S)]
+        self.control_count = -(-self.steps // self.substeps_per_control)
+        self.record_steps = list(range(0, self.steps + 1, self.record_every))
+        self._checkpoints: List[State] = []
+        self._records: List[wp.array] = []
+        self._tape: Optional[wp.Tape] = None
+        self.initial_grad: Optional[dict] = None
+        self.final_state: Optional[State] = None
+
+    def make_controls(self) -> List[Control]:
+        """One Control (with gradients) per control period."""
+        return [self.model.control(requires_grad=True) for _ in range(self.control_count)]
+
+    def _control(self, controls, t):
+        return controls[min(t // self.substeps_per_control, len(controls) - 1)]
+
+    # -- forward ---------------------------------------------------------------
+    def forward(self, state0: State, controls: Sequence[Control]) -> List[wp.array]:
+        """Run the rollout; returns the recorded particle positions (one [N] vec3 array per recorded step)."""
+        if len(controls) < self.control_count:
+            raise ValueError(f"Rollout.forward: need {self.control_count} controls, got {len(controls)}")
+        self.solver.check_dt(self.dt, max((c.max_speed for c in controls), default=0.0))
+        self._controls = list(controls)
+        S, states = self.segment, self._states
+        states[0].assign(state0)
+        self._records, self._checkpoints = [], []
+        check_every = self.solver.config.check_every
+        if not self.checkpointed:
+            self._tape = wp.Tape()
+            with self._tape:
+                for t in range(self.steps):
+                    self.solver.step(states[t], states[t + 1], self._control(controls, t), self.dt,
+                                     self._grids[t], guards=False)
+                    if check_every and (t + 1) % check_every == 0:
+                        self.solver.check_state(states[t + 1], step=t + 1)
+            self._records = [states[t].particle_x for t in self.record_steps]
+            self.final_state = states[self.steps]
+        else:
+            self._tape = None
+            a, b = states[0], states[1]
+            if 0 in self.record_steps:
+                self._records.append(wp.clone(a.particle_x))
+            for t in range(self.steps):
+                if t % S == 0:
+                    self._checkpoints.append(State(self.model).assign(a))
+                self.solver.step(a, b, self._control(controls, t), self.dt, self._grids[0], guards=False)
+                if check_every and (t + 1) % check_every == 0:
+                    self.solver.check_state(b, step=t + 1)
+                if (t + 1) in self.record_steps:
+                    self._records.append(wp.clone(b.particle_x))
+                a, b = b, a
+            self.final_state = State(self.model).assign(a)
+        if not check_every:
+            self.solver.check_state(self.final_state, step=self.steps)
+        return self._records
+
+    # -- backward --------------------------------------------------------------
+    def zero_grad(self, controls: Optional[Sequence[Control]] = None):
+        """Zero the gradients of the model's parameters and of the controls."""
+        m = self.model
+        for a in (m.world_E, m.world_nu, m.world_density, m.world_yield, m.world_table_friction,
+                  m.particle_stiffness, m.ee_friction):
+            if a.grad is not None:
+                a.grad.zero_()
+        for c in controls or self._controls:
+            for a in (c.ee_vel, c.ee_omega):
+                if a.grad is not None:
+                    a.grad.zero_()
+
+    def backward(self, record_grads: Sequence, state0: Optional[State] = None):
+        """Back-propagate d loss / d recorded positions (one [N, 3] array per record, None for zero).
+
+        Gradients accumulate into the model arrays and controls; the gradient with respect to the initial
+        state is left in ``self.initial_grad`` (and added to ``state0``'s gradients if it has them).
+        """
+        if len(record_grads) != len(self.record_steps):
+            raise ValueError(f"Rollout.backward: expected {len(self.record_steps)} record gradients, got {len(record_grads)}")
+        seeds = dict(zip(self.record_steps, record_grads))
+        states, grids = self._states, self._grids
+        if not self.checkpointed:
+            for s in states:
+                s.zero_grad()
+            for g in grids:
+                g.zero_grad()
+            for t, g in seeds.items():
+                _add_grad(states[t].particle_x, g)
+            self._tape.backward()
+            first = states[0]
+        else:
+            S = self.segment
+            adj = None
+            for seg in reversed(range(len(self._checkpoints))):
+                t0, t1 = seg * S, min(seg * S + S, self.steps)
+                for s in states:
+                    s.zero_grad()
+                for g in grids:
+                    g.zero_grad()
+                states[0].assign(self._checkpoints[seg])
+                tape = wp.Tape()
+                with tape:
+                    for t in range(t0, t1):
+                        self.solver.step(states[t - t0], states[t - t0 + 1], self._control(self._controls, t),
+                                         self.dt, grids[t - t0], guards=False)
+                for t in range(t0 + 1, t1 + 1):
+                    if t in seeds:
+                        _add_grad(states[t - t0].particle_x, seeds[t])
+                if adj is not None:
+                    for arr, g in zip(states[t1 - t0].arrays(), adj):
+                        _add_grad(arr, g)
+                tape.backward()
+                adj = [wp.clone(a.grad) for a in states[0].arrays()]
+                tape.reset()
+            first = states[0]
+            if 0 in seeds:
+                _add_grad(first.particle_x, seeds[0])
+        self.initial_grad = {name: wp.clone(a.grad) for name, a in zip(State.ARRAYS, first.arrays())}
+        if state0 is not None and state0.requires_grad:
+            for name, a in zip(State.ARRAYS, state0.arrays()):
+                _add_grad(a, self.initial_grad[name])
+
+    def memory_bytes(self) -> int:
+        """Bytes held by the rollout's states, grids and checkpoints (values and gradients)."""
+        total = 0
+        for s in self._states + self._checkpoints:
+            total += sum(a.capacity * (2 if a.grad is not None else 1) for a in s.arrays())
+        for g in self._grids:
+            total += sum(a.capacity * (2 if a.grad is not None else 1) for a in (g.m, g.mv, g.v))
+        return total

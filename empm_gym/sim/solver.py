@@ -1,0 +1,185 @@
+"""Explicit MLS-MPM / APIC solver: ``SolverMPM.step(state_in, state_out, control, dt)``."""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+import warp as wp
+
+from . import kernels as K
+from .config import SolverConfig
+from .model import Control, Model, State
+
+__all__ = ["SolverMPM", "GridScratch", "SimulationDiverged", "UnstableTimeStep"]
+
+
+class SimulationDiverged(RuntimeError):
+    """The state became non-finite (or impossibly fast); ``step`` and ``worlds`` say where."""
+
+    def __init__(self, message: str, *, step: int, worlds):
+        super().__init__(message)
+        self.step = step
+        self.worlds = list(worlds)
+
+
+class UnstableTimeStep(ValueError):
+    """The requested dt is above the CFL / elastic-wave limit; ``max_dt`` is the largest safe value [s]."""
+
+    def __init__(self, message: str, *, max_dt: float):
+        super().__init__(message)
+        self.max_dt = max_dt
+
+
+class GridScratch:
+    """Grid arrays of one substep (mass [kg], momentum [kg m/s], velocity [m/s]) for every world.
+
+    A differentiable rollout keeps one per taped substep, since the tape replays kernels with the
+    arrays' current values.
+    """
+
+    def __init__(self, model: Model, requires_grad: bool = False):
+        shape = (model.world_count, *model.grid_res)
+        d = model.device
+        self.m = wp.zeros(shape, dtype=float, device=d, requires_grad=requires_grad)
+        self.mv = wp.zeros(shape, dtype=wp.vec3, device=d, requires_grad=requires_grad)
+        self.v = wp.zeros(shape, dtype=wp.vec3, device=d, requires_grad=requires_grad)
+
+    def zero_grad(self):
+        for a in (self.m, self.mv, self.v):
+            if a.grad is not None:
+                a.grad.zero_()
+
+
+_GRID_KERNELS = {}
+
+
+def _grid_kernel(ee_count: int):
+    """Grid-update kernel specialised to the number of end-effectors per world (unrolled loop)."""
+    if ee_count not in _GRID_KERNELS:
+        _GRID_KERNELS[ee_count] = K.make_grid_update_kernel(ee_count)
+    return _GRID_KERNELS[ee_count]
+
+
+class SolverMPM:
+    """Explicit MLS-MPM (APIC transfers, quadratic B-splines) with fixed-corotated elasticity,
+    optional von Mises plasticity, Dirichlet/Coulomb end-effectors and a frictional table.
+
+    ``step`` advances every world of the model by one substep dt [s]."""
+
+    def __init__(self, model: Model, config: Optional[SolverConfig] = None):
+        self.model = model
+        self.config = config or SolverConfig()
+        self.scratch = GridScratch(model)
+        self.step_count = 0
+        self._flags = wp.zeros(model.world_count, dtype=int, device=model.device)
+        self._grid_kernel = _grid_kernel(model.ee_count)
+
+    # -- guards --------------------------------------------------------------
+    def max_stable_dt(self, max_speed: float = 0.0) -> float:
+        """Largest stable substep [s]: C * dx / (c + |v|max) with c the elastic P-wave speed."""
+        c = self.model.max_wave_speed()
+        return self.config.cfl * self.model.dx / (c + max(0.0, float(max_speed)))
+
+    def check_dt(self, dt: float, max_speed: float = 0.0):
+        """Raise :class:`UnstableTimeStep` if dt [s] exceeds the stable limit."""
+        if not np.isfinite(dt) or dt <= 0:
+            raise ValueError(f"dt must be a finite positive time step in seconds, got {dt!r}")
+        limit = self.max_stable_dt(max_speed)
+        if dt > limit * (1.0 + 1e-6):
+            raise UnstableTimeStep(
+                f"dt={dt:.3g} s exceeds the stable limit {limit:.3g} s "
+                f"(CFL {self.config.cfl} * dx {self.model.dx:.3g} m / (wave speed "
+                f"{self.model.max_wave_speed():.3g} m/s + end-effector speed {max_speed:.3g} m/s)); "
+                f"use dt <= {limit:.3g} s",
+                max_dt=limit,
+            )
+
+    def check_state(self, state: State, step: Optional[int] = None):
+        """Raise :class:`SimulationDiverged` if any world's state is non-finite or too fast."""
+        m = self.model
+        self._flags.zero_()
+        wp.launch(
+            K.check_state_kernel,
+            dim=m.particle_count,
+            inputs=[state.particle_x, state.particle_v, state.particle_F, m.particle_world, self.config.max_speed],
+            outputs=[self._flags],
+            device=m.device,
+        )
+        flags = self._flags.numpy()
+        if np.any(flags):
+            bad = np.nonzero(flags)[0].tolist()
+            why = "non-finite values" if np.any(flags == 1) else f"particle speed above {self.config.max_speed} m/s"
+            step = self.step_count if step is None else step
+            raise SimulationDiverged(
+                f"simulation diverged at step {step} in world(s) {bad}: {why}; lower dt, stiffen the CFL number "
+                f"(SolverConfig.cfl) or check the material and end-effector speeds",
+                step=step,
+                worlds=bad,
+            )
+
+    # -- step ----------------------------------------------------------------
+    def step(self, state_in: State, state_out: State, control: Control, dt: float,
+             scratch: Optional[GridScratch] = None, *, guards: bool = True):
+        """Advance all worlds by one substep of dt [s] from ``state_in`` into ``state_out``.
+
+        ``scratch`` gives the grid arrays to use (one per taped substep in a differentiable rollout);
+        ``guards=False`` skips the dt and divergence checks (a rollout that already made them).
+        """
+        if guards:
+            self.check_dt(dt, control.max_speed)
+        m = self.model
+        g = scratch or self.scratch
+        g.m.zero_()
+        g.mv.zero_()
+        origin = wp.vec3(*m.grid_origin)
+        res = wp.vec3i(*m.grid_res)
+        wp.launch(
+            K.p2g_kernel,
+            dim=m.particle_count,
+            inputs=[
+                state_in.particle_x, state_in.particle_v, state_in.particle_C, state_in.particle_F,
+                m.particle_world, m.particle_vol, m.particle_stiffness,
+                m.world_E, m.world_nu, m.world_density,
+                origin, m.dx, m.inv_dx, res, dt,
+            ],
+            outputs=[g.m, g.mv],
+            device=m.device,
+        )
+        has_table = 1 if m.table is not None else 0
+        table_z = float(m.table.height) if m.table is not None else 0.0
+        wp.launch(
+            self._grid_kernel,
+            dim=(m.world_count, *m.grid_res),
+            inputs=[
+                g.m, g.mv, origin, m.dx, res, dt, wp.vec3(*m.gravity), m.grid.boundary_cells,
+                has_table, table_z, m.world_table_friction,
+                m.ee_shape, m.ee_radius, m.ee_half_height, m.ee_half_extents, m.ee_friction,
+                state_in.ee_pos, state_in.ee_rot, control.ee_vel, control.ee_omega, control.ee_grip,
+            ],
+            outputs=[g.v],
+            device=m.device,
+        )
+        wp.launch(
+            K.g2p_kernel,
+            dim=m.particle_count,
+            inputs=[
+                state_in.particle_x, state_in.particle_F, m.particle_world, m.particle_stiffness,
+                m.world_E, m.world_nu, m.world_yield, m.world_plastic,
+                g.v, origin, m.dx, m.inv_dx, res, dt, self.config.plasticity_min_singular,
+            ],
+            outputs=[state_out.particle_x, state_out.particle_v, state_out.particle_C, state_out.particle_F],
+            device=m.device,
+        )
+        if m.ee_count > 0:
+            wp.launch(
+                K.ee_integrate_kernel,
+                dim=m.world_count * m.ee_count,
+                inputs=[state_in.ee_pos, state_in.ee_rot, control.ee_vel, control.ee_omega, dt],
+                outputs=[state_out.ee_pos, state_out.ee_rot],
+                device=m.device,
+            )
+        self.step_count += 1
+        ce = self.config.check_every
+        if guards and ce > 0 and self.step_count % ce == 0:
+            self.check_state(state_out)
