@@ -11,7 +11,6 @@ replays each segment of S substeps on a fresh tape (Warp's fluid-checkpoint patt
 with S, not with the horizon. ``checkpoint_every=None`` tapes the whole rollout at once.
 """
 
-from __future__ import annotations
 
 from typing import List, Optional, Sequence
 
