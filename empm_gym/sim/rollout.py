@@ -178,7 +178,7 @@ class Rollout:
                         _add_grad(arr, g)
                 tape.backward()
                 adj = [wp.clone(a.grad) for a in states[0].arrays()]
-                tape.reset()
+                # no tape.reset(): it would zero the accumulated parameter gradients
             first = states[0]
             if 0 in seeds:
                 _add_grad(first.particle_x, seeds[0])

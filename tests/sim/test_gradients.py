@@ -1,0 +1,204 @@
+"""Tape gradients of rollouts against central finite differences (as warp.autograd.gradcheck does)."""
+
+import numpy as np
+import pytest
+
+from empm_gym.sim import EndEffectorConfig, MaterialConfig, Rollout, SolverMPM, TableConfig
+
+from .conftest import block_model
+
+DT = 5e-4
+
+
+def _loss_and_grads(model, steps, *, spc=5, checkpoint_every=None, setup=None, W=None, record_every=None):
+    """Loss = sum_t sum_p W_tp . x_tp over recorded frames; returns (loss, rollout, controls)."""
+    solver = SolverMPM(model)
+    ro = Rollout(model, solver, steps=steps, dt=DT, substeps_per_control=spc,
+                 record_every=record_every or steps, checkpoint_every=checkpoint_every)
+    ctrls = ro.make_controls()
+    s0 = model.state(requires_grad=True)
+    if setup:
+        setup(s0, ctrls)
+    recs = ro.forward(s0, ctrls)
+    if record_every is None:  # W weighs the final frame only
+        W = [None] * (len(recs) - 1) + [W[0]]
+    loss = float(sum((W[i] * r.numpy()).sum() for i, r in enumerate(recs) if W[i] is not None))
+    ro.zero_grad(ctrls)
+    ro.backward(list(W), state0=s0)
+    return loss, ro, ctrls, s0
+
+
+def _weights(model, records, seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.normal(size=(records, model.particle_count, 3)).astype(np.float32)
+
+
+def _fd(model, steps, set_value, values, *, setup=None, W=None, spc=5):
+    out = []
+    for v in values:
+        set_value(v)
+        out.append(_loss_and_grads(model, steps, setup=setup, W=W, spc=spc)[0])
+    return out
+
+
+def _set_world(model, name):
+    arr = getattr(model, name)
+
+    def setter(v):
+        a = arr.numpy()
+        a[0] = v
+        arr.assign(a)
+        model.sync_materials_from_device()
+
+    return setter
+
+
+def _check(analytic, numeric, rtol, what):
+    print(f"{what}: tape {analytic:.6g}, finite difference {numeric:.6g}")
+    assert np.isfinite(analytic), f"{what}: non-finite gradient"
+    assert abs(numeric) > 0, f"{what}: the loss does not depend on the parameter; the test would prove nothing"
+    assert abs(analytic - numeric) <= rtol * abs(numeric), f"{what}: tape {analytic:.6g} vs finite difference {numeric:.6g}"
+
+
+def _squeeze_scene(material, **kw):
+    # a block dropped onto the table with a downward initial velocity: it compresses and rebounds
+    return block_model(material=material, requires_grad=True, jitter=0.4, **kw)
+
+
+def _initial_velocity(s0, ctrls):
+    v = np.zeros((s0.particle_v.shape[0], 3), np.float32)
+    v[:, 2] = -0.4
+    v[:, 0] = 0.1
+    s0.particle_v.assign(v)
+
+
+@pytest.mark.parametrize("param,value,rel", [("world_E", 2e4, 0.02), ("world_nu", 0.3, 0.03)])
+def test_material_gradient_matches_finite_difference(param, value, rel):
+    model = _squeeze_scene(MaterialConfig(E=2e4, nu=0.3, density=1000.0))
+    steps = 40
+    W = _weights(model, 1)
+    _, _, _, _ = _loss_and_grads(model, steps, setup=_initial_velocity, W=W)
+    set_v = _set_world(model, param)
+    set_v(value)
+    _, ro, _, _ = _loss_and_grads(model, steps, setup=_initial_velocity, W=W)
+    analytic = float(getattr(model, param).grad.numpy()[0])
+    h = rel * value
+    lp, lm = _fd(model, steps, set_v, [value + h, value - h], setup=_initial_velocity, W=W)
+    set_v(value)
+    _check(analytic, (lp - lm) / (2 * h), 0.05, f"d loss / d {param}")
+
+
+def test_yield_stress_gradient_matches_finite_difference():
+    ys = 1.5e3
+    press = (EndEffectorConfig(shape="box", half_extents=(0.05, 0.05, 0.01)), (0.0, 0.0, 0.05))
+
+    def setup(s0, ctrls):
+        for c in ctrls:
+            c.set(velocity=[[[0.0, 0.0, -0.4]]], grip=[[1]])
+
+    model = block_model(material=MaterialConfig(E=3e4, nu=0.3, density=1000.0, yield_stress=ys),
+                        end_effectors=[press], requires_grad=True)
+    steps = 40
+    W = _weights(model, 1, seed=3)
+    _loss_and_grads(model, steps, setup=setup, W=W)
+    analytic = float(model.world_yield.grad.numpy()[0])
+    set_v = _set_world(model, "world_yield")
+    h = 0.03 * ys
+    lp, lm = _fd(model, steps, set_v, [ys + h, ys - h], setup=setup, W=W)
+    set_v(ys)
+    _check(analytic, (lp - lm) / (2 * h), 0.05, "d loss / d yield_stress")
+
+
+def test_table_friction_gradient_matches_finite_difference():
+    mu = 0.3
+
+    def setup(s0, ctrls):
+        v = np.zeros((s0.particle_v.shape[0], 3), np.float32)
+        v[:, 0] = 0.5  # sliding along the table
+        s0.particle_v.assign(v)
+
+    model = block_model(material=MaterialConfig(E=2e4, nu=0.3, density=1000.0), table=TableConfig(friction=mu),
+                        lower=(-0.03, -0.03, 0.0), upper=(0.0, 0.03, 0.03), requires_grad=True)
+    steps = 60
+    W = np.zeros((1, model.particle_count, 3), np.float32)
+    W[..., 0] = 1.0  # loss = sum of x: how far the block slid
+    _loss_and_grads(model, steps, setup=setup, W=W)
+    analytic = float(model.world_table_friction.grad.numpy()[0])
+    set_v = _set_world(model, "world_table_friction")
+    h = 0.02
+    lp, lm = _fd(model, steps, set_v, [mu + h, mu - h], setup=setup, W=W)
+    set_v(mu)
+    numeric = (lp - lm) / (2 * h)
+    assert numeric < 0  # more friction, less sliding
+    _check(analytic, numeric, 0.05, "d loss / d table friction")
+
+
+def _gripper_model():
+    grip = (EndEffectorConfig(shape="sphere", radius=0.018), (0.0, 0.0, 0.02))
+    return block_model(material=MaterialConfig(E=2e4, nu=0.3, density=1000.0), end_effectors=[grip],
+                       requires_grad=True)
+
+
+def test_action_gradient_several_steps_before_loss_matches_finite_difference():
+    # a closed gripper inside the block drags it; the loss sees only the final frame, 3 control
+    # periods (15 substeps) after the perturbed action.
+    model = _gripper_model()
+    steps, spc = 30, 5
+    vel = np.zeros((steps // spc, 1, 1, 3), np.float32)
+    vel[:, 0, 0] = (0.2, 0.0, 0.3)
+    W = _weights(model, 1, seed=5)
+
+    def setup_with(v):
+        def setup(s0, ctrls):
+            for c, vc in zip(ctrls, v):
+                c.set(velocity=vc, grip=[[1]])
+        return setup
+
+    _, ro, ctrls, _ = _loss_and_grads(model, steps, spc=spc, setup=setup_with(vel), W=W)
+    k, axis = 2, 0
+    analytic = float(ctrls[k].ee_vel.grad.numpy()[0, axis])
+    h = 2e-3
+    vals = []
+    for sgn in (1, -1):
+        v = vel.copy()
+        v[k, 0, 0, axis] += sgn * h
+        vals.append(_loss_and_grads(model, steps, spc=spc, setup=setup_with(v), W=W)[0])
+    _check(analytic, (vals[0] - vals[1]) / (2 * h), 0.05, "d loss / d action")
+
+
+def test_checkpointed_gradients_equal_full_tape():
+    model = _gripper_model()
+    steps, spc = 30, 5
+    W = _weights(model, 4, seed=7)
+
+    def setup(s0, ctrls):
+        _initial_velocity(s0, ctrls)
+        for c in ctrls:
+            c.set(velocity=[[[0.1, 0.0, 0.2]]], grip=[[1]])
+
+    def grads(ckpt):
+        _, ro, ctrls, s0 = _loss_and_grads(model, steps, spc=spc, setup=setup, W=W, record_every=10,
+                                           checkpoint_every=ckpt)
+        return [model.world_E.grad.numpy().copy(), model.world_nu.grad.numpy().copy(),
+                np.stack([c.ee_vel.grad.numpy() for c in ctrls]), ro.initial_grad["particle_x"].numpy(),
+                ro.initial_grad["particle_v"].numpy()], ro
+
+    full, ro_full = grads(None)
+    ckpt, ro_ckpt = grads(7)  # segments that do not divide the horizon nor align with records
+    for a, b in zip(full, ckpt):
+        assert np.all(np.isfinite(a)) and np.abs(a).max() > 0
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6 * np.abs(a).max())
+    assert ro_ckpt.memory_bytes() < ro_full.memory_bytes() / 2
+
+
+def test_gradients_stay_finite_over_long_horizon():
+    model = _squeeze_scene(MaterialConfig(E=2e4, nu=0.3, density=1000.0, yield_stress=2e3))
+    steps = 800  # 0.4 s: fall, impact, plastic flattening, rest
+    W = _weights(model, 1, seed=11)
+    _, ro, _, _ = _loss_and_grads(model, steps, setup=_initial_velocity, W=W, checkpoint_every=100)
+    for name in ("world_E", "world_nu", "world_yield", "world_density", "world_table_friction"):
+        g = getattr(model, name).grad.numpy()
+        assert np.all(np.isfinite(g)), f"{name} gradient is not finite after {steps} steps"
+    assert abs(model.world_E.grad.numpy()[0]) > 0
+    for name, g in ro.initial_grad.items():
+        assert np.all(np.isfinite(g.numpy())), f"initial {name} gradient is not finite"
