@@ -80,27 +80,28 @@ def sample_points(points: np.ndarray, dx: float, particles_per_cell: float = 8, 
                   fill_interior: bool = True, seed: Optional[int] = 0, jitter: float = 0.0):
     """Fill the solid occupied by a point set (e.g. a fused surface scan).
 
-    Points are voxelised at ``voxel`` (m, default dx / 2); voxels are closed morphologically and,
-    with ``fill_interior``, enclosed cavities are filled, so a surface-only scan yields a solid body.
+    Points are voxelised at ``voxel`` (m, default dx / 4) with voxels centred on a lattice; voxels are
+    closed morphologically (gaps up to ``2 * voxel`` between points) and, with ``fill_interior``,
+    enclosed cavities are filled, so a closed surface-only scan yields a solid body. The sampled body
+    extends at most half a voxel beyond the points.
     """
     from scipy import ndimage
 
     pts = np.asarray(points, float).reshape(-1, 3)
     if len(pts) < 4 or not np.all(np.isfinite(pts)):
         raise ValueError(f"sample_points: need at least 4 finite points, got {len(pts)}")
-    h = voxel or dx / 2.0
-    lo = pts.min(0) - 2 * h
-    idx = np.floor((pts - lo) / h).astype(int)
-    dims = idx.max(0) + 3
+    h = voxel or dx / 4.0
+    pad = 3
+    lo = pts.min(0) - pad * h
+    idx = np.rint((pts - lo) / h).astype(int)
+    dims = idx.max(0) + pad + 1
     occ = np.zeros(dims, bool)
     occ[idx[:, 0], idx[:, 1], idx[:, 2]] = True
-    occ = ndimage.binary_closing(occ, structure=np.ones((3, 3, 3)), iterations=1)
+    occ = ndimage.binary_closing(occ, structure=ndimage.generate_binary_structure(3, 1), iterations=2)
     if fill_interior:
         occ = ndimage.binary_fill_holes(occ)
-    # a lattice at the particle spacing, kept where the voxel is occupied
-    hi = lo + dims * h
-    cand, vol = _lattice(lo, hi, _spacing(dx, particles_per_cell), seed, jitter)
-    ci = np.clip(np.floor((cand - lo) / h).astype(int), 0, dims - 1)
+    cand, vol = _lattice(lo - 0.5 * h, lo + (dims - 0.5) * h, _spacing(dx, particles_per_cell), seed, jitter)
+    ci = np.clip(np.rint((cand - lo) / h).astype(int), 0, dims - 1)
     keep = occ[ci[:, 0], ci[:, 1], ci[:, 2]]
     out = cand[keep]
     if len(out) == 0:

@@ -1,0 +1,182 @@
+"""Batched worlds, determinism, input validation and the solver's guards."""
+
+import numpy as np
+import pytest
+
+from empm_gym.sim import (EndEffectorConfig, GridConfig, MaterialConfig, ModelBuilder, SimulationDiverged, SolverMPM,
+                          TableConfig, UnstableTimeStep, sample_box, sample_cylinder, sample_mesh, sample_points,
+                          sample_sphere)
+
+from .conftest import DEVICE, block_model, run
+
+GRIPPER = (EndEffectorConfig(shape="capsule", radius=0.012, half_height=0.02), (0.0, 0.0, 0.02))
+MATERIALS = [
+    MaterialConfig(E=2e4, nu=0.3, density=1000.0),
+    MaterialConfig(E=6e4, nu=0.2, density=1200.0, yield_stress=2e3),
+    MaterialConfig(E=1e4, nu=0.45, density=900.0),
+]
+VELOCITIES = np.array([[0.1, 0.0, 0.2], [-0.2, 0.1, 0.0], [0.0, 0.0, 0.3]], np.float32)
+
+
+def _batched_run(worlds, steps=40, dt=4e-4):
+    m = block_model(worlds=len(worlds), materials=[MATERIALS[i] for i in worlds], end_effectors=[GRIPPER])
+    c = m.control()
+    c.set(velocity=VELOCITIES[list(worlds)][:, None, :], grip=np.ones((len(worlds), 1)))
+    s, _ = run(m, steps, dt, control=c)
+    return m, s
+
+
+def test_batched_worlds_equal_separate_runs():
+    m, s = _batched_run([0, 1, 2])
+    x = s.particle_x.numpy()
+    for i in range(3):
+        _, si = _batched_run([i])
+        np.testing.assert_allclose(x[m.world_slice(i)], si.particle_x.numpy(), rtol=0, atol=1e-6)
+        np.testing.assert_allclose(s.ee_pos.numpy()[i], si.ee_pos.numpy()[0], atol=1e-7)
+    # the worlds really differ (different materials and actions)
+    assert np.abs(x[m.world_slice(0)] - x[m.world_slice(1)]).max() > 1e-3
+
+
+def test_same_inputs_give_bit_identical_trajectories():
+    _, a = _batched_run([0, 1])
+    _, b = _batched_run([0, 1])
+    for k, v in a.to_numpy().items():
+        assert np.array_equal(v, b.to_numpy()[k]), k
+
+
+def test_state_numpy_round_trip_is_exact():
+    m, s = _batched_run([1], steps=10)
+    d = s.to_numpy()
+    s2 = m.state().from_numpy(d)
+    for k, v in s2.to_numpy().items():
+        assert np.array_equal(v, d[k])
+
+
+@pytest.mark.parametrize(
+    "kwargs,field",
+    [
+        (dict(E=0.0), "E"),
+        (dict(E=-5.0), "E"),
+        (dict(nu=0.5), "nu"),
+        (dict(nu=-1.0), "nu"),
+        (dict(density=0.0), "density"),
+        (dict(yield_stress=-1.0), "yield_stress"),
+        (dict(E=float("nan")), "E"),
+    ],
+)
+def test_material_config_names_bad_field_and_value(kwargs, field):
+    with pytest.raises(ValueError, match=field) as e:
+        MaterialConfig(**kwargs)
+    assert repr(list(kwargs.values())[0]) in str(e.value) or "finite" in str(e.value)
+
+
+def test_other_configs_validate():
+    with pytest.raises(ValueError, match="friction"):
+        TableConfig(friction=-0.1)
+    with pytest.raises(ValueError, match="shape"):
+        EndEffectorConfig(shape="cone")
+    with pytest.raises(ValueError, match="radius"):
+        EndEffectorConfig(shape="sphere", radius=0.0)
+    with pytest.raises(ValueError, match="dx"):
+        GridConfig(dx=-1.0)
+
+
+def test_time_step_above_cfl_limit_is_refused_with_largest_safe_value():
+    m = block_model(material=MaterialConfig(E=1e6, nu=0.3, density=1000.0))
+    solver = SolverMPM(m)
+    limit = solver.max_stable_dt()
+    c = np.sqrt((m.materials[0].lame[1] + 2 * m.materials[0].lame[0]) / 1000.0)
+    assert limit == pytest.approx(0.4 * m.dx / c, rel=1e-6)
+    with pytest.raises(UnstableTimeStep) as e:
+        solver.step(m.state(), m.state(), m.control(), 2 * limit)
+    assert e.value.max_dt == pytest.approx(limit)
+    assert f"{limit:.3g}" in str(e.value)
+    solver.step(m.state(), m.state(), m.control(), limit)  # the limit itself is accepted
+
+
+def test_fast_end_effector_lowers_the_safe_time_step():
+    m = block_model(end_effectors=[GRIPPER])
+    solver = SolverMPM(m)
+    c = m.control().set(velocity=[[[5.0, 0.0, 0.0]]])
+    dt = solver.max_stable_dt()
+    with pytest.raises(UnstableTimeStep):
+        solver.step(m.state(), m.state(), c, dt)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_non_finite_control_raises_before_any_kernel(bad):
+    m = block_model(end_effectors=[GRIPPER])
+    with pytest.raises(ValueError, match="non-finite"):
+        m.control().set(velocity=[[[bad, 0.0, 0.0]]])
+    with pytest.raises(ValueError, match="shape"):
+        m.control().set(velocity=np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="grip"):
+        m.control().set(grip=[[0.5]])
+
+
+def test_non_finite_state_raises_simulation_diverged_with_step_and_world():
+    m = block_model(worlds=2)
+    s = m.state()
+    v = np.zeros((m.particle_count, 3), np.float32)
+    v[m.world_slice(1).start + 3] = np.nan
+    s.particle_v.assign(v)
+    solver = SolverMPM(m)
+    with pytest.raises(SimulationDiverged) as e:
+        run(m, 3, 2e-4, state=s, solver=solver)
+    assert e.value.worlds == [1]
+    assert e.value.step == 1
+    assert "world(s) [1]" in str(e.value)
+
+
+def test_particles_never_leave_the_grid():
+    # a block thrown hard at the corner of a tiny grid with no table: clamped, never out of range
+    m = block_model(table=None, gravity=(0, 0, 0), grid_lower=(-0.06, -0.06, -0.04), grid_upper=(0.06, 0.06, 0.08),
+                    lower=(-0.01, -0.01, 0.0), upper=(0.01, 0.01, 0.02))
+    s = m.state()
+    s.particle_v.assign(np.tile(np.array([[3.0, 3.0, -3.0]], np.float32), (m.particle_count, 1)))
+    out, _ = run(m, 200, 2e-4, state=s)
+    x = out.particle_x.numpy()
+    lo = np.array(m.grid_origin) + m.dx
+    hi = np.array(m.grid_origin) + (np.array(m.grid_res) - 2) * m.dx
+    assert np.all(x >= lo - 1e-6) and np.all(x <= hi + 1e-6)
+    assert np.all(np.isfinite(x))
+
+
+def test_particles_outside_grid_are_rejected_at_build_time():
+    b = ModelBuilder(GridConfig(lower=(0, 0, 0), upper=(0.2, 0.2, 0.2), dx=0.02))
+    w = b.add_world(MaterialConfig())
+    with pytest.raises(ValueError, match="outside the usable grid"):
+        b.add_particles(w, [[0.5, 0.1, 0.1]], [1e-6])
+
+
+def test_samplers_fill_the_right_volume():
+    dx = 0.01
+    x, v = sample_box((0, 0, 0), (0.04, 0.03, 0.02), dx, 8)
+    assert v.sum() == pytest.approx(0.04 * 0.03 * 0.02, rel=1e-9)
+    assert len(x) == pytest.approx(8 * 4 * 3 * 2, rel=0.15)
+    x, v = sample_cylinder((0, 0, 0), (0.3, 0, 0), 0.01, dx, 8)
+    assert v.sum() == pytest.approx(np.pi * 0.01**2 * 0.3, rel=1e-9)
+    assert np.all(np.hypot(x[:, 1], x[:, 2]) <= 0.01 + 1e-9) and x[:, 0].min() >= 0 and x[:, 0].max() <= 0.3
+    x, v = sample_sphere((0, 0, 0), 0.03, dx, 8)
+    assert np.all(np.linalg.norm(x, axis=1) <= 0.03 + 1e-9)
+    assert len(x) * (dx / 2) ** 3 == pytest.approx(4 / 3 * np.pi * 0.03**3, rel=0.15)
+
+
+def test_sample_points_fills_interior_of_a_surface_scan():
+    # only the surface of a 4 cm cube is given; the sampled body must be solid
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-0.02, 0.02, (20000, 3))
+    axis = rng.integers(0, 3, len(pts))
+    pts[np.arange(len(pts)), axis] = np.sign(rng.normal(size=len(pts))) * 0.02
+    x, v = sample_points(pts, 0.01, 8)
+    centre = np.abs(x).max(1) < 0.01
+    assert centre.sum() >= 0.7 * 8 * 8  # the inner 2 cm cube (8 cells of 1 cm) is filled
+    assert v.sum() == pytest.approx(0.04**3, rel=0.25)  # at most half a voxel (dx / 8) outward
+
+
+def test_sample_mesh_fills_a_closed_tetrahedron():
+    verts = np.array([[0, 0, 0], [0.06, 0, 0], [0, 0.06, 0], [0, 0, 0.06]], np.float32)
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    x, v = sample_mesh(verts, faces, 0.005, 8)
+    assert np.all(x.sum(1) <= 0.06 + 1e-6) and np.all(x >= -1e-6)
+    assert v.sum() == pytest.approx(0.06**3 / 6, rel=0.2)
