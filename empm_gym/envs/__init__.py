@@ -1,0 +1,22 @@
+"""Gymnasium environments (single and natively batched) for rope and dough tasks with geometry targets.
+
+``import empm_gym`` registers the ids (``EMPM/RopeReshape-v0``, ``EMPM/DoughFlatten-v0``,
+``EMPM/DoughShape-v0``); the classes are importable from here without loading Warp kernels.
+"""
+
+from .registration import ENV_IDS
+
+__all__ = ["ENV_IDS", "BatchedCore", "EMPMEnv", "EMPMVectorEnv", "RopeReshapeEnv", "DoughFlattenEnv",
+           "DoughShapeEnv", "RopeReshapeVectorEnv", "DoughFlattenVectorEnv", "DoughShapeVectorEnv"]
+
+
+def __getattr__(name):
+    if name == "BatchedCore":
+        from .core import BatchedCore
+
+        return BatchedCore
+    if name in __all__:
+        from . import env
+
+        return getattr(env, name)
+    raise AttributeError(f"module 'empm_gym.envs' has no attribute {name!r}")

@@ -1,0 +1,304 @@
+"""Task definitions: the scene (object, end-effectors, grid), the action mapping and the target family.
+
+A :class:`Task` is plain geometry and numbers; :class:`empm_gym.envs.core.BatchedCore` turns one into a
+batch of simulated worlds. Units: metres, seconds, Pascals; z up, table at z = 0.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Dict, Optional, Sequence, Tuple
+
+import numpy as np
+
+from ..sim import EndEffectorConfig, GridConfig, sample_box, sample_cylinder
+
+__all__ = ["Task", "RopeReshapeTask", "DoughFlattenTask", "DoughShapeTask", "TASKS"]
+
+
+def _exact_count(rng: np.random.Generator, lower, upper, inside, count: int) -> np.ndarray:
+    """``count`` points uniformly distributed in the region ``inside(points) -> bool`` of a bounding box."""
+    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+    out = []
+    have = 0
+    while have < count:
+        cand = rng.uniform(lower, upper, size=(4 * count, 3))
+        cand = cand[inside(cand)]
+        out.append(cand)
+        have += len(cand)
+    return np.concatenate(out)[:count]
+
+
+def _rot_z(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass
+class Task:
+    """Base class: the fields every task sets and the methods it implements."""
+
+    name: str = ""
+    dx: float = 0.015
+    """Default grid cell size [m]."""
+    grid_lower: Tuple[float, float, float] = (-0.2, -0.2, -0.05)
+    """Lower corner of the simulation grid [m]."""
+    grid_upper: Tuple[float, float, float] = (0.2, 0.2, 0.1)
+    """Upper corner of the simulation grid [m]."""
+    ee_lower: Tuple[float, float, float] = (-0.15, -0.15, 0.0)
+    """Lower corner of the box the end-effector centres are kept in [m]."""
+    ee_upper: Tuple[float, float, float] = (0.15, 0.15, 0.08)
+    """Upper corner of the box the end-effector centres are kept in [m]."""
+    max_speed: float = 0.2
+    """End-effector speed [m/s] per axis that an action of 1 commands."""
+    grip_control: bool = False
+    """Whether the action carries one grip command per end-effector."""
+    default_grip: Tuple[int, ...] = ()
+    """Grip flags (1 = closed) when the action carries none, and at reset."""
+    control_dt: float = 0.05
+    """Control period [s]: one env step."""
+    max_episode_steps: int = 100
+    material: Dict = field(default_factory=dict)
+    """Default material (keys of MaterialConfig plus "friction", the table's Coulomb coefficient)."""
+    success_chamfer: float = 0.01
+    """Chamfer distance [m] below which the episode counts as solved."""
+    occupancy_voxel: float = 0.02
+    """Voxel size [m] of the occupancy IoU."""
+    target_points: int = 1024
+    """Number of points in the dense target point cloud (IoU and obs/chamfer subsets)."""
+    camera_height: float = 0.3
+    """Height [m] of the top-down depth camera."""
+
+    def end_effectors(self) -> Sequence[Tuple[EndEffectorConfig, Tuple[float, float, float]]]:
+        raise NotImplementedError
+
+    def object_particles(self, dx: float, particles_per_cell: float):
+        """(positions [n, 3] m, rest volumes [n] m^3) of the object at rest."""
+        raise NotImplementedError
+
+    def sample_target(self, rng: np.random.Generator) -> np.ndarray:
+        """A target point cloud [target_points, 3] drawn from the task's family."""
+        raise NotImplementedError
+
+    def grid(self, dx: float) -> GridConfig:
+        """The grid for cell size dx [m]: three cell layers below the table (z = 0) whatever dx is."""
+        lower = (self.grid_lower[0], self.grid_lower[1], -3.0 * dx)
+        upper = (self.grid_upper[0], self.grid_upper[1], max(self.grid_upper[2], 9.0 * dx))
+        return GridConfig(lower=lower, upper=upper, dx=dx)
+
+    @property
+    def ee_count(self) -> int:
+        return len(self.end_effectors())
+
+    @property
+    def action_dim(self) -> int:
+        return 3 * self.ee_count + (self.ee_count if self.grip_control else 0)
+
+
+# ---------------------------------------------------------------------------- rope
+ROPE_SHAPES = ("straight", "arc", "U", "S")
+
+
+@dataclass
+class RopeReshapeTask(Task):
+    name: str = "RopeReshape"
+    dx: float = 0.015
+    grid_lower: Tuple[float, float, float] = (-0.25, -0.25, -0.045)
+    grid_upper: Tuple[float, float, float] = (0.25, 0.25, 0.105)
+    ee_lower: Tuple[float, float, float] = (-0.19, -0.19, 0.012)
+    ee_upper: Tuple[float, float, float] = (0.19, 0.19, 0.06)
+    max_speed: float = 0.25
+    grip_control: bool = False
+    default_grip: Tuple[int, ...] = (1, 1)
+    max_episode_steps: int = 100
+    material: Dict = field(default_factory=lambda: {"E": 3.0e4, "nu": 0.3, "density": 1000.0,
+                                                   "yield_stress": None, "friction": 0.4})
+    success_chamfer: float = 0.012
+    occupancy_voxel: float = 0.02
+    length: float = 0.30
+    """Rope length [m]."""
+    radius: float = 0.012
+    """Rope radius [m]."""
+    gripper_radius: float = 0.02
+    """Radius [m] of the two spherical grippers."""
+    shapes: Tuple[str, ...] = ROPE_SHAPES
+    """Target family drawn from at reset."""
+
+    def end_effectors(self):
+        cfg = EndEffectorConfig(shape="sphere", radius=self.gripper_radius, friction=0.8)
+        x = 0.5 * self.length - 0.8 * self.gripper_radius
+        return [(cfg, (-x, 0.0, self.radius)), (cfg, (x, 0.0, self.radius))]
+
+    def object_particles(self, dx, ppc):
+        h = 0.5 * self.length
+        return sample_cylinder((-h, 0.0, self.radius), (h, 0.0, self.radius), self.radius, dx, ppc)
+
+    def curve(self, kind: str, rng: np.random.Generator, n: int = 400) -> np.ndarray:
+        """Centre line [n, 2] (xy, m) of a target of the given kind, of the rope's length, centred."""
+        L = self.length
+        s = np.linspace(0.0, 1.0, n)
+        if kind == "straight":
+            pts = np.stack([(s - 0.5) * L, np.zeros(n)], 1)
+        elif kind == "arc":
+            phi = rng.uniform(math.pi / 3, math.pi)
+            R = L / phi
+            a = (s - 0.5) * phi
+            pts = np.stack([R * np.sin(a), R * (1 - np.cos(a))], 1)
+        elif kind == "U":
+            R = rng.uniform(0.03, 0.045)
+            leg = 0.5 * (L - math.pi * R)
+            t = s * L
+            pts = np.zeros((n, 2))
+            m1 = t < leg
+            m2 = (t >= leg) & (t <= leg + math.pi * R)
+            m3 = t > leg + math.pi * R
+            pts[m1] = np.stack([-R * np.ones(m1.sum()), leg - t[m1]], 1)
+            a = (t[m2] - leg) / R
+            pts[m2] = np.stack([-R * np.cos(a), -R * np.sin(a)], 1)
+            pts[m3] = np.stack([R * np.ones(m3.sum()), t[m3] - leg - math.pi * R], 1)
+        elif kind == "S":
+            phi = rng.uniform(math.pi / 2, math.pi)
+            R = 0.5 * L / phi
+            t = s * 2 * phi
+            pts = np.zeros((n, 2))
+            m1 = t <= phi
+            a = t[m1]
+            pts[m1] = np.stack([R * np.sin(a), R * (1 - np.cos(a))], 1)
+            end = np.array([R * math.sin(phi), R * (1 - math.cos(phi))])
+            tang = np.array([math.cos(phi), math.sin(phi)])
+            nrm = np.array([-tang[1], tang[0]])  # left normal at the joint; the second arc turns right
+            a = t[~m1] - phi
+            centre = end - R * nrm
+            ang0 = math.atan2(nrm[1], nrm[0])
+            pts[~m1] = centre + R * np.stack([np.cos(ang0 - a), np.sin(ang0 - a)], 1)
+        else:
+            raise ValueError(f"rope target shape must be one of {ROPE_SHAPES}, got {kind!r}")
+        return pts - pts.mean(0)
+
+    def sample_target(self, rng):
+        kind = self.shapes[int(rng.integers(len(self.shapes)))]
+        c = self.curve(kind, rng)
+        ang = rng.uniform(-math.pi / 6, math.pi / 6)
+        c = c @ _rot_z(ang)[:2, :2].T + rng.uniform(-0.02, 0.02, size=2)
+        seg = np.diff(c, axis=0)
+        cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(seg, axis=1))])
+        u = rng.uniform(0.0, cum[-1], self.target_points)
+        k = np.clip(np.searchsorted(cum, u) - 1, 0, len(seg) - 1)
+        f = ((u - cum[k]) / np.maximum(cum[k + 1] - cum[k], 1e-12))[:, None]
+        centre = c[k] + f * seg[k]
+        tang = seg[k] / np.maximum(np.linalg.norm(seg[k], axis=1, keepdims=True), 1e-12)
+        nrm = np.stack([-tang[:, 1], tang[:, 0]], 1)
+        r = self.radius * np.sqrt(rng.uniform(0, 1, self.target_points))
+        a = rng.uniform(0, 2 * math.pi, self.target_points)
+        xy = centre + (r * np.cos(a))[:, None] * nrm
+        z = self.radius + r * np.sin(a)
+        return np.concatenate([xy, z[:, None]], 1)
+
+
+# ---------------------------------------------------------------------------- dough
+@dataclass
+class _DoughTask(Task):
+    dx: float = 0.01
+    grid_lower: Tuple[float, float, float] = (-0.13, -0.13, -0.03)
+    grid_upper: Tuple[float, float, float] = (0.13, 0.13, 0.1)
+    material: Dict = field(default_factory=lambda: {"E": 3.0e4, "nu": 0.3, "density": 1000.0,
+                                                   "yield_stress": 1.0e3, "friction": 0.6})
+    occupancy_voxel: float = 0.015
+    size: Tuple[float, float, float] = (0.06, 0.06, 0.04)
+    """Size [m] of the dough lump (a box on the table, centred at the origin)."""
+
+    @property
+    def volume(self) -> float:
+        return float(np.prod(self.size))
+
+    def object_particles(self, dx, ppc):
+        sx, sy, sz = self.size
+        return sample_box((-sx / 2, -sy / 2, 0.0), (sx / 2, sy / 2, sz), dx, ppc)
+
+
+@dataclass
+class DoughFlattenTask(_DoughTask):
+    name: str = "DoughFlatten"
+    ee_lower: Tuple[float, float, float] = (-0.03, -0.03, 0.0)
+    ee_upper: Tuple[float, float, float] = (0.03, 0.03, 0.07)
+    max_speed: float = 0.1
+    max_episode_steps: int = 50
+    success_chamfer: float = 0.005
+    tool_half_extents: Tuple[float, float, float] = (0.05, 0.05, 0.008)
+    """Half sizes [m] of the flat pressing tool (a box)."""
+    heights: Tuple[float, float] = (0.012, 0.022)
+    """Range [m] of the target height."""
+
+    def end_effectors(self):
+        cfg = EndEffectorConfig(shape="box", half_extents=self.tool_half_extents, friction=0.3)
+        return [(cfg, (0.0, 0.0, self.size[2] + self.tool_half_extents[2] + 0.01))]
+
+    def sample_target(self, rng):
+        h = rng.uniform(*self.heights)
+        area = self.volume / h
+        shift = np.append(rng.uniform(-0.01, 0.01, 2), 0.0)
+        if rng.uniform() < 0.5:  # disc footprint
+            r = math.sqrt(area / math.pi)
+            inside = lambda p: (p[:, 0] ** 2 + p[:, 1] ** 2) <= r * r
+            lo, hi = (-r, -r, 0.0), (r, r, h)
+        else:  # square footprint
+            a = 0.5 * math.sqrt(area)
+            inside = lambda p: np.ones(len(p), bool)
+            lo, hi = (-a, -a, 0.0), (a, a, h)
+        return _exact_count(rng, lo, hi, inside, self.target_points) + shift
+
+
+DOUGH_SHAPES = ("bar", "L", "ring")
+
+
+@dataclass
+class DoughShapeTask(_DoughTask):
+    name: str = "DoughShape"
+    ee_lower: Tuple[float, float, float] = (-0.1, -0.1, 0.008)
+    ee_upper: Tuple[float, float, float] = (0.1, 0.1, 0.07)
+    max_speed: float = 0.15
+    grip_control: bool = True
+    default_grip: Tuple[int, ...] = (0, 0)
+    max_episode_steps: int = 100
+    success_chamfer: float = 0.006
+    gripper_radius: float = 0.015
+    """Radius [m] of the two spherical grippers / pushers."""
+    shapes: Tuple[str, ...] = DOUGH_SHAPES
+    """Target family drawn from at reset."""
+
+    def end_effectors(self):
+        cfg = EndEffectorConfig(shape="sphere", radius=self.gripper_radius, friction=0.5)
+        x = 0.5 * self.size[0] + self.gripper_radius + 0.005
+        return [(cfg, (-x, 0.0, 0.02)), (cfg, (x, 0.0, 0.02))]
+
+    def sample_target(self, rng):
+        kind = self.shapes[int(rng.integers(len(self.shapes)))]
+        V = self.volume
+        h = rng.uniform(0.025, 0.03)
+        if kind == "bar":
+            w = rng.uniform(0.035, 0.045)
+            L = V / (h * w)
+            lo, hi = (-L / 2, -w / 2, 0.0), (L / 2, w / 2, h)
+            inside = lambda p: np.ones(len(p), bool)
+        elif kind == "L":
+            w = rng.uniform(0.03, 0.035)
+            arm = 0.5 * (V / (h * w) + w)  # two arms of length arm overlapping in a w x w corner
+            lo, hi = (-arm / 2, -arm / 2, 0.0), (arm / 2, arm / 2, h)
+            inside = lambda p: (p[:, 0] <= -arm / 2 + w) | (p[:, 1] <= -arm / 2 + w)
+        elif kind == "ring":
+            t = rng.uniform(0.02, 0.025)
+            # pi (ro^2 - ri^2) h = V with ro - ri = t  ->  ro + ri = V / (pi h t)
+            s = V / (math.pi * h * t)
+            ro, ri = 0.5 * (s + t), 0.5 * (s - t)
+            lo, hi = (-ro, -ro, 0.0), (ro, ro, h)
+            inside = lambda p: (p[:, 0] ** 2 + p[:, 1] ** 2 <= ro * ro) & (p[:, 0] ** 2 + p[:, 1] ** 2 >= ri * ri)
+        else:
+            raise ValueError(f"dough target shape must be one of {DOUGH_SHAPES}, got {kind!r}")
+        pts = _exact_count(rng, lo, hi, inside, self.target_points)
+        pts -= np.append(pts[:, :2].mean(0), 0.0)
+        ang = rng.uniform(-math.pi, math.pi)
+        return pts @ _rot_z(ang).T + np.append(rng.uniform(-0.01, 0.01, 2), 0.0)
+
+
+TASKS = {"RopeReshape": RopeReshapeTask, "DoughFlatten": DoughFlattenTask, "DoughShape": DoughShapeTask}
