@@ -1,0 +1,122 @@
+"""Sampling planners, CEM and MPPI, that evaluate all their samples as one batched rollout.
+
+Each iteration copies the given state into every world of a :class:`BatchedCore` with
+``num_envs = samples`` and steps all of them at once with their own action sequences; a sequence's
+score is its summed environment reward (the progress towards the target, see
+:mod:`empm_gym.envs.core`). A diverged sample scores -inf. Both planners keep their current mean
+as sample 0, so the returned sequence never scores below the best one evaluated.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from .base import Planner
+
+__all__ = ["SamplingPlanner", "CEMPlanner", "MPPIPlanner"]
+
+
+class SamplingPlanner(Planner):
+    """Shared machinery: a batched core of ``samples`` worlds and sequence evaluation."""
+
+    def __init__(self, task, *, samples: int = 32, iterations: int = 5, noise: float = 0.5,
+                 env_kwargs=None, seed: Optional[int] = 0):
+        super().__init__(task, env_kwargs=env_kwargs, seed=seed)
+        if samples < 2:
+            raise ValueError(f"samples must be >= 2, got {samples!r}")
+        if iterations < 1:
+            raise ValueError(f"iterations must be >= 1, got {iterations!r}")
+        if not noise > 0:
+            raise ValueError(f"noise must be > 0 (std of the action perturbation, action units), got {noise!r}")
+        self.samples, self.iterations, self.noise = int(samples), int(iterations), float(noise)
+        self.core = self._core(self.samples)
+        self.action_dim = self.core.action_dim
+        self.best_return = -np.inf
+
+    def evaluate(self, state: dict, actions: np.ndarray) -> np.ndarray:
+        """Summed reward [samples] of the sequences ``actions`` [samples, H, A], all from ``state``."""
+        S, H, A = actions.shape
+        if S != self.samples or A != self.action_dim:
+            raise ValueError(f"evaluate: actions must be [{self.samples}, H, {self.action_dim}], got {actions.shape}")
+        core = self.core
+        core.set_world_states(list(range(S)), [state] * S)
+        total = np.zeros(S)
+        dead = np.zeros(S, bool)
+        for t in range(H):
+            r, term, trunc, info = core.step(np.clip(actions[:, t], -1, 1).astype(np.float32))
+            total += np.where(dead, 0.0, r)
+            dead |= info["diverged"]
+        total[dead] = -np.inf
+        return total
+
+    def _sample(self, mean, std, S):
+        eps = self.rng.standard_normal((S, *mean.shape)) * std
+        acts = np.clip(mean[None] + eps, -1.0, 1.0)
+        acts[0] = mean
+        return acts
+
+
+class CEMPlanner(SamplingPlanner):
+    """Cross-entropy method: refit a diagonal Gaussian to the ``elite_frac`` best sequences each iteration."""
+
+    def __init__(self, task, *, samples: int = 32, iterations: int = 5, noise: float = 0.5,
+                 elite_frac: float = 0.2, momentum: float = 0.1, env_kwargs=None, seed: Optional[int] = 0):
+        super().__init__(task, samples=samples, iterations=iterations, noise=noise, env_kwargs=env_kwargs, seed=seed)
+        if not 0 < elite_frac <= 1:
+            raise ValueError(f"elite_frac must lie in (0, 1], got {elite_frac!r}")
+        self.elites = max(2, int(round(elite_frac * self.samples)))
+        self.momentum = float(momentum)
+
+    def plan(self, state, horizon, init=None):
+        H = self._check_horizon(horizon)
+        mean = self._init(init, H, self.action_dim)
+        std = np.full_like(mean, self.noise)
+        best, best_r = mean.copy(), -np.inf
+        for _ in range(self.iterations):
+            acts = self._sample(mean, std, self.samples)
+            R = self.evaluate(state, acts)
+            i = int(np.argmax(R))
+            if R[i] > best_r:
+                best, best_r = acts[i].copy(), float(R[i])
+            elite = acts[np.argsort(-R)[: self.elites]]
+            mean = self.momentum * mean + (1 - self.momentum) * elite.mean(0)
+            std = self.momentum * std + (1 - self.momentum) * elite.std(0) + 1e-3
+        self.best_return = best_r
+        return best
+
+
+class MPPIPlanner(SamplingPlanner):
+    """Model-predictive path integral: the mean moves to the exp(R / temperature)-weighted average.
+
+    ``temperature`` is relative: returns are scaled by their spread before weighting, so it needs no
+    tuning across tasks (the EMPM reward scale is the same everywhere anyway).
+    """
+
+    def __init__(self, task, *, samples: int = 32, iterations: int = 5, noise: float = 0.5,
+                 temperature: float = 0.1, env_kwargs=None, seed: Optional[int] = 0):
+        super().__init__(task, samples=samples, iterations=iterations, noise=noise, env_kwargs=env_kwargs, seed=seed)
+        if not temperature > 0:
+            raise ValueError(f"temperature must be > 0, got {temperature!r}")
+        self.temperature = float(temperature)
+
+    def plan(self, state, horizon, init=None):
+        H = self._check_horizon(horizon)
+        mean = self._init(init, H, self.action_dim)
+        best, best_r = mean.copy(), -np.inf
+        for _ in range(self.iterations):
+            acts = self._sample(mean, self.noise, self.samples)
+            R = self.evaluate(state, acts)
+            ok = np.isfinite(R)
+            if not np.any(ok):
+                break
+            i = int(np.argmax(np.where(ok, R, -np.inf)))
+            if R[i] > best_r:
+                best, best_r = acts[i].copy(), float(R[i])
+            spread = max(float(np.ptp(R[ok])), 1e-9)
+            w = np.where(ok, np.exp((np.where(ok, R, 0.0) - R[i]) / (self.temperature * spread)), 0.0)
+            w /= w.sum()
+            mean = np.clip(np.tensordot(w, acts, axes=1), -1.0, 1.0)
+        self.best_return = best_r
+        return best
