@@ -180,10 +180,9 @@ def p2g_kernel(
     F: wp.array(dtype=wp.mat33),
     particle_world: wp.array(dtype=int),
     particle_vol: wp.array(dtype=float),
-    particle_stiffness: wp.array(dtype=float),
-    world_E: wp.array(dtype=float),
-    world_nu: wp.array(dtype=float),
-    world_density: wp.array(dtype=float),
+    particle_E: wp.array(dtype=float),
+    particle_nu: wp.array(dtype=float),
+    particle_density: wp.array(dtype=float),
     origin: wp.vec3,
     dx: float,
     inv_dx: float,
@@ -196,8 +195,8 @@ def p2g_kernel(
     p = wp.tid()
     w = particle_world[p]
     vol = particle_vol[p]
-    mass = world_density[w] * vol
-    mu, lam = lame_parameters(world_E[w] * particle_stiffness[p], world_nu[w])
+    mass = particle_density[p] * vol
+    mu, lam = lame_parameters(particle_E[p], particle_nu[p])
     tau = fixed_corotated_kirchhoff(F[p], mu, lam)
     affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * C[p]
     mv = mass * v[p]
@@ -286,11 +285,10 @@ def g2p_kernel(
     x: wp.array(dtype=wp.vec3),
     F: wp.array(dtype=wp.mat33),
     particle_world: wp.array(dtype=int),
-    particle_stiffness: wp.array(dtype=float),
-    world_E: wp.array(dtype=float),
-    world_nu: wp.array(dtype=float),
-    world_yield: wp.array(dtype=float),
-    world_plastic: wp.array(dtype=int),
+    particle_E: wp.array(dtype=float),
+    particle_nu: wp.array(dtype=float),
+    particle_yield: wp.array(dtype=float),
+    particle_plastic: wp.array(dtype=int),
     grid_v: wp.array4d(dtype=wp.vec3),
     origin: wp.vec3,
     dx: float,
@@ -319,9 +317,9 @@ def g2p_kernel(
                 new_v = new_v + weight * gv
                 new_C = new_C + (4.0 * inv_dx * inv_dx * weight) * wp.outer(gv, dpos)
     Fn = (wp.identity(n=3, dtype=float) + dt * new_C) * F[p]
-    if world_plastic[w] != 0:
-        mu, lam = lame_parameters(world_E[w] * particle_stiffness[p], world_nu[w])
-        Fn = von_mises_return(Fn, mu, world_yield[w], min_singular)
+    if particle_plastic[p] != 0:
+        mu, lam = lame_parameters(particle_E[p], particle_nu[p])
+        Fn = von_mises_return(Fn, mu, particle_yield[p], min_singular)
     xn = x[p] + dt * new_v
     # keep every particle's stencil inside the grid
     lo = origin + wp.vec3(dx)
@@ -331,6 +329,56 @@ def g2p_kernel(
     v_out[p] = new_v
     C_out[p] = new_C
     F_out[p] = Fn
+
+
+@wp.kernel
+def expand_materials_kernel(
+    particle_world: wp.array(dtype=int),
+    particle_stiffness: wp.array(dtype=float),
+    world_E: wp.array(dtype=float),
+    world_nu: wp.array(dtype=float),
+    world_density: wp.array(dtype=float),
+    world_yield: wp.array(dtype=float),
+    world_plastic: wp.array(dtype=int),
+    particle_E: wp.array(dtype=float),
+    particle_nu: wp.array(dtype=float),
+    particle_density: wp.array(dtype=float),
+    particle_yield: wp.array(dtype=float),
+    particle_plastic: wp.array(dtype=int),
+):
+    """Copy each world's material to its particles (E scaled by the per-particle stiffness multiplier)."""
+    p = wp.tid()
+    w = particle_world[p]
+    particle_E[p] = world_E[w] * particle_stiffness[p]
+    particle_nu[p] = world_nu[w]
+    particle_density[p] = world_density[w]
+    particle_yield[p] = world_yield[w]
+    particle_plastic[p] = world_plastic[w]
+
+
+@wp.kernel
+def reduce_material_grads_kernel(
+    particle_world: wp.array(dtype=int),
+    particle_stiffness: wp.array(dtype=float),
+    world_E: wp.array(dtype=float),
+    gE: wp.array(dtype=float),
+    gnu: wp.array(dtype=float),
+    grho: wp.array(dtype=float),
+    gys: wp.array(dtype=float),
+    world_E_grad: wp.array(dtype=float),
+    world_nu_grad: wp.array(dtype=float),
+    world_density_grad: wp.array(dtype=float),
+    world_yield_grad: wp.array(dtype=float),
+    stiffness_grad: wp.array(dtype=float),
+):
+    """Adjoint of expand_materials_kernel: sum per-particle parameter gradients into their worlds."""
+    p = wp.tid()
+    w = particle_world[p]
+    wp.atomic_add(world_E_grad, w, gE[p] * particle_stiffness[p])
+    wp.atomic_add(world_nu_grad, w, gnu[p])
+    wp.atomic_add(world_density_grad, w, grho[p])
+    wp.atomic_add(world_yield_grad, w, gys[p])
+    stiffness_grad[p] = stiffness_grad[p] + gE[p] * world_E[w]
 
 
 @wp.kernel

@@ -8,6 +8,7 @@ from typing import List, Optional, Sequence
 import numpy as np
 import warp as wp
 
+from . import kernels as _kernels
 from .config import SHAPE_IDS, EndEffectorConfig, GridConfig, MaterialConfig, TableConfig, as_vec3
 
 __all__ = ["Model", "ModelBuilder", "State", "Control"]
@@ -241,6 +242,14 @@ class Model:
         self.world_table_friction = _arr(
             np.array([w.table_friction for w in builder.worlds], np.float32), float, d, requires_grad
         )
+        # per-particle copies read by the kernels: no gradient contention on one address per world;
+        # the rollout sums their gradients into the world arrays once per backward pass
+        n = self.particle_count
+        self.particle_E = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
+        self.particle_nu = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
+        self.particle_density = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
+        self.particle_yield = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
+        self.particle_plastic = wp.zeros(n, dtype=int, device=d)
         self.set_materials(self.materials)
 
         K, W = self.ee_count, self.world_count
@@ -284,6 +293,42 @@ class Model:
         self.world_density.assign(np.array([m.density for m in materials], np.float32))
         self.world_yield.assign(np.array([m.yield_stress or 0.0 for m in materials], np.float32))
         self.world_plastic.assign(np.array([int(m.plastic) for m in materials], np.int32))
+        self.update_particle_materials()
+
+    def update_particle_materials(self):
+        """Copy the world material arrays (and stiffness multipliers) to the per-particle arrays the kernels read.
+
+        Call after writing ``world_E`` & co. directly; ``set_materials`` and ``Rollout.forward`` do it.
+        """
+        wp.launch(
+            _kernels.expand_materials_kernel,
+            dim=self.particle_count,
+            inputs=[self.particle_world, self.particle_stiffness, self.world_E, self.world_nu, self.world_density,
+                    self.world_yield, self.world_plastic],
+            outputs=[self.particle_E, self.particle_nu, self.particle_density, self.particle_yield,
+                     self.particle_plastic],
+            device=self.device,
+        )
+
+    def accumulate_material_grads(self):
+        """Add the per-particle parameter gradients into the world arrays' gradients (adjoint of the copy)."""
+        if self.particle_E.grad is None:
+            return
+        wp.launch(
+            _kernels.reduce_material_grads_kernel,
+            dim=self.particle_count,
+            inputs=[self.particle_world, self.particle_stiffness, self.world_E, self.particle_E.grad,
+                    self.particle_nu.grad, self.particle_density.grad, self.particle_yield.grad],
+            outputs=[self.world_E.grad, self.world_nu.grad, self.world_density.grad, self.world_yield.grad,
+                     self.particle_stiffness.grad],
+            device=self.device,
+        )
+
+    def parameter_arrays(self):
+        """Arrays that can carry gradients: world materials, table and end-effector friction, per-particle copies."""
+        return [self.world_E, self.world_nu, self.world_density, self.world_yield, self.world_table_friction,
+                self.particle_stiffness, self.ee_friction, self.particle_E, self.particle_nu,
+                self.particle_density, self.particle_yield]
 
     def sync_materials_from_device(self):
         """Refresh the host copies (``materials``) after the device arrays were changed (e.g. by an optimiser)."""

@@ -88,6 +88,7 @@ class Rollout:
         """Run the rollout; returns the recorded particle positions (one [N] vec3 array per recorded step)."""
         if len(controls) < self.control_count:
             raise ValueError(f"Rollout.forward: need {self.control_count} controls, got {len(controls)}")
+        self.model.update_particle_materials()
         self.solver.check_dt(self.dt, max((c.max_speed for c in controls), default=0.0))
         self._controls = list(controls)
         S, states = self.segment, self._states
@@ -126,9 +127,7 @@ class Rollout:
     # -- backward --------------------------------------------------------------
     def zero_grad(self, controls: Optional[Sequence[Control]] = None):
         """Zero the gradients of the model's parameters and of the controls."""
-        m = self.model
-        for a in (m.world_E, m.world_nu, m.world_density, m.world_yield, m.world_table_friction,
-                  m.particle_stiffness, m.ee_friction):
+        for a in self.model.parameter_arrays():
             if a.grad is not None:
                 a.grad.zero_()
         for c in controls or self._controls:
@@ -182,6 +181,12 @@ class Rollout:
             first = states[0]
             if 0 in seeds:
                 _add_grad(first.particle_x, seeds[0])
+        # the kernels read per-particle parameter copies: sum their gradients into the world arrays
+        m = self.model
+        m.accumulate_material_grads()
+        if m.particle_E.grad is not None:  # zero them so that a second backward does not add them twice
+            for a in (m.particle_E, m.particle_nu, m.particle_density, m.particle_yield):
+                a.grad.zero_()
         self.initial_grad = {name: wp.clone(a.grad) for name, a in zip(State.ARRAYS, first.arrays())}
         if state0 is not None and state0.requires_grad:
             for name, a in zip(State.ARRAYS, state0.arrays()):

@@ -139,8 +139,7 @@ class SolverMPM:
             dim=m.particle_count,
             inputs=[
                 state_in.particle_x, state_in.particle_v, state_in.particle_C, state_in.particle_F,
-                m.particle_world, m.particle_vol, m.particle_stiffness,
-                m.world_E, m.world_nu, m.world_density,
+                m.particle_world, m.particle_vol, m.particle_E, m.particle_nu, m.particle_density,
                 origin, m.dx, m.inv_dx, res, dt,
             ],
             outputs=[g.m, g.mv],
@@ -164,8 +163,8 @@ class SolverMPM:
             K.g2p_kernel,
             dim=m.particle_count,
             inputs=[
-                state_in.particle_x, state_in.particle_F, m.particle_world, m.particle_stiffness,
-                m.world_E, m.world_nu, m.world_yield, m.world_plastic,
+                state_in.particle_x, state_in.particle_F, m.particle_world,
+                m.particle_E, m.particle_nu, m.particle_yield, m.particle_plastic,
                 g.v, origin, m.dx, m.inv_dx, res, dt, self.config.plasticity_min_singular,
             ],
             outputs=[state_out.particle_x, state_out.particle_v, state_out.particle_C, state_out.particle_F],
