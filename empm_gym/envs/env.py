@@ -156,8 +156,8 @@ class EMPMVectorEnv(gym.vector.VectorEnv):
         self.render_size = int(render_size)
 
     def reset(self, *, seed=None, options: Optional[dict] = None):
-        super().reset(seed=seed)
         N = self.num_envs
+        super().reset(seed=seed if (seed is None or isinstance(seed, (int, np.integer))) else None)
         if seed is None:
             seeds = [None] * N
         elif isinstance(seed, (int, np.integer)):

@@ -1,0 +1,376 @@
+"""Offline identification: fit material parameters so that the simulated scene reproduces the observations.
+
+Loss (the paper's, averaged over the frames used instead of summed, which only rescales it):
+
+    L = l_dist * mean_t Chamfer(X_hat_t, X_obs_t) + l_trk * mean_t mean_{j visible} |X_hat_{t,a(j)} - X_trk_{t,j}|^2
+
+over frames t = 1 .. F-1 (frame 0 is the initial state), where a(j) is the frame-0 particle nearest to
+tracked point j (tracks not visible at frame 0 are not used). Two methods:
+
+- ``method="adam"``: gradients through the differentiable simulator (:func:`empm_gym.autograd.simulate`)
+  and torch AdamW in the unconstrained space of :class:`ParamSpace` (log space for positive
+  parameters, E normalised by 1e6; a sigmoid for nu), with a cosine learning-rate decay.
+- ``method="cmaes"``: CMA-ES (the ``cma`` package) on the forward simulator; each generation's whole
+  population is simulated as batched worlds in one simulation.
+
+The result is the evaluated parameter vector with the lowest loss.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import torch
+
+from empm_gym.sim import MaterialConfig, Rollout, SimulationDiverged, SolverConfig, SolverMPM
+
+from .losses import chamfer_distance, chamfer_numpy, tracking_loss
+from .problem import PARAM_NAMES, Observations, ParamSpace, Scene, _ForwardSim, substeps_for
+
+__all__ = ["identify", "FitResult", "Objective", "default_bounds", "METHODS"]
+
+METHODS = ("adam", "cmaes")
+_DIVERGED_LOSS = 1.0e3
+
+
+def default_bounds(init: Dict[str, float]) -> Dict[str, Tuple[float, float]]:
+    """Search box around the starting values: a factor 10 either way for positive parameters, nu in (-0.9, 0.49)."""
+    out = {}
+    for n, v in init.items():
+        if n == "nu":
+            out[n] = (-0.9, 0.49)
+        elif n == "friction":
+            out[n] = (max(v / 10.0, 1e-3), max(v * 10.0, 0.05))
+        else:
+            out[n] = (v / 10.0, v * 10.0)
+    return out
+
+
+class Objective:
+    """The identification loss of a scene against observations on the first ``frames`` frames."""
+
+    def __init__(self, scene: Scene, obs: Observations, frames: int, *, l_dist: float = 1.0, l_trk: float = 100.0,
+                 chamfer: str = "both", max_points: int = 2000, seed: int = 0):
+        if frames < 2:
+            raise ValueError(f"frames must be >= 2 (frame 0 is the initial state), got {frames}")
+        if frames > obs.num_frames:
+            raise ValueError(f"frames={frames} exceeds the {obs.num_frames} observed frames")
+        self.frames, self.l_dist, self.l_trk, self.direction = frames, float(l_dist), float(l_trk), chamfer
+        rng = np.random.default_rng(seed)
+        self.points = []
+        for p in obs.points[:frames]:
+            if len(p) > max_points:
+                p = p[rng.choice(len(p), max_points, replace=False)]
+            self.points.append(np.ascontiguousarray(p))
+        self.track_index = None
+        if obs.tracks is not None and l_trk > 0:
+            vis0 = obs.visibility[0]
+            if vis0.any():
+                from scipy.spatial import cKDTree
+
+                keep = np.nonzero(vis0)[0]
+                _, idx = cKDTree(scene.particles).query(obs.tracks[0, keep])
+                self.track_keep = keep
+                self.track_index = np.asarray(idx, np.int64)
+                self.tracks = obs.tracks[:frames, keep]
+                self.visible = obs.visibility[:frames, keep]
+
+    def torch(self, X: torch.Tensor) -> torch.Tensor:
+        """Loss of simulated positions X [frames, N, 3] (torch), differentiable."""
+        terms = []
+        for t in range(1, self.frames):
+            terms.append(chamfer_distance(X[t], self.points[t], direction=self.direction))
+        loss = self.l_dist * torch.stack(terms).mean()
+        if self.track_index is not None:
+            pred = X[1:self.frames, torch.as_tensor(self.track_index)]
+            loss = loss + self.l_trk * tracking_loss(pred, self.tracks[1:], self.visible[1:])
+        return loss
+
+    def numpy(self, X: np.ndarray) -> float:
+        """Loss of simulated positions X [frames, N, 3] (numpy); non-finite input gives a large finite value."""
+        if not np.all(np.isfinite(X[: self.frames])):
+            return _DIVERGED_LOSS
+        d = np.mean([chamfer_numpy(X[t], self.points[t], direction=self.direction) for t in range(1, self.frames)])
+        loss = self.l_dist * d
+        if self.track_index is not None:
+            pred = X[1:self.frames, self.track_index]
+            vis = self.visible[1:]
+            if vis.any():
+                loss += self.l_trk * float(np.mean(np.sum((pred - self.tracks[1:]) ** 2, -1)[vis]))
+        return float(loss)
+
+
+@dataclass
+class FitResult:
+    """Fitted parameters (SI) and the history of a fit."""
+
+    method: str
+    params: Dict[str, float]
+    material: MaterialConfig
+    friction: float
+    loss: float
+    loss_history: List[float]
+    param_history: List[Dict[str, float]]
+    wall_time_s: float
+    frames_used: int
+    fps: float
+    init: Dict[str, float]
+    extra: Dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        m = self.material
+        return {
+            "E": m.E, "nu": m.nu, "density": m.density,
+            "yield_stress": m.yield_stress if m.plastic else None,
+            "friction": self.friction,
+            "fit": {
+                "method": self.method,
+                "params": list(self.params),
+                "init": self.init,
+                "loss": self.loss,
+                "loss_history": self.loss_history,
+                "param_history": self.param_history,
+                "wall_time_s": self.wall_time_s,
+                "frames_used": self.frames_used,
+                "frames_used_range": [0, self.frames_used - 1],
+                "fps": self.fps,
+                **self.extra,
+            },
+        }
+
+    def save(self, path) -> Path:
+        """Write ``material.json`` (a flat object of SI values plus the ``fit`` section)."""
+        p = Path(path)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        with open(p, "w", encoding="utf-8") as f:
+            json.dump(self.to_dict(), f, indent=2)
+        return p
+
+
+def load_material(path) -> Tuple[MaterialConfig, float]:
+    """(MaterialConfig, table friction) from a ``material.json`` written by :meth:`FitResult.save`."""
+    p = Path(path)
+    try:
+        with open(p, "r", encoding="utf-8") as f:
+            d = json.load(f)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{p}: material file missing") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{p}: not valid JSON ({exc})") from None
+    if not isinstance(d, dict):
+        raise ValueError(f"{p}: must hold a JSON object with keys E, nu, density, yield_stress, friction")
+    missing = [k for k in ("E", "nu", "density") if k not in d]
+    if missing:
+        raise ValueError(f"{p}: missing keys {missing} (a material file needs E, nu, density, yield_stress, friction)")
+    try:
+        mat = MaterialConfig.from_dict(d)
+    except ValueError as exc:
+        raise ValueError(f"{p}: {exc}") from None
+    fr = d.get("friction")
+    return mat, (None if fr is None else float(fr))
+
+
+def _initial_values(scene: Scene, params: Sequence[str], init: Optional[Dict[str, float]]) -> Dict[str, float]:
+    init = dict(init or {})
+    unknown = set(init) - set(PARAM_NAMES)
+    if unknown:
+        raise ValueError(f"init names unknown parameters {sorted(unknown)}; allowed: {', '.join(PARAM_NAMES)}")
+    m = scene.material
+    base = {"E": m.E, "nu": m.nu, "density": m.density, "yield_stress": m.yield_stress,
+            "friction": scene.table_friction}
+    out = {}
+    for n in params:
+        v = init.get(n, base[n])
+        if v is None:
+            raise ValueError(f"no starting value for {n!r}: the scene's material is elastic (yield_stress=None); "
+                             f"pass init={{'{n}': value_in_Pa}}")
+        out[n] = float(v)
+    if "yield_stress" in params and m.yield_stress is None:
+        # a plastic model is requested: the starting value comes from init
+        pass
+    ParamSpace(params, default_bounds(out))  # validates names
+    return out
+
+
+def identify(observations: Observations, scene: Scene, *, params: Sequence[str] = ("E",), method: str = "adam",
+             init: Optional[Dict[str, float]] = None, iters: int = 30, frames: Optional[int] = None,
+             lr: float = 0.1, popsize: int = 6, sigma0: float = 0.5, l_dist: float = 1.0, l_trk: float = 100.0,
+             chamfer: str = "both", max_points: int = 2000,
+             bounds: Optional[Dict[str, Tuple[float, float]]] = None, seed: int = 0, progress: bool = True,
+             checkpoint_every: Union[str, int, None] = "auto", memory_budget_bytes: float = 1.0e9,
+             callback: Optional[Callable[[int, float, Dict[str, float]], None]] = None) -> FitResult:
+    """Identify ``params`` (any of E, nu, density, yield_stress, friction) of ``scene`` from ``observations``.
+
+    ``init`` gives starting values (SI; default the scene's material and table friction), ``frames`` the
+    number of leading frames fitted (default all observed frames the controls cover), ``iters`` Adam steps
+    or CMA-ES generations, ``lr`` Adam's learning rate in the unconstrained space, ``popsize`` /
+    ``sigma0`` CMA-ES's population (= simulated worlds) and initial step, ``bounds`` SI search boxes
+    (default :func:`default_bounds`). ``callback(iteration, loss, params)`` is called every iteration.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if iters < 1:
+        raise ValueError(f"iters must be >= 1, got {iters}")
+    if abs(observations.fps - scene.fps) > 1e-6 * scene.fps:
+        raise ValueError(f"observations at {observations.fps} fps but the scene's controls at {scene.fps} fps")
+    params = tuple(params)
+    init_vals = _initial_values(scene, params, init)
+    space = ParamSpace(params, {**default_bounds(init_vals), **(bounds or {})})
+    for n, v in init_vals.items():
+        lo, hi = space.bounds[n]
+        if not (lo <= v <= hi):
+            raise ValueError(f"init {n}={v} lies outside its bounds ({lo}, {hi})")
+    F = frames or min(observations.num_frames, scene.num_frames or observations.num_frames)
+    if scene.num_frames is not None and F > scene.num_frames:
+        raise ValueError(f"frames={F} exceeds the {scene.num_frames} frames of end-effector controls")
+    objective = Objective(scene, observations, F, l_dist=l_dist, l_trk=l_trk, chamfer=chamfer,
+                          max_points=max_points, seed=seed)
+    base_mat = scene.material
+    if "yield_stress" in params and base_mat.yield_stress is None:
+        base_mat = MaterialConfig(E=base_mat.E, nu=base_mat.nu, density=base_mat.density,
+                                  yield_stress=init_vals["yield_stress"])
+    t0 = time.perf_counter()
+    if method == "adam":
+        hist_l, hist_p, extra = _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, progress,
+                                          checkpoint_every, memory_budget_bytes, callback)
+    else:
+        hist_l, hist_p, extra = _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sigma0,
+                                           seed, progress, callback)
+    wall = time.perf_counter() - t0
+    best = int(np.argmin(hist_l))
+    best_p = hist_p[best]
+    mat, mu = space.material(best_p, base_mat, scene.table_friction)
+    return FitResult(method=method, params=dict(best_p), material=mat, friction=mu, loss=float(hist_l[best]),
+                     loss_history=[float(v) for v in hist_l], param_history=hist_p, wall_time_s=wall,
+                     frames_used=F, fps=scene.fps, init=init_vals, extra=extra)
+
+
+def _bar(iters, desc, progress):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=iters, desc=desc, disable=not progress, leave=False, dynamic_ncols=True)
+
+
+def _sim_kwargs(space: ParamSpace, z: torch.Tensor) -> Dict[str, torch.Tensor]:
+    out = {}
+    for i, n in enumerate(space.names):
+        key = "table_friction" if n == "friction" else n
+        out[key] = space.from_z1(n, z[i]).reshape(1).to(torch.float32)
+    return out
+
+
+def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, progress, checkpoint_every, budget, callback):
+    from empm_gym.autograd import simulate
+
+    F = objective.frames
+    model = scene.builder([base_mat], [scene.table_friction]).finalize(scene.device, requires_grad=True)
+    solver = SolverMPM(model, SolverConfig(cfl=scene.cfl, check_every=0))
+    vel, om = scene.ee_velocities(F), scene.ee_omegas(F)
+    grip = scene.ee_grip[: F - 1] if model.ee_count else None
+    vmax = float(np.max(np.linalg.norm(vel, axis=-1))) if vel.size else 0.0
+    z = torch.tensor(space.to_z(init_vals), dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.AdamW([z], lr=lr, weight_decay=0.0)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(k, iters) / iters)))
+    cache = {}
+    per_node = 2 * 4 * 7 * int(np.prod(model.grid_res)) * model.world_count
+    per_particle = 2 * 4 * 24 * model.particle_count
+    hist_l, hist_p = [], []
+    skipped = 0
+    bar = _bar(iters, "identify (adam)", progress)
+    for it in range(iters):
+        vals = space.from_z(z.detach().numpy())
+        mat, mu = space.material(vals, base_mat, scene.table_friction)
+        sub, dt = substeps_for(scene, [mat], vmax)
+        if sub not in cache:
+            cache.clear()  # keep one rollout's memory at a time
+            steps = (F - 1) * sub
+            if checkpoint_every == "auto":
+                per_step = per_node + per_particle
+                ck = None if steps * per_step <= budget else max(sub, int(budget // per_step) // sub * sub)
+            else:
+                ck = checkpoint_every
+            ro = Rollout(model, solver, steps=steps, dt=dt, substeps_per_control=sub, record_every=sub,
+                         checkpoint_every=ck)
+            ctrls = ro.make_controls()
+            for t, c in enumerate(ctrls):
+                if model.ee_count:
+                    c.set(velocity=vel[t][None], omega=om[t][None], grip=grip[t][None])
+            cache[sub] = (ro, ctrls)
+        ro, ctrls = cache[sub]
+        opt.zero_grad()
+        try:
+            X = simulate(ro, model.state(), ctrls, **_sim_kwargs(space, z))
+        except SimulationDiverged:
+            hist_l.append(_DIVERGED_LOSS)
+            hist_p.append(vals)
+            with torch.no_grad():  # step back towards the start
+                z.mul_(0.5).add_(0.5 * torch.tensor(space.to_z(init_vals)))
+            bar.update(1)
+            continue
+        loss = objective.torch(X)
+        loss.backward()
+        L = float(loss.detach())
+        hist_l.append(L)
+        hist_p.append(vals)
+        if callback is not None:
+            callback(it, L, vals)
+        if torch.isfinite(z.grad).all():
+            opt.step()
+        else:
+            skipped += 1
+        sched.step()
+        with torch.no_grad():
+            z.copy_(torch.as_tensor(space.clamp(z.numpy())))
+        bar.set_postfix(loss=f"{L:.5f}", **{k: f"{v:.4g}" for k, v in vals.items()})
+        bar.update(1)
+    bar.close()
+    return hist_l, hist_p, {"lr": lr, "skipped_steps": skipped}
+
+
+def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sigma0, seed, progress, callback):
+    import warnings
+
+    import cma
+
+    if popsize < 2:
+        raise ValueError(f"popsize must be >= 2 for CMA-ES, got {popsize}")
+    F = objective.frames
+    z0 = space.to_z(init_vals)
+    opts = {"popsize": int(popsize), "seed": int(seed) + 1, "verbose": -9,
+            "bounds": [list(space.z_lo), list(space.z_hi)], "tolfun": 0.0, "tolx": 1e-6}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # pycma warns about 1-D problems
+        es = cma.CMAEvolutionStrategy(list(z0), float(sigma0), opts)
+    sim = _ForwardSim(scene, [base_mat] * popsize, [scene.table_friction] * popsize)
+    hist_l, hist_p, gen_mean = [], [], []
+    evals = 0
+    bar = _bar(iters, "identify (cmaes)", progress)
+    for gen in range(iters):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            Z = es.ask()
+        cand = [space.from_z(z) for z in Z]
+        mats = [space.material(v, base_mat, scene.table_friction) for v in cand]
+        sim.set([m for m, _ in mats], [mu for _, mu in mats])
+        X, _, _ = sim.run(F)
+        losses = [objective.numpy(X[:, w]) for w in range(popsize)]
+        evals += popsize
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            es.tell(Z, losses)
+        i = int(np.argmin(losses))
+        hist_l.append(float(losses[i]))
+        hist_p.append(cand[i])
+        gen_mean.append(space.from_z(es.mean))
+        if callback is not None:
+            callback(gen, float(losses[i]), cand[i])
+        bar.set_postfix(loss=f"{losses[i]:.5f}", **{k: f"{v:.4g}" for k, v in cand[i].items()})
+        bar.update(1)
+    bar.close()
+    return hist_l, hist_p, {"popsize": popsize, "sigma0": sigma0, "evaluations": evals, "mean_history": gen_mean}

@@ -1,0 +1,408 @@
+"""What identification works on: the simulated :class:`Scene`, the :class:`Observations` it is fitted
+to, the camera :class:`Views`, the parameter space (:class:`ParamSpace`) and a batched forward
+simulator (:func:`simulate_frames`).
+
+A scene replays a recording: particles sampled at frame 0 (interior filled), end-effectors following
+the recorded positions (velocity during frame interval t -> t+1 = (p[t+1] - p[t]) * fps, grip flag of
+frame t), a table plane with Coulomb friction. Frames are ``1 / fps`` seconds apart; each frame interval
+is split into as many equal substeps as the CFL limit of the stiffest material requires.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from empm_gym.sim import (EndEffectorConfig, GridConfig, MaterialConfig, ModelBuilder, SimulationDiverged,
+                          SolverConfig, SolverMPM, TableConfig)
+
+__all__ = [
+    "Scene",
+    "Observations",
+    "Views",
+    "ParamSpace",
+    "PARAM_NAMES",
+    "simulate_frames",
+    "substeps_for",
+    "quat_angular_velocity",
+]
+
+#: Identifiable parameters: material (E [Pa], nu [-], density [kg/m^3], yield_stress [Pa]) and the
+#: table's Coulomb friction coefficient (``friction`` [-]).
+PARAM_NAMES = ("E", "nu", "density", "yield_stress", "friction")
+
+# reference scales of the log-space parameters (E normalised by 1e6 as in the paper)
+_SCALE = {"E": 1.0e6, "density": 1.0e3, "yield_stress": 1.0e3, "friction": 1.0}
+_NU_LO, _NU_HI = -1.0, 0.5
+
+
+def quat_angular_velocity(q: np.ndarray, fps: float) -> np.ndarray:
+    """Angular velocities [T-1, K, 3] (rad/s, world frame) taking quaternions (x, y, z, w) q[t] to q[t+1] in 1/fps s."""
+    q = np.asarray(q, np.float64)
+    a, b = q[:-1], q[1:]
+    # relative rotation r = b * conj(a)
+    ax, ay, az, aw = -a[..., 0], -a[..., 1], -a[..., 2], a[..., 3]
+    bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    rw = bw * aw - bx * ax - by * ay - bz * az
+    rx = bw * ax + bx * aw + by * az - bz * ay
+    ry = bw * ay - bx * az + by * aw + bz * ax
+    rz = bw * az + bx * ay - by * ax + bz * aw
+    v = np.stack([rx, ry, rz], -1)
+    sign = np.where(rw < 0, -1.0, 1.0)[..., None]
+    v, rw = v * sign, np.abs(rw)
+    s = np.linalg.norm(v, axis=-1)
+    angle = 2.0 * np.arctan2(s, rw)
+    axis = np.where(s[..., None] > 1e-12, v / np.maximum(s, 1e-12)[..., None], 0.0)
+    return axis * angle[..., None] * float(fps)
+
+
+@dataclass
+class Scene:
+    """A recording replayed in the simulator (all SI units).
+
+    ``particles`` [N, 3] (m) and ``volumes`` [N] (m^3) are the frame-0 body; ``ee_positions`` [T, K, 3] (m),
+    ``ee_grip`` [T, K] (0/1) and optional ``ee_orientations`` [T, K, 4] (x, y, z, w) drive the
+    end-effectors described by ``ee_configs``. ``material`` holds the values of the parameters that are
+    not identified (and the starting values of those that are, unless ``init`` is given to the fit).
+    ``table_friction`` [-] is the table's Coulomb coefficient (``table`` gives its height; None: no table).
+    ``dx`` (m) is the grid cell (default: from the particle volumes at 8 particles per cell); ``grid``
+    overrides the automatic grid box around the motion.
+    """
+
+    particles: np.ndarray
+    volumes: np.ndarray
+    fps: float
+    ee_configs: Sequence[EndEffectorConfig] = ()
+    ee_positions: Optional[np.ndarray] = None
+    ee_grip: Optional[np.ndarray] = None
+    ee_orientations: Optional[np.ndarray] = None
+    material: MaterialConfig = field(default_factory=MaterialConfig)
+    table: Optional[TableConfig] = field(default_factory=TableConfig)
+    table_friction: Optional[float] = None
+    dx: Optional[float] = None
+    grid: Optional[GridConfig] = None
+    gravity: Tuple[float, float, float] = (0.0, 0.0, -9.81)
+    cfl: float = 0.4
+    device: Optional[str] = None
+
+    def __post_init__(self):
+        x = np.asarray(self.particles, np.float64)
+        if x.ndim != 2 or x.shape[1] != 3 or len(x) == 0:
+            raise ValueError(f"Scene.particles must have shape [N, 3] with N > 0, got {x.shape}")
+        if not np.all(np.isfinite(x)):
+            raise ValueError("Scene.particles holds non-finite positions")
+        self.particles = x
+        vol = np.broadcast_to(np.asarray(self.volumes, np.float64), (len(x),)).copy()
+        if np.any(vol <= 0) or not np.all(np.isfinite(vol)):
+            raise ValueError("Scene.volumes must be finite and > 0 m^3")
+        self.volumes = vol
+        if not (self.fps > 0 and math.isfinite(self.fps)):
+            raise ValueError(f"Scene.fps must be a positive frame rate (1/s), got {self.fps!r}")
+        K = len(self.ee_configs)
+        self.ee_configs = list(self.ee_configs)
+        if K:
+            p = np.asarray(self.ee_positions, np.float64)
+            if p.ndim != 3 or p.shape[1:] != (K, 3) or len(p) < 1:
+                raise ValueError(f"Scene.ee_positions must have shape [T, {K}, 3], got {p.shape}")
+            self.ee_positions = p
+            g = np.ones((len(p), K)) if self.ee_grip is None else np.asarray(self.ee_grip)
+            if g.shape != (len(p), K) or not np.all((g == 0) | (g == 1)):
+                raise ValueError(f"Scene.ee_grip must have shape [{len(p)}, {K}] with values 0/1, got {g.shape}")
+            self.ee_grip = g.astype(np.int32)
+            if self.ee_orientations is not None:
+                q = np.asarray(self.ee_orientations, np.float64)
+                if q.shape != (len(p), K, 4):
+                    raise ValueError(f"Scene.ee_orientations must have shape [{len(p)}, {K}, 4], got {q.shape}")
+                self.ee_orientations = q / np.linalg.norm(q, axis=-1, keepdims=True)
+        else:
+            self.ee_positions = None
+            self.ee_grip = None
+        if self.table_friction is None:
+            self.table_friction = self.table.friction if self.table is not None else 0.0
+        if self.dx is None:
+            self.dx = float(np.round(np.cbrt(np.median(self.volumes) * 8.0), 5))
+
+    # -- derived --------------------------------------------------------------------------
+    @property
+    def num_frames(self) -> Optional[int]:
+        """Frames of end-effector motion (None without end-effectors: any horizon)."""
+        return None if self.ee_positions is None else len(self.ee_positions)
+
+    @property
+    def particle_radius(self) -> float:
+        """Half the mean particle spacing (m), used to draw particles into images."""
+        return 0.5 * float(np.cbrt(np.mean(self.volumes)))
+
+    def ee_velocities(self, frames: int) -> np.ndarray:
+        """[frames-1, K, 3] m/s: finite differences of the recorded positions times fps."""
+        K = len(self.ee_configs)
+        if not K:
+            return np.zeros((frames - 1, 0, 3))
+        self._check_frames(frames)
+        return np.diff(self.ee_positions[:frames], axis=0) * self.fps
+
+    def ee_omegas(self, frames: int) -> np.ndarray:
+        K = len(self.ee_configs)
+        if not K or self.ee_orientations is None:
+            return np.zeros((frames - 1, K, 3))
+        self._check_frames(frames)
+        return quat_angular_velocity(self.ee_orientations[:frames], self.fps)
+
+    def _check_frames(self, frames):
+        if self.num_frames is not None and frames > self.num_frames:
+            raise ValueError(f"Scene: asked for {frames} frames but the end-effector controls hold {self.num_frames}")
+
+    def grid_config(self) -> GridConfig:
+        """The grid: ``self.grid`` or a box around the particles and the end-effector path."""
+        if self.grid is not None:
+            return self.grid
+        dx = self.dx
+        lo, hi = self.particles.min(0), self.particles.max(0)
+        ext = float(np.max(hi - lo))
+        if self.ee_positions is not None:
+            p = self.ee_positions.reshape(-1, 3)
+            # the object moves with the end-effectors: keep room for it around their whole path
+            lo = np.minimum(lo, p.min(0) - 0.5 * ext)
+            hi = np.maximum(hi, p.max(0) + 0.5 * ext)
+        pad = 4.0 * dx
+        lower, upper = lo - pad, hi + pad
+        if self.table is not None:
+            lower[2] = min(self.particles[:, 2].min(), self.table.height) - 3.0 * dx
+        lower = np.floor(lower / dx) * dx
+        upper = np.ceil(upper / dx) * dx
+        return GridConfig(lower=tuple(lower), upper=tuple(upper), dx=dx)
+
+    def builder(self, materials: Sequence[MaterialConfig], frictions: Sequence[float]) -> ModelBuilder:
+        """A ModelBuilder with one world per material (all with this scene's particles and end-effectors)."""
+        b = ModelBuilder(self.grid_config(), gravity=self.gravity, table=self.table)
+        for m, mu in zip(materials, frictions):
+            w = b.add_world(m, table_friction=float(mu))
+            b.add_particles(w, self.particles, self.volumes)
+            for k, cfg in enumerate(self.ee_configs):
+                q = (0, 0, 0, 1) if self.ee_orientations is None else self.ee_orientations[0, k]
+                b.add_end_effector(w, cfg, self.ee_positions[0, k], q)
+        return b
+
+    def with_material(self, material: MaterialConfig, table_friction: Optional[float] = None) -> "Scene":
+        return replace(self, material=material,
+                       table_friction=self.table_friction if table_friction is None else table_friction)
+
+
+@dataclass
+class Observations:
+    """Measurements of a recording in the world frame (m), at ``fps`` frames per second.
+
+    ``points``: one fused object point set [n_t, 3] per frame. Optional ``tracks`` [T, M, 3] tracked
+    surface points with ``visibility`` [T, M] (bool; occluded entries are ignored), ``colors``: per-frame
+    colours [n_t, 3] in [0, 1] of ``points``.
+    """
+
+    fps: float
+    points: Sequence[np.ndarray]
+    tracks: Optional[np.ndarray] = None
+    visibility: Optional[np.ndarray] = None
+    colors: Optional[Sequence[np.ndarray]] = None
+
+    def __post_init__(self):
+        if not (self.fps > 0 and math.isfinite(self.fps)):
+            raise ValueError(f"Observations.fps must be a positive frame rate (1/s), got {self.fps!r}")
+        pts = []
+        for t, p in enumerate(self.points):
+            a = np.asarray(p, np.float64)
+            if a.ndim != 2 or a.shape[1] != 3:
+                raise ValueError(f"Observations.points[{t}] must have shape [n, 3], got {a.shape}")
+            if len(a) == 0:
+                raise ValueError(f"Observations.points[{t}] is empty: every frame needs observed points")
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"Observations.points[{t}] holds non-finite values")
+            pts.append(a)
+        if len(pts) < 2:
+            raise ValueError(f"Observations need at least 2 frames, got {len(pts)}")
+        self.points = pts
+        T = len(pts)
+        if (self.tracks is None) != (self.visibility is None):
+            raise ValueError("Observations.tracks and Observations.visibility must be given together")
+        if self.tracks is not None:
+            tr = np.asarray(self.tracks, np.float64)
+            vis = np.asarray(self.visibility, bool)
+            if tr.ndim != 3 or tr.shape[0] != T or tr.shape[2] != 3:
+                raise ValueError(f"Observations.tracks must have shape [{T}, M, 3], got {tr.shape}")
+            if vis.shape != tr.shape[:2]:
+                raise ValueError(f"Observations.visibility must have shape {tr.shape[:2]}, got {vis.shape}")
+            if not np.all(np.isfinite(tr[vis])):
+                raise ValueError("Observations.tracks holds non-finite positions where visible")
+            self.tracks, self.visibility = tr, vis
+        if self.colors is not None:
+            cols = [np.asarray(c, np.float64) for c in self.colors]
+            if len(cols) != T or any(c.shape != p.shape for c, p in zip(cols, pts)):
+                raise ValueError("Observations.colors must give one [n_t, 3] colour array per frame matching points")
+            self.colors = cols
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.points)
+
+
+@dataclass
+class Views:
+    """Calibrated cameras with, per frame, object masks and colour images.
+
+    ``masks[t]`` and ``images[t]`` give one entry per camera ([H, W] bool; [H, W, 3] uint8 or float in
+    [0, 1]); any object indexable by frame works (a list, or a lazy reader).
+    """
+
+    cameras: Sequence
+    masks: Optional[Sequence] = None
+    images: Optional[Sequence] = None
+
+
+class ParamSpace:
+    """Map between SI parameters and the unconstrained vector z that optimisers see.
+
+    Positive parameters live in log space relative to a reference scale (E / 1e6 Pa as in the paper,
+    density / 1e3 kg/m^3, yield_stress / 1e3 Pa, friction); nu = -1 + 1.5 * sigmoid(z) stays in (-1, 0.5).
+    ``bounds`` (SI, per parameter) are enforced by clamping z.
+    """
+
+    def __init__(self, names: Sequence[str], bounds: Dict[str, Tuple[float, float]]):
+        names = tuple(names)
+        if not names:
+            raise ValueError(f"params must name at least one of {PARAM_NAMES}")
+        for n in names:
+            if n not in PARAM_NAMES:
+                raise ValueError(f"unknown parameter {n!r}; allowed: {', '.join(PARAM_NAMES)}")
+        if len(set(names)) != len(names):
+            raise ValueError(f"params lists a parameter twice: {names}")
+        self.names = names
+        self.bounds = {}
+        for n in names:
+            if n not in bounds:
+                raise ValueError(f"ParamSpace: missing bounds for {n!r}")
+            lo, hi = (float(v) for v in bounds[n])
+            ok = lo < hi and (lo > _NU_LO and hi < _NU_HI if n == "nu" else lo > 0)
+            if not ok:
+                allowed = "-1 < lo < hi < 0.5" if n == "nu" else "0 < lo < hi"
+                raise ValueError(f"bounds for {n!r} must satisfy {allowed}, got ({lo}, {hi})")
+            self.bounds[n] = (lo, hi)
+        self.z_lo = np.array([self.to_z1(n, self.bounds[n][0]) for n in names])
+        self.z_hi = np.array([self.to_z1(n, self.bounds[n][1]) for n in names])
+
+    @staticmethod
+    def to_z1(name: str, value: float) -> float:
+        if name == "nu":
+            s = (value - _NU_LO) / (_NU_HI - _NU_LO)
+            return float(np.log(s / (1.0 - s)))
+        return float(np.log(value / _SCALE[name]))
+
+    @staticmethod
+    def from_z1(name: str, z):
+        """SI value of one coordinate; works for floats, numpy arrays and torch tensors."""
+        try:
+            import torch
+
+            if isinstance(z, torch.Tensor):
+                return _NU_LO + (_NU_HI - _NU_LO) * torch.sigmoid(z) if name == "nu" else _SCALE[name] * torch.exp(z)
+        except ImportError:  # pragma: no cover
+            pass
+        if name == "nu":
+            return _NU_LO + (_NU_HI - _NU_LO) / (1.0 + np.exp(-z))
+        return _SCALE[name] * np.exp(z)
+
+    def to_z(self, values: Dict[str, float]) -> np.ndarray:
+        return np.array([self.to_z1(n, values[n]) for n in self.names])
+
+    def from_z(self, z) -> Dict[str, float]:
+        return {n: float(self.from_z1(n, float(v))) for n, v in zip(self.names, z)}
+
+    def clamp(self, z: np.ndarray) -> np.ndarray:
+        return np.clip(z, self.z_lo, self.z_hi)
+
+    def material(self, values: Dict[str, float], base: MaterialConfig, base_friction: float):
+        """(MaterialConfig, table friction) with the identified values substituted into ``base``."""
+        kw = dict(E=base.E, nu=base.nu, density=base.density, yield_stress=base.yield_stress)
+        for n in ("E", "nu", "density", "yield_stress"):
+            if n in values:
+                kw[n] = float(values[n])
+        return MaterialConfig(**kw), float(values.get("friction", base_friction))
+
+
+def substeps_for(scene: Scene, materials: Sequence[MaterialConfig], max_ee_speed: float,
+                 margin: float = 0.9) -> Tuple[int, float]:
+    """(substeps per frame, dt [s]) keeping dt below ``margin`` times the CFL limit of the stiffest material."""
+    c = max(m.wave_speed for m in materials)
+    dt_max = margin * scene.cfl * scene.dx / (c + max(max_ee_speed, 0.0))
+    n = max(1, int(math.ceil((1.0 / scene.fps) / dt_max)))
+    return n, 1.0 / (scene.fps * n)
+
+
+class _ForwardSim:
+    """A batched model of a scene (one world per candidate) for forward-only rollouts."""
+
+    def __init__(self, scene: Scene, materials: Sequence[MaterialConfig], frictions: Sequence[float]):
+        self.scene = scene
+        self.model = scene.builder(materials, frictions).finalize(scene.device, requires_grad=False)
+        self.solver = SolverMPM(self.model, SolverConfig(cfl=scene.cfl, check_every=0))
+
+    def set(self, materials, frictions):
+        self.model.set_materials(list(materials))
+        self.model.world_table_friction.assign(np.asarray(frictions, np.float32))
+
+    def run(self, frames: int, *, state=None, start_frame: int = 0, velocities=None, omegas=None, grips=None,
+            on_frame=None):
+        """Simulate frames start_frame -> start_frame + frames - 1; returns (positions [frames, W, N, 3], diverged worlds, final state).
+
+        ``velocities`` / ``omegas`` [frames-1, K, 3] and ``grips`` [frames-1, K] override the scene's controls.
+        """
+        sc, m = self.scene, self.model
+        W, N, K = m.world_count, len(sc.particles), m.ee_count
+        end = start_frame + frames
+        vel = sc.ee_velocities(end)[start_frame:] if velocities is None else np.asarray(velocities)
+        om = sc.ee_omegas(end)[start_frame:] if omegas is None else np.asarray(omegas)
+        grip = (sc.ee_grip[start_frame:end - 1] if K else None) if grips is None else np.asarray(grips)
+        speed = float(np.max(np.linalg.norm(vel, axis=-1))) if vel.size else 0.0
+        sub, dt = substeps_for(sc, m.materials, speed)
+        a = state if state is not None else m.state()
+        b = m.state()
+        ctrl = m.control()
+        out = np.empty((frames, W, N, 3), np.float32)
+        out[0] = a.particle_x.numpy().reshape(W, N, 3)
+        bad = set()
+        for t in range(frames - 1):
+            if K:
+                ctrl.set(velocity=np.broadcast_to(vel[t], (W, K, 3)), omega=np.broadcast_to(om[t], (W, K, 3)),
+                         grip=np.broadcast_to(grip[t], (W, K)))
+            for _ in range(sub):
+                self.solver.step(a, b, ctrl, dt, guards=False)
+                a, b = b, a
+            try:
+                self.solver.check_state(a, step=t + 1)
+            except SimulationDiverged as exc:
+                bad.update(exc.worlds)
+                if len(bad) == W:
+                    out[t + 1:] = np.nan
+                    return out, sorted(bad), a
+            out[t + 1] = a.particle_x.numpy().reshape(W, N, 3)
+            if bad:
+                out[t + 1, sorted(bad)] = np.nan
+            if on_frame is not None:
+                on_frame(t + 1, a)
+        return out, sorted(bad), a
+
+
+def simulate_frames(scene: Scene, materials: Sequence[MaterialConfig], frictions: Optional[Sequence[float]] = None,
+                    frames: Optional[int] = None) -> np.ndarray:
+    """Particle positions [frames, W, N, 3] (m) of the scene simulated with each material (one world each),
+    recorded at every frame; diverged worlds are NaN from the frame where they diverged."""
+    materials = list(materials)
+    frictions = [scene.table_friction] * len(materials) if frictions is None else list(frictions)
+    if len(frictions) != len(materials):
+        raise ValueError(f"simulate_frames: {len(materials)} materials but {len(frictions)} frictions")
+    frames = frames or scene.num_frames
+    if frames is None or frames < 1:
+        raise ValueError("simulate_frames: give frames (the scene has no end-effector controls)")
+    sim = _ForwardSim(scene, materials, frictions)
+    x, _, _ = sim.run(frames)
+    return x

@@ -1,0 +1,290 @@
+"""From a recording's depth images to world-frame point sets, a table plane, frame-0 particles and controls.
+
+Typical use by identification::
+
+    rec = Recording(path)
+    plane = estimate_table_plane(rec)                     # or (normal, offset) when the table is known
+    obs = [fuse_frame(rec, t) for t in range(rec.num_frames)]  # [N_t, 3] m each, object only
+    x0, vol = initial_particles(obs[0], dx=0.01, table_plane=plane)   # solid body, interior filled
+    controls = load_controls(rec)                          # controls.npz, or from the "hand" masks
+
+A plane is ``(normal [3], offset)`` with ``normal . x + offset = 0`` on the plane (m) and the
+normal pointing up, away from the table into the half-space holding the object.
+"""
+
+from __future__ import annotations
+
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from .cameras import Camera, backproject_depth
+from .recording import Recording, RecordingError, validate_controls
+
+__all__ = [
+    "fuse_views",
+    "frame_points",
+    "fuse_frame",
+    "voxel_downsample",
+    "remove_statistical_outliers",
+    "fit_table_plane",
+    "estimate_table_plane",
+    "close_against_table",
+    "initial_particles",
+    "controls_from_masks",
+    "load_controls",
+]
+
+
+def _o3d():
+    try:
+        import open3d as o3d
+    except OSError as exc:  # missing system library, typically libusb-1.0
+        raise ImportError(f"open3d failed to import ({exc}); on Debian/Ubuntu install libusb-1.0-0 "
+                          f"(apt-get install libusb-1.0-0)") from exc
+    return o3d
+
+
+def _pcd(points: np.ndarray):
+    o3d = _o3d()
+    pc = o3d.geometry.PointCloud()
+    pc.points = o3d.utility.Vector3dVector(np.asarray(points, np.float64).reshape(-1, 3))
+    return pc
+
+
+def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Points [N, 3] (m) averaged per voxel of edge ``voxel_m`` (m) with Open3D; voxel_m <= 0 returns a copy."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if voxel_m is None or voxel_m <= 0 or len(pts) == 0:
+        return pts.copy()
+    return np.asarray(_pcd(pts).voxel_down_sample(float(voxel_m)).points)
+
+
+def remove_statistical_outliers(points: np.ndarray, nb_neighbors: int = 20, std_ratio: float = 2.0):
+    """Drop points whose mean distance to their ``nb_neighbors`` nearest neighbours exceeds the global
+    mean by ``std_ratio`` standard deviations (Open3D). Returns ``(kept points [M, 3], kept indices [M])``."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(pts) <= nb_neighbors:
+        return pts.copy(), np.arange(len(pts))
+    _, ind = _pcd(pts).remove_statistical_outlier(nb_neighbors=int(nb_neighbors), std_ratio=float(std_ratio))
+    ind = np.asarray(ind, dtype=np.int64)
+    return pts[ind], ind
+
+
+def fuse_views(depths: Sequence[np.ndarray], cameras: Sequence[Camera], masks: Optional[Sequence] = None, *,
+               erode_px: int = 1, min_depth_m: float = 0.1, max_depth_m: float = 5.0) -> np.ndarray:
+    """Back-project several metric depth images [H, W] (m) with their cameras into one world point set [N, 3] (m).
+
+    With ``masks`` (bool [H, W] per view, None for "all pixels") only masked pixels are used; the masks
+    are first eroded by ``erode_px`` pixels, since depth at a silhouette mixes object and background.
+    """
+    from scipy import ndimage
+
+    if len(depths) != len(cameras) or (masks is not None and len(masks) != len(cameras)):
+        raise ValueError(f"fuse_views: {len(depths)} depth images, {len(cameras)} cameras"
+                         + ("" if masks is None else f", {len(masks)} masks") + " must agree")
+    out = []
+    for i, (d, cam) in enumerate(zip(depths, cameras)):
+        m = None if masks is None else masks[i]
+        if m is not None and erode_px > 0:
+            m = ndimage.binary_erosion(np.asarray(m, bool), iterations=int(erode_px))
+        out.append(cam.backproject(np.asarray(d), m, min_depth_m=min_depth_m, max_depth_m=max_depth_m))
+    return np.concatenate(out, axis=0) if out else np.zeros((0, 3))
+
+
+def frame_points(rec: Recording, t: int, *, cams: Optional[Sequence[int]] = None, use_mask: bool = True,
+                 erode_px: int = 1, min_depth_m: float = 0.1, max_depth_m: float = 5.0) -> np.ndarray:
+    """Raw fused object points [N, 3] (m, world) of frame ``t`` from the given cameras (default all)."""
+    cams = list(range(rec.num_cameras)) if cams is None else list(cams)
+    if use_mask and not rec.has_masks:
+        raise RecordingError(f"{rec.path / 'mask'}: object masks are needed to separate the object "
+                             f"(or pass use_mask=False)")
+    allc = rec.cameras
+    depths = [rec.depth(c, t) for c in cams]
+    masks = [rec.mask(c, t) for c in cams] if use_mask else None
+    return fuse_views(depths, [allc[c] for c in cams], masks, erode_px=erode_px, min_depth_m=min_depth_m,
+                      max_depth_m=max_depth_m)
+
+
+def fuse_frame(rec: Recording, t: int, *, voxel_m: float = 0.002, nb_neighbors: int = 20, std_ratio: float = 2.0,
+               table_plane: Optional[Tuple[np.ndarray, float]] = None, min_height_m: float = 0.0,
+               **kw) -> np.ndarray:
+    """Object points [N, 3] (m, world) of frame ``t``: all views fused, voxel-downsampled at ``voxel_m`` (m),
+    statistical outliers removed (``nb_neighbors``, ``std_ratio``); with ``table_plane`` also points less
+    than ``min_height_m`` (m) above the table are dropped. Extra keywords go to :func:`frame_points`."""
+    pts = frame_points(rec, t, **kw)
+    if table_plane is not None and len(pts):
+        n, off = table_plane
+        pts = pts[pts @ np.asarray(n, float) + off >= min_height_m]
+    pts = voxel_downsample(pts, voxel_m)
+    if nb_neighbors and nb_neighbors > 0:
+        pts, _ = remove_statistical_outliers(pts, nb_neighbors, std_ratio)
+    return pts
+
+
+def fit_table_plane(points: np.ndarray, *, distance_threshold_m: float = 0.004, iterations: int = 1000,
+                    up_hint: Sequence[float] = (0.0, 0.0, 1.0), seed: int = 0) -> Tuple[np.ndarray, float, np.ndarray]:
+    """Dominant plane of a point set by RANSAC (Open3D ``segment_plane``).
+
+    Returns ``(normal [3], offset, inlier indices)`` with ``normal . x + offset = 0`` on the plane and
+    the normal oriented to have a positive component along ``up_hint`` (e.g. towards the cameras).
+    """
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(pts) < 3:
+        raise ValueError(f"fit_table_plane: need at least 3 points, got {len(pts)}")
+    o3d = _o3d()
+    try:
+        o3d.utility.random.seed(int(seed))
+    except AttributeError:  # older Open3D
+        pass
+    model, inliers = _pcd(pts).segment_plane(distance_threshold=float(distance_threshold_m), ransac_n=3,
+                                             num_iterations=int(iterations))
+    a, b, c, d = model
+    n = np.array([a, b, c], np.float64)
+    s = np.linalg.norm(n)
+    n, d = n / s, d / s
+    if n @ np.asarray(up_hint, float) < 0:
+        n, d = -n, -d
+    return n, float(d), np.asarray(inliers, np.int64)
+
+
+def estimate_table_plane(rec: Recording, t: int = 0, *, voxel_m: float = 0.005, distance_threshold_m: float = 0.004,
+                         max_depth_m: float = 2.0, seed: int = 0) -> Tuple[np.ndarray, float]:
+    """Table plane ``(normal, offset)`` of a recording by RANSAC on the background pixels of frame ``t``.
+
+    Background means outside the object and controller masks (all pixels when there are no masks).
+    The normal is oriented towards the cameras.
+    """
+    from scipy import ndimage
+
+    pts = []
+    for c, cam in enumerate(rec.cameras):
+        fg = np.zeros((rec.height, rec.width), bool)
+        if rec.has_masks:
+            fg |= rec.mask(c, t)
+            cm = rec.controller_mask(c, t)
+            if cm is not None:
+                fg |= cm
+            fg = ndimage.binary_dilation(fg, iterations=3)
+        pts.append(cam.backproject(rec.depth(c, t), ~fg, max_depth_m=max_depth_m))
+    pts = voxel_downsample(np.concatenate(pts), voxel_m)
+    if len(pts) < 100:
+        raise RecordingError(f"{rec.path}: too few background depth points ({len(pts)}) in frame {t} to find the "
+                             f"table plane; pass table_plane explicitly")
+    cam_centre = np.mean(rec.c2w[:, :3, 3], axis=0)
+    n, d, _ = fit_table_plane(pts, distance_threshold_m=distance_threshold_m, seed=seed,
+                              up_hint=cam_centre - pts.mean(0))
+    return n, d
+
+
+def close_against_table(points: np.ndarray, table_plane: Tuple[np.ndarray, float], spacing_m: float) -> np.ndarray:
+    """Add, below every point, samples down to the table plane every ``spacing_m`` (m).
+
+    A surface seen from above and the sides has no bottom; filling each column between the visible
+    surface and the table makes it a closed solid (an upper bound of the unseen underside). Points
+    under the table are dropped.
+    """
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    n = np.asarray(table_plane[0], np.float64)
+    n = n / np.linalg.norm(n)
+    h = pts @ n + float(table_plane[1])
+    pts, h = pts[h >= 0], h[h >= 0]
+    if len(pts) == 0:
+        return pts
+    steps = np.floor(h / spacing_m).astype(np.int64)
+    rep = np.repeat(np.arange(len(pts)), steps + 1)
+    k = np.arange(len(rep)) - np.repeat(np.cumsum(steps + 1) - (steps + 1), steps + 1)
+    down = np.minimum(k * spacing_m, h[rep])
+    extra = pts[rep] - down[:, None] * n
+    # the projection onto the table of every point closes the bottom exactly at the plane
+    foot = pts - h[:, None] * n
+    return np.concatenate([pts, extra, foot], axis=0)
+
+
+def initial_particles(points: np.ndarray, *, dx: float, particles_per_cell: float = 8,
+                      table_plane: Optional[Tuple[np.ndarray, float]] = None, voxel_m: Optional[float] = None,
+                      seed: int = 0, jitter: float = 0.0) -> Tuple[np.ndarray, np.ndarray]:
+    """Frame-0 simulation particles filling the object's interior (not only its visible surface).
+
+    ``points`` [N, 3] (m) is the fused object surface. With ``table_plane`` the surface is first closed
+    against the table (:func:`close_against_table`); then :func:`empm_gym.sim.sample_points` voxelises
+    it at ``voxel_m`` (m, default dx / 2), fills enclosed cavities and samples ``particles_per_cell``
+    particles per grid cell of ``dx`` (m). Returns ``(positions [n, 3] m, volumes [n] m^3)``; with a
+    table, no particle lies below it.
+    """
+    from empm_gym.sim import sample_points
+
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    h = voxel_m or dx / 2.0
+    if table_plane is not None:
+        pts = close_against_table(pts, table_plane, spacing_m=h / 2.0)
+    x, vol = sample_points(pts, dx, particles_per_cell, voxel=h, fill_interior=True, seed=seed, jitter=jitter)
+    if table_plane is not None:
+        n, off = table_plane
+        keep = x @ (np.asarray(n, float) / np.linalg.norm(n)) + off >= 0.0
+        x, vol = x[keep], vol[keep]
+    return x, vol
+
+
+def controls_from_masks(rec: Recording, *, radius_m: float = 0.02, erode_px: int = 1,
+                        nb_neighbors: int = 20, std_ratio: float = 2.0) -> dict:
+    """End-effector controls estimated from the controller ("hand") masks, as sphere end-effectors.
+
+    K (the number of end-effectors) is the largest number of controller ids of any camera. Per frame,
+    the hand pixels of all cameras are back-projected and fused, outliers removed, and split into K
+    clusters (nearest previous centre; k-means++-style at the first frame with hands); each cluster's
+    centroid is an end-effector position. Frames without hand pixels hold the nearest known position.
+    grip is 1 where the hand was seen, else 0. The centroid of a visible surface lies slightly
+    towards the cameras from the true centre (at most ``radius_m``).
+    """
+    if not rec.has_controller_masks:
+        raise RecordingError(f"{rec.path}: neither controls.npz nor controller masks (mask_info_<cam>.json with a "
+                             f"'hand' label) to derive end-effector controls from")
+    K = max(len(ctl) for _, ctl in rec._mask_ids)
+    T = rec.num_frames
+    cams = rec.cameras
+    pos = np.full((T, K, 3), np.nan)
+    prev = None
+    for t in range(T):
+        depths, masks, cc = [], [], []
+        for c in range(rec.num_cameras):
+            m = rec.controller_mask(c, t)
+            if m is not None and m.any():
+                depths.append(rec.depth(c, t))
+                masks.append(m)
+                cc.append(cams[c])
+        pts = fuse_views(depths, cc, masks, erode_px=erode_px) if cc else np.zeros((0, 3))
+        if len(pts) > nb_neighbors:
+            pts, _ = remove_statistical_outliers(pts, nb_neighbors, std_ratio)
+        if len(pts) < max(K, 3):
+            continue
+        if prev is None:  # farthest-point initialisation
+            centres = [pts.mean(0)]
+            for _ in range(1, K):
+                dist = np.min(np.linalg.norm(pts[:, None] - np.array(centres)[None], axis=2), axis=1)
+                centres.append(pts[np.argmax(dist)])
+            centres = np.array(centres)
+        else:
+            centres = prev.copy()
+        for _ in range(5):
+            lab = np.argmin(np.linalg.norm(pts[:, None] - centres[None], axis=2), axis=1)
+            for k in range(K):
+                if np.any(lab == k):
+                    centres[k] = pts[lab == k].mean(0)
+        pos[t] = centres
+        prev = centres
+    seen = np.all(np.isfinite(pos[:, :, 0]), axis=1)
+    if not np.any(seen):
+        raise RecordingError(f"{rec.path}: the controller masks are empty in every frame")
+    idx = np.arange(T)
+    known = idx[seen]
+    nearest = known[np.argmin(np.abs(idx[:, None] - known[None]), axis=1)]
+    pos = pos[nearest]
+    grip = np.repeat(seen[:, None], K, axis=1).astype(np.int32)
+    return validate_controls({"positions": pos, "grip": grip, "shape": np.array(["sphere"] * K),
+                              "radius": np.full(K, float(radius_m))}, T, f"{rec.path} (controller masks)")
+
+
+def load_controls(rec: Recording, **kw) -> dict:
+    """The recording's controls: ``controls.npz`` when present, else :func:`controls_from_masks` (keywords)."""
+    return rec.controls() if rec.has_controls else controls_from_masks(rec, **kw)

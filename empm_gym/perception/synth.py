@@ -1,0 +1,625 @@
+"""Synthetic multi-view RGB-D recordings with known material parameters (``empm synth``).
+
+:func:`synthesize` builds a scene with the simulator, runs a scripted manipulation and renders it from
+N cameras around the table into the recording layout of :mod:`empm_gym.perception.recording`:
+
+* ``rope``: an elastic cylinder (0.3 m long, radius 1.2 cm) lying on the table along x, held at both
+  ends by two closed sphere grippers (radius 1.8 cm); script: hold (grasp), lift by 8 cm while
+  stretching by 1.5 cm per side, hold, release (grippers open and move up), settle.
+* ``dough``: an elastoplastic block (5 x 5 x 4.5 cm) between two box plates (pushers, grip open =
+  frictional contact); script: hold, squeeze by 1 cm per side, hold, release (plates back out), settle.
+
+Rendering does not reuse the simulation particles as the observed surface: a dense set of surface
+sample points (spacing ``surface_spacing_m``, about 1.5 mm, much finer than the particles) is
+embedded at frame 0 in its nearest particles by a weighted least-squares affine fit, moved with
+them, and z-buffered as discs of their world size. Depth gets a RealSense-like noise model: Gaussian
+error with sigma = ``noise_sigma_m`` * (z / 0.5 m)^2, 1 mm quantisation (uint16 millimetres), pixels
+dropped at silhouette edges (depth jumps > 1 cm), at grazing angles (|cos| < 0.25 between surface
+normal and ray) and at random (0.3 %), and nothing outside 0.2-1.5 m.
+
+Replaying the recorded end-effector motion (for identification)
+----------------------------------------------------------------
+``controls.npz`` holds per frame t = 0..T-1 the end-effector centres ``positions[t, k]`` (m) and
+``grip[t, k]``; ``shape``, ``radius``, ``half_extents`` (m) give the geometry. With
+``configs, pos, grip = recording.controls_to_end_effectors(controls)``:
+
+1. add end-effector k to every world with ``builder.add_end_effector(w, configs[k], pos[0, k])``;
+2. during frame interval t -> t+1 command the constant velocity
+   ``v[t] = (pos[t+1] - pos[t]) * fps`` (m/s; :func:`recording.end_effector_velocities`) and the grip
+   ``grip[t]`` for all substeps of that interval (``control.set(velocity=v[t][None], grip=grip[t][None])``);
+3. substeps: the synthesiser used ``n = ceil((1/fps) / (0.9 * solver.max_stable_dt(max |v|)))``
+   substeps of ``dt = 1 / (fps n)`` per frame (also stored in ``ground_truth.json``, which
+   identification must not read); any stable dt whose substeps tile 1/fps reproduces the motion.
+
+Frame t of the images shows the state after t frame intervals (frame 0 is the rest state).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from .cameras import Camera, intrinsics_matrix, look_at, pixel_rays
+from .recording import RecordingError, RecordingWriter
+
+__all__ = ["synthesize", "register", "OBJECT_DEFAULTS", "render_view", "add_depth_noise", "camera_ring",
+           "SurfaceEmbedding"]
+
+#: Default material parameters per object (SI: Pa, -, kg/m^3, Pa).
+OBJECT_DEFAULTS: Dict[str, dict] = {
+    "rope": {"E": 2.0e5, "nu": 0.3, "density": 1100.0, "yield_stress": None},
+    "dough": {"E": 1.0e5, "nu": 0.3, "density": 1200.0, "yield_stress": 3.0e3},
+}
+
+_ROPE_LENGTH_M, _ROPE_RADIUS_M, _ROPE_GRIPPER_RADIUS_M = 0.30, 0.012, 0.018
+_DOUGH_SIZE_M = (0.05, 0.05, 0.045)
+_PLATE_HALF_M = (0.006, 0.035, 0.028)
+_TABLE_HALF_M = 0.6
+
+
+# ----------------------------------------------------------------------------------------------
+# scene and script
+# ----------------------------------------------------------------------------------------------
+
+
+def _smooth(s):
+    """Cosine ease from 0 to 1 over s in [0, 1]."""
+    s = np.clip(s, 0.0, 1.0)
+    return 0.5 - 0.5 * np.cos(np.pi * s)
+
+
+def _phases(T: int, fractions: List[float]) -> List[int]:
+    """Frame boundaries of consecutive phases with the given fractions of T (each at least one interval)."""
+    b = [0]
+    for f in np.cumsum(fractions)[:-1]:
+        b.append(max(b[-1] + 1, int(round(f * (T - 1)))))
+    b.append(max(b[-1] + 1, T - 1))
+    return b
+
+
+def _rope_script(T: int):
+    """End-effector positions [T, 2, 3] m and grip [T, 2] for the rope: hold, lift+stretch, hold, release, settle."""
+    L, r = _ROPE_LENGTH_M, _ROPE_RADIUS_M
+    x0 = L / 2 - 0.015
+    start = np.array([[-x0, 0.0, r], [x0, 0.0, r]])
+    _, g0, g1, g2, g3, _ = _phases(T, [0.1, 0.35, 0.15, 0.1, 0.3])
+    t = np.arange(T, dtype=np.float64)
+    lift = 0.08 * _smooth((t - g0) / max(g1 - g0, 1))
+    stretch = 0.015 * _smooth((t - g0) / max(g1 - g0, 1))
+    up = 0.05 * _smooth((t - g2) / max(g3 - g2, 1))
+    pos = np.repeat(start[None], T, axis=0)
+    pos[:, 0, 0] -= stretch
+    pos[:, 1, 0] += stretch
+    pos[:, :, 2] += (lift + up)[:, None]
+    grip = np.ones((T, 2), np.int32)
+    grip[g2:] = 0
+    return pos, grip
+
+
+def _dough_script(T: int):
+    """Plate positions [T, 2, 3] m and grip [T, 2] (always open: pushing) for the dough squeeze."""
+    sx = _DOUGH_SIZE_M[0] / 2 + _PLATE_HALF_M[0] + 0.002
+    start = np.array([[-sx, 0.0, _PLATE_HALF_M[2] + 0.003], [sx, 0.0, _PLATE_HALF_M[2] + 0.003]])
+    _, g0, g1, g2, g3, _ = _phases(T, [0.1, 0.35, 0.1, 0.15, 0.3])
+    t = np.arange(T, dtype=np.float64)
+    squeeze = 0.012 * _smooth((t - g0) / max(g1 - g0, 1)) - 0.03 * _smooth((t - g2) / max(g3 - g2, 1))
+    pos = np.repeat(start[None], T, axis=0)
+    pos[:, 0, 0] += squeeze
+    pos[:, 1, 0] -= squeeze
+    return pos, np.zeros((T, 2), np.int32)
+
+
+def _build(obj: str, material, *, dx: float, ppc: float, table_friction: float, ee_friction: float, seed: int,
+           device, controls_pos):
+    from empm_gym.sim import (EndEffectorConfig, GridConfig, ModelBuilder, TableConfig, sample_box,
+                              sample_cylinder)
+
+    if obj == "rope":
+        L, r = _ROPE_LENGTH_M, _ROPE_RADIUS_M
+        grid = GridConfig(lower=(-0.25, -0.08, -0.04), upper=(0.25, 0.08, 0.17), dx=dx)
+        x, vol = sample_cylinder((-L / 2, 0, r), (L / 2, 0, r), r, dx, ppc, seed=seed)
+        ee = [EndEffectorConfig(shape="sphere", radius=_ROPE_GRIPPER_RADIUS_M, friction=ee_friction)] * 2
+    else:
+        sx, sy, sz = _DOUGH_SIZE_M
+        grid = GridConfig(lower=(-0.12, -0.09, -0.04), upper=(0.12, 0.09, 0.12), dx=dx)
+        x, vol = sample_box((-sx / 2, -sy / 2, 0.0), (sx / 2, sy / 2, sz), dx, ppc, seed=seed)
+        ee = [EndEffectorConfig(shape="box", half_extents=_PLATE_HALF_M, friction=ee_friction)] * 2
+    b = ModelBuilder(grid, gravity=(0, 0, -9.81), table=TableConfig(height=0.0, friction=table_friction))
+    w = b.add_world(material)
+    b.add_particles(w, x, vol)
+    for k, cfg in enumerate(ee):
+        b.add_end_effector(w, cfg, controls_pos[0, k])
+    return b.finalize(device), ee, grid
+
+
+# ----------------------------------------------------------------------------------------------
+# dense surface embedded in the particles
+# ----------------------------------------------------------------------------------------------
+
+
+def _rope_surface(spacing: float):
+    L, r = _ROPE_LENGTH_M, _ROPE_RADIUS_M
+    nc = max(8, int(math.ceil(2 * math.pi * r / spacing)))
+    nl = max(2, int(math.ceil(L / spacing)))
+    th = (np.arange(nc) + 0.5) * 2 * np.pi / nc
+    xs = -L / 2 + (np.arange(nl) + 0.5) * L / nl
+    X, TH = np.meshgrid(xs, th, indexing="ij")
+    side_n = np.stack([np.zeros_like(X), np.cos(TH), np.sin(TH)], -1).reshape(-1, 3)
+    side_p = np.stack([X, r * np.cos(TH), r + r * np.sin(TH)], -1).reshape(-1, 3)
+    caps_p, caps_n = [], []
+    for sgn in (-1.0, 1.0):
+        for rr in np.arange(spacing / 2, r, spacing):
+            m = max(6, int(math.ceil(2 * math.pi * rr / spacing)))
+            a = (np.arange(m) + 0.5) * 2 * np.pi / m
+            caps_p.append(np.stack([np.full(m, sgn * L / 2), rr * np.cos(a), r + rr * np.sin(a)], -1))
+            caps_n.append(np.tile([sgn, 0.0, 0.0], (m, 1)))
+    p = np.concatenate([side_p] + caps_p)
+    n = np.concatenate([side_n] + caps_n)
+    # texture coordinate along the rope for coloured stripes
+    u = (p[:, 0] + L / 2) / L
+    return p, n, u
+
+
+def _box_surface(size, spacing: float):
+    sx, sy, sz = size
+    lo, hi = np.array([-sx / 2, -sy / 2, 0.0]), np.array([sx / 2, sy / 2, sz])
+    P, N = [], []
+    for ax in range(3):
+        o = [a for a in range(3) if a != ax]
+        n1 = max(2, int(math.ceil((hi[o[0]] - lo[o[0]]) / spacing)))
+        n2 = max(2, int(math.ceil((hi[o[1]] - lo[o[1]]) / spacing)))
+        a = lo[o[0]] + (np.arange(n1) + 0.5) * (hi[o[0]] - lo[o[0]]) / n1
+        b = lo[o[1]] + (np.arange(n2) + 0.5) * (hi[o[1]] - lo[o[1]]) / n2
+        A, B = np.meshgrid(a, b, indexing="ij")
+        for side, val in ((-1.0, lo[ax]), (1.0, hi[ax])):
+            p = np.zeros((A.size, 3))
+            p[:, o[0]], p[:, o[1]], p[:, ax] = A.ravel(), B.ravel(), val
+            n = np.zeros_like(p)
+            n[:, ax] = side
+            P.append(p)
+            N.append(n)
+    p = np.concatenate(P)
+    return p, np.concatenate(N), None
+
+
+class SurfaceEmbedding:
+    """Dense surface points carried by simulation particles through a local weighted affine fit.
+
+    For each surface point p0 (frame 0) with neighbour particles x_i0 and Gaussian weights w_i, the
+    current position is c + A (p0 - c0) where c0, c are the weighted neighbour centroids and A the
+    weighted least-squares map of the neighbour offsets from rest to now; normals follow A^-T.
+    """
+
+    def __init__(self, surface0: np.ndarray, normals0: np.ndarray, particles0: np.ndarray, *, k: int = 12,
+                 h: Optional[float] = None):
+        from scipy.spatial import cKDTree
+
+        self.p0 = np.asarray(surface0, np.float64)
+        self.n0 = np.asarray(normals0, np.float64)
+        x0 = np.asarray(particles0, np.float64)
+        dist, idx = cKDTree(x0).query(self.p0, k=k)
+        h = h or float(np.median(dist[:, 0])) * 2.0 + 1e-9
+        w = np.exp(-(dist / h) ** 2)
+        self.w = w / w.sum(1, keepdims=True)
+        self.idx = idx
+        nb = x0[idx]                                     # [S, k, 3]
+        self.c0 = np.einsum("sk,skd->sd", self.w, nb)
+        r0 = nb - self.c0[:, None]
+        M = np.einsum("sk,ski,skj->sij", self.w, r0, r0)
+        tr = np.trace(M, axis1=1, axis2=2)[:, None, None]
+        self.Minv = np.linalg.inv(M + 1e-6 * tr * np.eye(3))
+        self.r0 = r0
+        self.off0 = self.p0 - self.c0
+
+    def deform(self, particles: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """Surface points [S, 3] (m) and unit normals [S, 3] for the current particle positions [N, 3] (m)."""
+        nb = np.asarray(particles, np.float64)[self.idx]
+        c = np.einsum("sk,skd->sd", self.w, nb)
+        B = np.einsum("sk,ski,skj->sij", self.w, nb - c[:, None], self.r0)
+        A = B @ self.Minv
+        p = c + np.einsum("sij,sj->si", A, self.off0)
+        det = np.linalg.det(A)
+        ok = np.abs(det) > 1e-6
+        n = self.n0.copy()
+        if np.any(ok):
+            Ainv_T = np.linalg.inv(A[ok]).transpose(0, 2, 1)
+            n[ok] = np.einsum("sij,sj->si", Ainv_T, self.n0[ok])
+        n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
+        return p, n
+
+
+# ----------------------------------------------------------------------------------------------
+# rendering
+# ----------------------------------------------------------------------------------------------
+
+_LIGHT = np.array([0.3, -0.4, 1.0]) / np.linalg.norm([0.3, -0.4, 1.0])
+
+
+def _shade(albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    lam = np.clip(normal @ _LIGHT, 0.0, 1.0)
+    return albedo * (0.35 + 0.65 * lam)[..., None]
+
+
+def camera_ring(n: int, *, width: int = 848, height: int = 480, fx: float = 420.0, fy: float = 420.0,
+                distance_m: float = 0.55, elevation_deg: float = 40.0, target=(0.0, 0.0, 0.03),
+                azimuth0_deg: float = 30.0) -> List[Camera]:
+    """``n`` cameras evenly spaced in azimuth around ``target`` (m) at ``distance_m`` and ``elevation_deg``."""
+    K = intrinsics_matrix(fx, fy, (width - 1) / 2.0, (height - 1) / 2.0)
+    cams = []
+    el = math.radians(elevation_deg)
+    for i in range(n):
+        az = math.radians(azimuth0_deg + 360.0 * i / n)
+        eye = np.asarray(target) + distance_m * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az),
+                                                          math.sin(el)])
+        cams.append(Camera(K, look_at(eye, target), width, height, name=str(i)))
+    return cams
+
+
+class _StaticView:
+    """Per-camera quantities that do not change over frames: rays, table depth, colour and incidence."""
+
+    def __init__(self, cam: Camera):
+        self.cam = cam
+        self.o, d = cam.world_rays()                      # d: world direction with camera z = 1
+        self.d = d
+        self.dn = d / np.linalg.norm(d, axis=-1, keepdims=True)
+        H, W = cam.height, cam.width
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = -self.o[2] / d[..., 2]                     # depth z along the optical axis to the plane z = 0
+        hit = (s > 0) & np.isfinite(s)
+        P = self.o + s[..., None] * d
+        hit &= (np.abs(P[..., 0]) < _TABLE_HALF_M) & (np.abs(P[..., 1]) < _TABLE_HALF_M)
+        self.table_depth = np.where(hit, s, np.inf)
+        self.table_cos = np.abs(self.dn[..., 2])
+        checker = ((np.floor(P[..., 0] / 0.05) + np.floor(P[..., 1] / 0.05)) % 2 == 0)
+        albedo = np.where(checker[..., None], [0.62, 0.52, 0.40], [0.55, 0.45, 0.34])
+        self.table_color = np.where(hit[..., None], _shade(albedo, np.array([0.0, 0.0, 1.0])), [0.18, 0.18, 0.2])
+        self.H, self.W = H, W
+
+
+def _ee_hits(view: _StaticView, shape: str, centre, rot: np.ndarray, radius: float, half_extents):
+    """Depth (inf = miss) and world normals of one end-effector over the pixels of its projected bounding box."""
+    cam = view.cam
+    ext = radius if shape == "sphere" else float(np.linalg.norm(half_extents))
+    corners = np.asarray(centre) + ext * np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)])
+    rc, z = cam.project(corners)
+    if np.all(z <= 0):
+        return None
+    if np.any(z <= 0):
+        r0, r1, c0, c1 = 0, view.H, 0, view.W
+    else:
+        r0 = int(max(0, np.floor(rc[:, 0].min()) - 1))
+        r1 = int(min(view.H, np.ceil(rc[:, 0].max()) + 2))
+        c0 = int(max(0, np.floor(rc[:, 1].min()) - 1))
+        c1 = int(min(view.W, np.ceil(rc[:, 1].max()) + 2))
+    if r0 >= r1 or c0 >= c1:
+        return None
+    d = view.d[r0:r1, c0:c1]
+    o = view.o
+    if shape == "sphere":
+        oc = o - centre
+        a = np.einsum("ijk,ijk->ij", d, d)
+        b = 2 * d @ oc
+        c = oc @ oc - radius**2
+        disc = b * b - 4 * a * c
+        s = np.where(disc >= 0, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), np.inf)
+        s = np.where(s > 0, s, np.inf)
+        n = o + np.where(np.isfinite(s), s, 0.0)[..., None] * d - centre
+        n /= np.linalg.norm(n, axis=-1, keepdims=True) + 1e-12
+    else:  # box (and capsule rendered as its bounding box is not needed here)
+        he = np.asarray(half_extents, float)
+        ol = rot.T @ (o - centre)
+        dl = d @ rot
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (-he - ol) / dl
+            t2 = (he - ol) / dl
+        tmin, tmax = np.minimum(t1, t2), np.maximum(t1, t2)
+        tmin = np.where(np.isnan(tmin), -np.inf, tmin)
+        tmax = np.where(np.isnan(tmax), np.inf, tmax)
+        enter = tmin.max(-1)
+        ax = tmin.argmax(-1)
+        exit_ = tmax.min(-1)
+        s = np.where((enter <= exit_) & (enter > 0), enter, np.inf)
+        nl = np.zeros(d.shape)
+        sign = -np.sign(np.take_along_axis(dl, ax[..., None], -1))[..., 0]
+        np.put_along_axis(nl, ax[..., None], sign[..., None], -1)
+        n = nl @ rot.T
+    return (r0, r1, c0, c1), s, n
+
+
+def _quat_to_matrix(q) -> np.ndarray:
+    x, y, z, w = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def render_view(view: _StaticView, surf_p: np.ndarray, surf_n: np.ndarray, surf_albedo: np.ndarray,
+                splat_radius_m: float, ees: List[dict]):
+    """Noise-free render of one camera: depth [H, W] m (inf = nothing), colour [H, W, 3] in [0, 1],
+    label [H, W] (-1 background, 0 table, 1 object, 2 + k end-effector k), |cos| of the incidence angle."""
+    cam = view.cam
+    depth = view.table_depth.copy()
+    color = view.table_color.copy()
+    label = np.where(np.isfinite(depth), 0, -1).astype(np.int16)
+    cosv = view.table_cos.copy()
+    for k, e in enumerate(ees):
+        hit = _ee_hits(view, e["shape"], e["pos"], e["rot"], e.get("radius", 0.0), e.get("half_extents"))
+        if hit is None:
+            continue
+        (r0, r1, c0, c1), s, n = hit
+        win = (slice(r0, r1), slice(c0, c1))
+        closer = s < depth[win]
+        depth[win] = np.where(closer, s, depth[win])
+        col = _shade(np.array([0.55, 0.57, 0.62]), n)
+        color[win] = np.where(closer[..., None], col, color[win])
+        label[win] = np.where(closer, 2 + k, label[win])
+        cosv[win] = np.where(closer, np.abs(np.einsum("ijk,ijk->ij", n, view.dn[win])), cosv[win])
+    # object: z-buffered discs
+    rc, z = cam.project(surf_p)
+    view_dir = surf_p - cam.position
+    front = np.einsum("ij,ij->i", surf_n, view_dir) < 0
+    ok = front & (z > 0.05)
+    rc, z, idx = rc[ok], z[ok], np.nonzero(ok)[0]
+    rpx = np.maximum(cam.K[0, 0] * splat_radius_m / z, 0.75)
+    R = int(np.ceil(rpx.max())) if len(rpx) else 0
+    rows_c = np.round(rc[:, 0]).astype(np.int64)
+    cols_c = np.round(rc[:, 1]).astype(np.int64)
+    pix, zz, ii = [], [], []
+    for dr in range(-R, R + 1):
+        for dc in range(-R, R + 1):
+            rr, cc = rows_c + dr, cols_c + dc
+            dist2 = (rr - rc[:, 0]) ** 2 + (cc - rc[:, 1]) ** 2
+            m = (dist2 <= rpx**2) & (rr >= 0) & (rr < view.H) & (cc >= 0) & (cc < view.W)
+            pix.append(rr[m] * view.W + cc[m])
+            zz.append(z[m])
+            ii.append(idx[m])
+    if pix:
+        pix, zz, ii = np.concatenate(pix), np.concatenate(zz), np.concatenate(ii)
+        order = np.lexsort((zz, pix))
+        pix, zz, ii = pix[order], zz[order], ii[order]
+        first = np.ones(len(pix), bool)
+        first[1:] = pix[1:] != pix[:-1]
+        pix, zz, ii = pix[first], zz[first], ii[first]
+        flat_d = depth.reshape(-1)
+        closer = zz < flat_d[pix]
+        pix, zz, ii = pix[closer], zz[closer], ii[closer]
+        flat_d[pix] = zz
+        color.reshape(-1, 3)[pix] = _shade(surf_albedo[ii], surf_n[ii])
+        label.reshape(-1)[pix] = 1
+        cosv.reshape(-1)[pix] = np.abs(np.einsum("ij,ij->i", surf_n[ii], view.dn.reshape(-1, 3)[pix]))
+    return depth, color, label, cosv
+
+
+def add_depth_noise(depth: np.ndarray, cos_incidence: np.ndarray, rng: np.random.Generator, *,
+                    sigma_m: float = 1.5e-3, ref_depth_m: float = 0.5, edge_jump_m: float = 0.01,
+                    edge_drop: float = 0.6, grazing_cos: float = 0.25, random_drop: float = 0.003,
+                    min_depth_m: float = 0.2, max_depth_m: float = 1.5) -> np.ndarray:
+    """Sensor-like depth (m, 0 = missing) from a clean depth [H, W] (m, inf = nothing).
+
+    Gaussian noise with std ``sigma_m * (z / ref_depth_m)^2``; dropped with probability ``edge_drop``
+    where a 4-neighbour's depth differs by more than ``edge_jump_m``; dropped with probability rising
+    to 1 as |cos| of the incidence falls from ``grazing_cos`` to 0.4 of it; ``random_drop`` elsewhere;
+    nothing outside [min_depth_m, max_depth_m]. Quantisation happens when written (depth units).
+    """
+    z = np.where(np.isfinite(depth), depth, 0.0)
+    zf = np.where(np.isfinite(depth), depth, 1e3)
+    jump = np.zeros(z.shape, bool)
+    for ax in (0, 1):
+        dz = np.abs(np.diff(zf, axis=ax)) > edge_jump_m
+        if ax == 0:
+            jump[1:] |= dz
+            jump[:-1] |= dz
+        else:
+            jump[:, 1:] |= dz
+            jump[:, :-1] |= dz
+    u = rng.random(z.shape)
+    p_graze = np.clip((grazing_cos - cos_incidence) / (0.6 * grazing_cos), 0.0, 1.0)
+    drop = (jump & (u < edge_drop)) | (rng.random(z.shape) < p_graze) | (rng.random(z.shape) < random_drop)
+    noisy = z + rng.standard_normal(z.shape) * sigma_m * (z / ref_depth_m) ** 2
+    valid = (z > 0) & ~drop & (noisy >= min_depth_m) & (noisy <= max_depth_m)
+    return np.where(valid, noisy, 0.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# main entry
+# ----------------------------------------------------------------------------------------------
+
+
+def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[float] = None,
+               nu: Optional[float] = None, density: Optional[float] = None, yield_stress: Optional[float] = None,
+               frames: int = 60, cameras: int = 3, width: int = 848, height: int = 480, fx: Optional[float] = None,
+               fy: Optional[float] = None, fps: float = 30.0, dx: float = 0.01, particles_per_cell: float = 8,
+               table_friction: float = 0.5, gripper_friction: float = 0.8, surface_spacing_m: float = 0.0015,
+               noise_sigma_m: float = 1.5e-3, n_tracks: int = 128, depth_format: str = "npy",
+               overwrite: bool = False, progress: bool = True, device: str = "cpu") -> Path:
+    """Simulate a scripted manipulation and write a synthetic recording with known parameters to ``out_dir``.
+
+    ``object`` is "rope" (elastic unless ``yield_stress`` is given) or "dough" (elastoplastic); material
+    parameters default to :data:`OBJECT_DEFAULTS` (E, yield_stress in Pa, density in kg/m^3). The scene
+    is rendered from ``cameras`` cameras (``width`` x ``height`` pixels, focal ``fx``, ``fy`` pixels) at
+    ``fps`` for ``frames`` frames (focal lengths default to 420 px scaled by width / 848). Returns the recording path. See the module docstring for the scene,
+    the noise model and how ``controls.npz`` replays.
+    """
+    from tqdm.auto import tqdm
+
+    from empm_gym.sim import MaterialConfig, SolverMPM
+
+    if object not in OBJECT_DEFAULTS:
+        raise ValueError(f"object must be one of {sorted(OBJECT_DEFAULTS)}, got {object!r}")
+    if int(frames) < 2:
+        raise ValueError(f"frames must be >= 2, got {frames!r}")
+    if int(cameras) < 1:
+        raise ValueError(f"cameras must be >= 1, got {cameras!r}")
+    T, C = int(frames), int(cameras)
+    fx = 420.0 * width / 848.0 if fx is None else float(fx)
+    fy = fx if fy is None else float(fy)
+    d = dict(OBJECT_DEFAULTS[object])
+    for k, v in (("E", E), ("nu", nu), ("density", density), ("yield_stress", yield_stress)):
+        if v is not None:
+            d[k] = float(v)
+    material = MaterialConfig(**d)
+    rng = np.random.default_rng(seed)
+    t_start = time.perf_counter()
+
+    pos, grip = _rope_script(T) if object == "rope" else _dough_script(T)
+    model, ee_cfgs, grid = _build(object, material, dx=dx, ppc=particles_per_cell, table_friction=table_friction,
+                                  ee_friction=gripper_friction, seed=seed, device=device, controls_pos=pos)
+    cams = camera_ring(C, width=width, height=height, fx=fx, fy=fy,
+                       target=(0.0, 0.0, 0.03 if object == "rope" else 0.02))
+    out = Path(out_dir)
+    writer = RecordingWriter(out, intrinsics=[c.K for c in cams], c2w=[c.c2w for c in cams], width=width,
+                             height=height, fps=fps, frame_num=T, depth_scale=0.001, depth_format=depth_format,
+                             serial_numbers=[f"synth-{i}" for i in range(C)], object_label=object,
+                             overwrite=overwrite)
+
+    # -- simulate -------------------------------------------------------------------------------
+    solver = SolverMPM(model)
+    vel = np.diff(pos, axis=0) * fps
+    vmax = float(np.max(np.linalg.norm(vel, axis=-1))) if len(vel) else 0.0
+    n_sub = int(math.ceil((1.0 / fps) / (0.9 * solver.max_stable_dt(vmax))))
+    dt = 1.0 / (fps * n_sub)
+    s0, s1 = model.state(), model.state()
+    ctrl = model.control()
+    X = np.zeros((T, model.particle_count, 3), np.float32)
+    X[0] = s0.particle_x.numpy()
+    for t in tqdm(range(T - 1), desc=f"simulate {object} ({model.particle_count} particles, {n_sub} substeps/frame)",
+                  disable=not progress, leave=False):
+        ctrl.set(velocity=vel[t][None], grip=grip[t][None])
+        for _ in range(n_sub):
+            solver.step(s0, s1, ctrl, dt)
+            s0, s1 = s1, s0
+        X[t + 1] = s0.particle_x.numpy()
+    t_sim = time.perf_counter() - t_start
+
+    # -- dense surface ------------------------------------------------------------------------------
+    if object == "rope":
+        sp, sn, u = _rope_surface(surface_spacing_m)
+        stripes = 0.5 + 0.5 * np.cos(2 * np.pi * u * 12)
+        albedo = np.stack([0.75 - 0.25 * stripes, 0.18 + 0.3 * stripes, 0.12 + 0.1 * stripes], -1)
+    else:
+        sp, sn, _ = _box_surface(_DOUGH_SIZE_M, surface_spacing_m)
+        albedo = np.clip(np.array([0.85, 0.72, 0.45]) + rng.normal(0, 0.04, (len(sp), 1)), 0, 1)
+    emb = SurfaceEmbedding(sp, sn, X[0])
+    n_tr = min(int(n_tracks), len(sp))
+    track_idx = np.sort(rng.choice(len(sp), n_tr, replace=False)) if n_tr else np.zeros(0, int)
+    tracks = np.zeros((C, T, n_tr, 2), np.float32)
+    vis = np.zeros((C, T, n_tr), bool)
+
+    views = [_StaticView(c) for c in cams]
+    splat_r = 1.0 * surface_spacing_m
+    for t in tqdm(range(T), desc=f"render {C} cameras", disable=not progress, leave=False):
+        P, N = emb.deform(X[t])
+        ees = []
+        for k, cfg in enumerate(ee_cfgs):
+            ees.append({"shape": cfg.shape, "pos": pos[t, k], "rot": np.eye(3), "radius": cfg.radius,
+                        "half_extents": cfg.half_extents})
+        for c, view in enumerate(views):
+            depth, color, label, cosv = render_view(view, P, N, albedo, splat_r, ees)
+            noisy = add_depth_noise(depth, cosv, rng, sigma_m=noise_sigma_m)
+            rgb = np.clip(color + rng.normal(0, 0.008, color.shape), 0, 1)
+            writer.write_frame(c, t, color=(rgb * 255 + 0.5).astype(np.uint8), depth_m=noisy, mask=label == 1,
+                               controller_mask=label >= 2)
+            if n_tr:
+                rc, z = view.cam.project(P[track_idx])
+                tracks[c, t] = rc
+                ri, ci = np.round(rc[:, 0]).astype(int), np.round(rc[:, 1]).astype(int)
+                inside = (ri >= 0) & (ri < height) & (ci >= 0) & (ci < width) & (z > 0)
+                zb = np.full(n_tr, -np.inf)
+                zb[inside] = depth[ri[inside], ci[inside]]
+                lab = np.full(n_tr, -1)
+                lab[inside] = label[ri[inside], ci[inside]]
+                vis[c, t] = inside & (lab == 1) & (z <= zb + max(0.003, 2 * surface_spacing_m))
+
+    shapes = np.array([c.shape for c in ee_cfgs])
+    writer.write_controls(positions=pos, grip=grip, shape=shapes,
+                          radius=np.array([c.radius for c in ee_cfgs]),
+                          half_height=np.array([c.half_height for c in ee_cfgs]),
+                          half_extents=np.array([c.half_extents for c in ee_cfgs]),
+                          orientations=np.tile([0.0, 0.0, 0.0, 1.0], (T, len(ee_cfgs), 1)))
+    for c in range(C):
+        writer.write_tracks(c, tracks[c], vis[c])
+    writer.write_ground_truth({
+        "synthetic": True,
+        "object": object,
+        "seed": int(seed),
+        "material": {"E": material.E, "nu": material.nu, "density": material.density,
+                     "yield_stress": material.yield_stress},
+        "table_friction": float(table_friction),
+        "gripper_friction": float(gripper_friction),
+        "effects": [],
+        "scene": {
+            "grid": {"lower": list(grid.lower), "upper": list(grid.upper), "dx": grid.dx},
+            "particles_per_cell": float(particles_per_cell),
+            "particle_count": int(model.particle_count),
+            "substeps_per_frame": n_sub,
+            "dt_s": dt,
+            "gravity": [0.0, 0.0, -9.81],
+            "table_height_m": 0.0,
+            "object_geometry": ({"type": "cylinder", "length_m": _ROPE_LENGTH_M, "radius_m": _ROPE_RADIUS_M,
+                                 "axis": "x", "centre": [0.0, 0.0, _ROPE_RADIUS_M]} if object == "rope" else
+                                {"type": "box", "size_m": list(_DOUGH_SIZE_M), "lower": [-_DOUGH_SIZE_M[0] / 2,
+                                 -_DOUGH_SIZE_M[1] / 2, 0.0]}),
+            "end_effectors": [{"shape": c.shape, "radius": c.radius, "half_extents": list(c.half_extents)}
+                              for c in ee_cfgs],
+        },
+        "render": {"surface_points": int(len(sp)), "surface_spacing_m": surface_spacing_m,
+                   "splat_radius_m": splat_r, "depth_noise_sigma_m_at_0.5m": noise_sigma_m,
+                   "track_surface_indices": track_idx.tolist()},
+        "timing_s": {"simulate": round(t_sim, 3), "total": round(time.perf_counter() - t_start, 3)},
+    })
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# CLI
+# ----------------------------------------------------------------------------------------------
+
+
+def _cli(args) -> int:
+    try:
+        path = synthesize(args.out_dir, object=args.object, seed=args.seed, E=args.E, nu=args.nu,
+                          density=args.density, yield_stress=args.yield_stress, frames=args.frames,
+                          cameras=args.cameras, width=args.width, height=args.height, overwrite=args.overwrite,
+                          progress=not args.quiet, device=args.device)
+    except (RecordingError, ValueError) as exc:
+        print(f"empm synth: error: {exc}", file=sys.stderr)
+        return 2
+    gt = json.loads((path / "ground_truth.json").read_text())
+    m = gt["material"]
+    print(f"wrote {path}: {args.object}, {args.frames} frames x {args.cameras} cameras; E={m['E']:g} Pa, "
+          f"nu={m['nu']:g}, density={m['density']:g} kg/m^3, yield_stress={m['yield_stress']} Pa "
+          f"({gt['timing_s']['total']:.1f} s)")
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add the ``empm synth`` sub-command."""
+    p = subparsers.add_parser(
+        "synth", help="write a synthetic multi-view RGB-D recording with known material parameters",
+        description="Simulate a scripted rope stretch or dough squeeze and render it from N RGB-D cameras "
+                    "into the recording layout (see ARCHITECTURE.md, Recordings).")
+    p.add_argument("out_dir", help="output recording directory (must be empty unless --overwrite)")
+    p.add_argument("--object", choices=sorted(OBJECT_DEFAULTS), default="rope")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--E", type=float, default=None, help="Young's modulus, Pa (rope 2e5, dough 1e5)")
+    p.add_argument("--nu", type=float, default=None, help="Poisson's ratio (default 0.3)")
+    p.add_argument("--density", type=float, default=None, help="kg/m^3 (rope 1100, dough 1200)")
+    p.add_argument("--yield-stress", dest="yield_stress", type=float, default=None,
+                   help="von Mises yield stress, Pa (dough 3e3; rope elastic unless given)")
+    p.add_argument("--frames", type=int, default=60)
+    p.add_argument("--cameras", type=int, default=3)
+    p.add_argument("--width", type=int, default=848)
+    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--device", default="cpu", help="Warp device for the simulation (cpu, cuda:0)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing recording in out_dir")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cli)
