@@ -400,7 +400,7 @@ class BatchedCore:
         iou = np.where(diverged, self.iou_prev, iou)
         r_cd = REWARD_WEIGHT_CHAMFER * (self.cd_prev - cd) / self.cd0
         r_iou = REWARD_WEIGHT_IOU * (iou - self.iou_prev)
-        self.cd_prev, self.iou_prev = cd, iou
+        self.cd_prev, self.iou_prev = cd.copy(), iou.copy()  # reset() edits these in place
         self.elapsed += 1
         success = (cd < self.task.success_chamfer) & ~diverged
         terminated = success | diverged
