@@ -184,6 +184,9 @@ class SolverConfig:
     """Particle speed [m/s] above which the state counts as diverged."""
     plasticity_min_singular: float = 1e-3
     """Lower clamp of singular values of F in the plastic return mapping [-]."""
+    deterministic: bool = False
+    """Bit-identical runs on CUDA: switches the MPM kernel module (for every solver in the process) to
+    Warp's run-to-run deterministic atomics, at some speed cost. CPU runs are always deterministic."""
 
     def __post_init__(self):
         if not (0 < self.cfl <= 1.0):

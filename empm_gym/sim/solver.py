@@ -70,6 +70,9 @@ class SolverMPM:
     def __init__(self, model: Model, config: Optional[SolverConfig] = None):
         self.model = model
         self.config = config or SolverConfig()
+        if self.config.deterministic:
+            # float atomics of P2G (and of every adjoint) otherwise sum in a run-dependent order on GPUs
+            wp.set_module_options({"deterministic": wp.DeterministicMode.RUN_TO_RUN}, module=K)
         self.scratch = GridScratch(model)
         self.step_count = 0
         self._flags = wp.zeros(model.world_count, dtype=int, device=model.device)

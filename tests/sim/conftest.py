@@ -13,7 +13,7 @@ DEVICE = "cpu"
 def block_model(*, material=MaterialConfig(E=2e4, nu=0.3, density=1000.0), worlds=1, dx=0.01,
                 lower=(-0.03, -0.03, 0.0), upper=(0.03, 0.03, 0.04), grid_lower=(-0.1, -0.1, -0.04),
                 grid_upper=(0.1, 0.1, 0.14), table=TableConfig(friction=0.5), gravity=(0, 0, -9.81),
-                end_effectors=(), requires_grad=False, ppc=8, jitter=0.3, materials=None):
+                end_effectors=(), requires_grad=False, ppc=8, jitter=0.3, materials=None, device=DEVICE):
     """One or more worlds each holding an axis-aligned block of particles."""
     b = ModelBuilder(GridConfig(lower=grid_lower, upper=grid_upper, dx=dx), gravity=gravity, table=table)
     x, vol = sample_box(lower, upper, dx, ppc, seed=1, jitter=jitter)
@@ -22,7 +22,7 @@ def block_model(*, material=MaterialConfig(E=2e4, nu=0.3, density=1000.0), world
         b.add_particles(w, x, vol)
         for cfg, pos in end_effectors:
             b.add_end_effector(w, cfg, pos)
-    return b.finalize(DEVICE, requires_grad=requires_grad)
+    return b.finalize(device, requires_grad=requires_grad)
 
 
 def run(model, steps, dt, *, state=None, control=None, solver=None, every=None):
