@@ -713,7 +713,7 @@ class RecordingWriter:
 
     Refuses a non-empty directory unless ``overwrite=True``; then the directory must already be a
     recording (hold metadata.json) and only the layout's files are replaced, never other files.
-    ``mask_layout="phystwin"`` writes object masks as id 0 and controller masks as id 1 ("hand"),
+    ``mask_layout="phystwin"`` writes object masks as id 0 and controller masks as ids 1.. ("hand"),
     ``"simple"`` writes ``mask/<cam>/<frame>.png`` (object only).
     """
 
@@ -784,7 +784,8 @@ class RecordingWriter:
     def write_frame(self, cam: int, t: int, *, color=None, depth_m=None, depth_raw=None, mask=None,
                     controller_mask=None):
         """Write one camera's images for frame ``t``: colour uint8 [H, W, 3], depth in metres (quantised to
-        depth units) or ``depth_raw`` in depth units as is, object mask and controller mask (bool [H, W])."""
+        depth units) or ``depth_raw`` in depth units as is, object mask (bool [H, W]) and controller mask
+        (bool [H, W], or a list of them, one per controller: PhysTwin ids 1, 2, ... labelled "hand")."""
         import imageio.v3 as iio
 
         if color is not None:
@@ -813,7 +814,11 @@ class RecordingWriter:
                 self._check_hw(np.asarray(mask), "mask")
                 iio.imwrite(self._file("mask", cam, t, "png"), (np.asarray(mask, bool) * 255).astype(np.uint8))
             return
-        for sub, m in (("0", mask), ("1", controller_mask)):
+        items = [("0", mask)]
+        if controller_mask is not None:
+            cms = controller_mask if isinstance(controller_mask, (list, tuple)) else [controller_mask]
+            items += [(str(k + 1), m) for k, m in enumerate(cms)]
+        for sub, m in items:
             if m is None:
                 continue
             self._check_hw(np.asarray(m), "mask")
