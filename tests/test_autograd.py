@@ -87,5 +87,5 @@ def test_adam_recovers_youngs_modulus_from_a_trajectory():
         loss.backward()
         opt.step()
         sched.step()
-    E_fit = 1e4 * float(torch.exp(theta))
+    E_fit = 1e4 * float(torch.exp(theta.detach()))
     assert abs(E_fit - E_true) / E_true < 0.03, E_fit
