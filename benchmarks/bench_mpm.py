@@ -103,6 +103,30 @@ def time_grad(model, steps: int, checkpoint_every):
     return n / (t1 - t0), n / (t2 - t0), (t2 - t1) / (t1 - t0), peak / 2**20
 
 
+def profile(particles: int, device: str, steps: int, plastic: bool):
+    """Per-kernel GPU time of one taped rollout's forward and backward pass (CUDA activity timing)."""
+    model = build(1, particles, device, requires_grad=True, plastic=plastic)
+    solver = SolverMPM(model)
+    ro = Rollout(model, solver, steps=steps, dt=0.5 * solver.max_stable_dt(), record_every=steps)
+    ctrls = ro.make_controls()
+    seed = [None, np.ones((model.particle_count, 3), np.float32)]
+    ro.forward(model.state(), ctrls)
+    ro.backward(seed)
+    wp.synchronize_device(model.device)
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+    ro.forward(model.state(), ctrls)
+    ro.zero_grad(ctrls)
+    ro.backward(seed)
+    wp.synchronize_device(model.device)
+    results = wp.timing_end()
+    totals = {}
+    for r in results:
+        totals[r.name] = totals.get(r.name, 0.0) + r.elapsed
+    print(f"per-kernel GPU time over {steps} substeps of {model.particle_count} particles (ms):")
+    for name, ms in sorted(totals.items(), key=lambda kv: -kv[1]):
+        print(f"  {ms:9.3f}  {name}")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cpu")
@@ -112,12 +136,17 @@ def main(argv=None):
     p.add_argument("--grad-steps", type=int, default=20, help="substeps of the differentiable rollout")
     p.add_argument("--grad-max", type=float, default=2e6, help="skip forward+backward above this many particles")
     p.add_argument("--plastic", action="store_true", help="von Mises dough instead of an elastic block (a second SVD)")
+    p.add_argument("--profile", type=int, default=0,
+                   help="CUDA only: per-kernel forward/adjoint GPU times for one world of this many particles")
     p.add_argument("--no-graph", action="store_true", help="do not capture the forward loop in a CUDA graph")
     args = p.parse_args(argv)
     wp.init()
     dev = wp.get_device(args.device)
     cases = [(1, int(float(s))) for s in args.sizes.split(",") if s]
     cases += [tuple(int(v) for v in b.split("x")) for b in args.batches.split(",") if b]
+    if args.profile:
+        profile(args.profile, args.device, args.grad_steps, args.plastic)
+        return
     print(f"device: {dev.name} ({dev.alias}), warp {wp.__version__}, material: "
           f"{'elastoplastic (von Mises)' if args.plastic else 'elastic (fixed corotated)'}")
     head = (f"{'worlds':>7} {'particles':>10} {'fwd p-steps/s':>14} {'fwd+bwd p-steps/s':>18} {'bwd/fwd':>8} "
