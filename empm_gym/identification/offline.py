@@ -9,7 +9,9 @@ tracked point j (tracks not visible at frame 0 are not used). Two methods:
 
 - ``method="adam"``: gradients through the differentiable simulator (:func:`empm_gym.autograd.simulate`)
   and torch AdamW in the unconstrained space of :class:`ParamSpace` (log space for positive
-  parameters, E normalised by 1e6; a sigmoid for nu), with a cosine learning-rate decay.
+  parameters, E normalised by 1e6; a sigmoid for nu). When a step made the loss worse, the optimiser
+  returns to the best point so far, drops Adam's momentum and halves the step (regrown by 25 % per
+  improving step, up to ``lr``), so it settles into the minimum instead of orbiting it.
 - ``method="cmaes"``: CMA-ES (the ``cma`` package) on the forward simulator; each generation's whole
   population is simulated as batched worlds in one simulation.
 
@@ -200,7 +202,7 @@ def _initial_values(scene: Scene, params: Sequence[str], init: Optional[Dict[str
 
 def identify(observations: Observations, scene: Scene, *, params: Sequence[str] = ("E",), method: str = "adam",
              init: Optional[Dict[str, float]] = None, iters: int = 30, frames: Optional[int] = None,
-             lr: float = 0.1, popsize: int = 6, sigma0: float = 0.5, l_dist: float = 1.0, l_trk: float = 100.0,
+             lr: float = 0.15, betas: Tuple[float, float] = (0.8, 0.95), popsize: int = 6, sigma0: float = 0.5, l_dist: float = 1.0, l_trk: float = 100.0,
              chamfer: str = "both", max_points: int = 2000,
              bounds: Optional[Dict[str, Tuple[float, float]]] = None, seed: int = 0, progress: bool = True,
              checkpoint_every: Union[str, int, None] = "auto", memory_budget_bytes: float = 1.0e9,
@@ -237,8 +239,8 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
                                   yield_stress=init_vals["yield_stress"])
     t0 = time.perf_counter()
     if method == "adam":
-        hist_l, hist_p, extra = _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, progress,
-                                          checkpoint_every, memory_budget_bytes, callback)
+        hist_l, hist_p, extra = _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, tuple(betas),
+                                          progress, checkpoint_every, memory_budget_bytes, callback)
     else:
         hist_l, hist_p, extra = _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sigma0,
                                            seed, progress, callback)
@@ -265,7 +267,8 @@ def _sim_kwargs(space: ParamSpace, z: torch.Tensor) -> Dict[str, torch.Tensor]:
     return out
 
 
-def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, progress, checkpoint_every, budget, callback):
+def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, progress, checkpoint_every, budget,
+              callback):
     from empm_gym.autograd import simulate
 
     F = objective.frames
@@ -275,8 +278,9 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, progress,
     grip = scene.ee_grip[: F - 1] if model.ee_count else None
     vmax = float(np.max(np.linalg.norm(vel, axis=-1))) if vel.size else 0.0
     z = torch.tensor(space.to_z(init_vals), dtype=torch.float64, requires_grad=True)
-    opt = torch.optim.AdamW([z], lr=lr, weight_decay=0.0)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(k, iters) / iters)))
+    opt = torch.optim.AdamW([z], lr=lr, betas=betas, weight_decay=0.0)
+    scale = 1.0  # step multiplier: halved when the loss went up, regrown by 25 % per improvement
+    best = None  # (loss, z, gradient) of the best iterate
     cache = {}
     per_node = 2 * 4 * 7 * int(np.prod(model.grid_res)) * model.world_count
     per_particle = 2 * 4 * 24 * model.particle_count
@@ -320,17 +324,31 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, progress,
         hist_p.append(vals)
         if callback is not None:
             callback(it, L, vals)
-        if torch.isfinite(z.grad).all():
-            opt.step()
-        else:
+        g = z.grad.detach().clone()
+        if not torch.isfinite(g).all():
             skipped += 1
-        sched.step()
+            g = torch.zeros_like(g)
+        if best is None or L < best[0]:
+            best = (L, z.detach().clone(), g)
+            scale = min(1.0, scale * 1.25)
+        else:
+            # the loss went up: go back to the best point, forget the momentum and halve the step
+            scale *= 0.5
+            with torch.no_grad():
+                z.copy_(best[1])
+            z.grad = best[2].clone()
+            for st in opt.state.values():
+                if "exp_avg" in st:
+                    st["exp_avg"].zero_()
+        for group in opt.param_groups:
+            group["lr"] = lr * scale
+        opt.step()
         with torch.no_grad():
             z.copy_(torch.as_tensor(space.clamp(z.numpy())))
         bar.set_postfix(loss=f"{L:.5f}", **{k: f"{v:.4g}" for k, v in vals.items()})
         bar.update(1)
     bar.close()
-    return hist_l, hist_p, {"lr": lr, "skipped_steps": skipped}
+    return hist_l, hist_p, {"lr": lr, "betas": list(betas), "skipped_steps": skipped}
 
 
 def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sigma0, seed, progress, callback):
