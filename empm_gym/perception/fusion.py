@@ -30,6 +30,7 @@ __all__ = [
     "fit_table_plane",
     "estimate_table_plane",
     "close_against_table",
+    "smooth_points",
     "initial_particles",
     "controls_from_masks",
     "load_controls",
@@ -201,21 +202,44 @@ def close_against_table(points: np.ndarray, table_plane: Tuple[np.ndarray, float
     return np.concatenate([pts, extra, foot], axis=0)
 
 
+def smooth_points(points: np.ndarray, radius_m: float) -> np.ndarray:
+    """Each point replaced by the mean of the points within ``radius_m`` (m): reduces depth noise normal
+    to the surface by about the square root of the neighbour count."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if radius_m is None or radius_m <= 0 or len(pts) == 0:
+        return pts.copy()
+    tree = cKDTree(pts)
+    pairs = tree.query_pairs(float(radius_m), output_type="ndarray")
+    acc = pts.copy()
+    cnt = np.ones(len(pts))
+    if len(pairs):
+        np.add.at(acc, pairs[:, 0], pts[pairs[:, 1]])
+        np.add.at(acc, pairs[:, 1], pts[pairs[:, 0]])
+        np.add.at(cnt, pairs[:, 0], 1)
+        np.add.at(cnt, pairs[:, 1], 1)
+    return acc / cnt[:, None]
+
+
 def initial_particles(points: np.ndarray, *, dx: float, particles_per_cell: float = 8,
                       table_plane: Optional[Tuple[np.ndarray, float]] = None, voxel_m: Optional[float] = None,
-                      seed: int = 0, jitter: float = 0.0) -> Tuple[np.ndarray, np.ndarray]:
+                      smooth_radius_m: Optional[float] = None, seed: int = 0,
+                      jitter: float = 0.0) -> Tuple[np.ndarray, np.ndarray]:
     """Frame-0 simulation particles filling the object's interior (not only its visible surface).
 
-    ``points`` [N, 3] (m) is the fused object surface. With ``table_plane`` the surface is first closed
-    against the table (:func:`close_against_table`); then :func:`empm_gym.sim.sample_points` voxelises
-    it at ``voxel_m`` (m, default dx / 2), fills enclosed cavities and samples ``particles_per_cell``
+    ``points`` [N, 3] (m) is the fused object surface. It is first smoothed over ``smooth_radius_m`` (m,
+    default dx / 2; 0 disables), since depth noise would otherwise thicken the voxelised shell. With
+    ``table_plane`` the surface is closed against the table (:func:`close_against_table`); then
+    :func:`empm_gym.sim.sample_points` voxelises it at ``voxel_m`` (m, default dx / 4), fills enclosed
+    cavities and samples ``particles_per_cell``
     particles per grid cell of ``dx`` (m). Returns ``(positions [n, 3] m, volumes [n] m^3)``; with a
     table, no particle lies below it.
     """
     from empm_gym.sim import sample_points
 
-    pts = np.asarray(points, np.float64).reshape(-1, 3)
-    h = voxel_m or dx / 2.0
+    pts = smooth_points(points, dx / 2.0 if smooth_radius_m is None else smooth_radius_m)
+    h = voxel_m or dx / 4.0
     if table_plane is not None:
         pts = close_against_table(pts, table_plane, spacing_m=h / 2.0)
     x, vol = sample_points(pts, dx, particles_per_cell, voxel=h, fill_interior=True, seed=seed, jitter=jitter)
@@ -227,15 +251,16 @@ def initial_particles(points: np.ndarray, *, dx: float, particles_per_cell: floa
 
 
 def controls_from_masks(rec: Recording, *, radius_m: float = 0.02, erode_px: int = 1,
-                        nb_neighbors: int = 20, std_ratio: float = 2.0) -> dict:
+                        nb_neighbors: int = 20, std_ratio: float = 2.0, sphere_centre: bool = True) -> dict:
     """End-effector controls estimated from the controller ("hand") masks, as sphere end-effectors.
 
     K (the number of end-effectors) is the largest number of controller ids of any camera. Per frame,
     the hand pixels of all cameras are back-projected and fused, outliers removed, and split into K
-    clusters (nearest previous centre; k-means++-style at the first frame with hands); each cluster's
-    centroid is an end-effector position. Frames without hand pixels hold the nearest known position.
-    grip is 1 where the hand was seen, else 0. The centroid of a visible surface lies slightly
-    towards the cameras from the true centre (at most ``radius_m``).
+    clusters (nearest previous centre; farthest-point start at the first frame with hands, numbered in
+    order of increasing x there); each cluster's centroid is an end-effector position. Frames without hand pixels hold the nearest known position.
+    grip is 1 where the hand was seen, else 0. With ``sphere_centre`` every hand point is first moved
+    2/3 ``radius_m`` (m) along its camera ray, so that a sphere of that radius gets its centre (not
+    the centroid of its visible cap, which lies towards the cameras).
     """
     if not rec.has_controller_masks:
         raise RecordingError(f"{rec.path}: neither controls.npz nor controller masks (mask_info_<cam>.json with a "
@@ -245,25 +270,37 @@ def controls_from_masks(rec: Recording, *, radius_m: float = 0.02, erode_px: int
     cams = rec.cameras
     pos = np.full((T, K, 3), np.nan)
     prev = None
+    from scipy import ndimage
+
     for t in range(T):
-        depths, masks, cc = [], [], []
+        pts, rays = [], []
         for c in range(rec.num_cameras):
             m = rec.controller_mask(c, t)
-            if m is not None and m.any():
-                depths.append(rec.depth(c, t))
-                masks.append(m)
-                cc.append(cams[c])
-        pts = fuse_views(depths, cc, masks, erode_px=erode_px) if cc else np.zeros((0, 3))
+            if m is None or not m.any():
+                continue
+            if erode_px > 0:
+                m = ndimage.binary_erosion(m, iterations=int(erode_px))
+            p = cams[c].backproject(rec.depth(c, t), m, min_depth_m=0.1)
+            r = p - cams[c].position
+            pts.append(p)
+            rays.append(r / (np.linalg.norm(r, axis=1, keepdims=True) + 1e-12))
+        pts = np.concatenate(pts) if pts else np.zeros((0, 3))
+        rays = np.concatenate(rays) if rays else np.zeros((0, 3))
         if len(pts) > nb_neighbors:
-            pts, _ = remove_statistical_outliers(pts, nb_neighbors, std_ratio)
+            pts, keep = remove_statistical_outliers(pts, nb_neighbors, std_ratio)
+            rays = rays[keep]
+        if sphere_centre:
+            # a visible spherical cap seen uniformly in image area has its centroid 2/3 r towards the camera
+            pts = pts + (2.0 / 3.0) * float(radius_m) * rays
         if len(pts) < max(K, 3):
             continue
-        if prev is None:  # farthest-point initialisation
+        if prev is None:  # farthest-point initialisation, then ordered by x, y
             centres = [pts.mean(0)]
             for _ in range(1, K):
                 dist = np.min(np.linalg.norm(pts[:, None] - np.array(centres)[None], axis=2), axis=1)
                 centres.append(pts[np.argmax(dist)])
             centres = np.array(centres)
+            centres = centres[np.lexsort((centres[:, 1], centres[:, 0]))]
         else:
             centres = prev.copy()
         for _ in range(5):

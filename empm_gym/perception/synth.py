@@ -4,7 +4,8 @@
 N cameras around the table into the recording layout of :mod:`empm_gym.perception.recording`:
 
 * ``rope``: an elastic cylinder (0.3 m long, radius 1.2 cm) lying on the table along x, held at both
-  ends by two closed sphere grippers (radius 1.8 cm); script: hold (grasp), lift by 8 cm while
+  ends by two closed sphere grippers (radius 1.8 cm, centred 2 mm above the rope's top, so that they
+  carry its upper part and lift off cleanly when opened); script: hold (grasp), lift by 8 cm while
   stretching by 1.5 cm per side, hold, release (grippers open and move up), settle.
 * ``dough``: an elastoplastic block (5 x 5 x 4.5 cm) between two box plates (pushers, grip open =
   frictional contact); script: hold, squeeze by 1 cm per side, hold, release (plates back out), settle.
@@ -88,8 +89,10 @@ def _phases(T: int, fractions: List[float]) -> List[int]:
 def _rope_script(T: int):
     """End-effector positions [T, 2, 3] m and grip [T, 2] for the rope: hold, lift+stretch, hold, release, settle."""
     L, r = _ROPE_LENGTH_M, _ROPE_RADIUS_M
-    x0 = L / 2 - 0.015
-    start = np.array([[-x0, 0.0, r], [x0, 0.0, r]])
+    # sphere centres above the rope's top: a closed sphere carries the upper 2/3 of the rope's ends,
+    # and on release it lifts away from the rope without dragging it
+    x0, zc = L / 2 - 0.015, 2 * r + 0.002
+    start = np.array([[-x0, 0.0, zc], [x0, 0.0, zc]])
     _, g0, g1, g2, g3, _ = _phases(T, [0.1, 0.35, 0.15, 0.1, 0.3])
     t = np.arange(T, dtype=np.float64)
     lift = 0.08 * _smooth((t - g0) / max(g1 - g0, 1))
@@ -215,7 +218,7 @@ class SurfaceEmbedding:
         r0 = nb - self.c0[:, None]
         M = np.einsum("sk,ski,skj->sij", self.w, r0, r0)
         tr = np.trace(M, axis1=1, axis2=2)[:, None, None]
-        self.Minv = np.linalg.inv(M + 1e-6 * tr * np.eye(3))
+        self.Minv = np.linalg.inv(M + 1e-10 * tr * np.eye(3))
         self.r0 = r0
         self.off0 = self.p0 - self.c0
 
@@ -527,7 +530,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
             noisy = add_depth_noise(depth, cosv, rng, sigma_m=noise_sigma_m)
             rgb = np.clip(color + rng.normal(0, 0.008, color.shape), 0, 1)
             writer.write_frame(c, t, color=(rgb * 255 + 0.5).astype(np.uint8), depth_m=noisy, mask=label == 1,
-                               controller_mask=label >= 2)
+                               controller_mask=[label == 2 + k for k in range(len(ee_cfgs))])
             if n_tr:
                 rc, z = view.cam.project(P[track_idx])
                 tracks[c, t] = rc

@@ -1,0 +1,130 @@
+"""Fusion, table plane, frame-0 particles and controls from masks, on synthetic and fixture recordings."""
+
+import numpy as np
+import pytest
+
+from empm_gym.perception import fusion as F
+from empm_gym.perception.recording import Recording, RecordingError
+
+DOUGH = (np.array([-0.025, -0.025, 0.0]), np.array([0.025, 0.025, 0.045]))  # synth's block at frame 0
+
+
+def test_fused_frame_recovers_dough_bounding_box(dough_rec):
+    rec = Recording(dough_rec)
+    pts = F.fuse_frame(rec, 0)
+    assert len(pts) > 1000
+    lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
+    # the plates hide the x faces and the bottom is never seen: x within 4 mm, y and top within 4 mm
+    np.testing.assert_allclose(lo[:2], DOUGH[0][:2], atol=0.004)
+    np.testing.assert_allclose(hi, DOUGH[1], atol=0.004)
+    assert lo[2] < 0.006  # the sides reach down to the table
+    # the top face: its median height is within 1 mm (noise averages out)
+    top = pts[pts[:, 2] > 0.04]
+    assert abs(np.median(top[:, 2]) - 0.045) < 0.001
+
+
+def test_fusion_follows_the_squeeze(dough_rec):
+    rec = Recording(dough_rec)
+    w0 = np.ptp(np.percentile(F.fuse_frame(rec, 0)[:, 0], [1, 99]))
+    w2 = np.ptp(np.percentile(F.fuse_frame(rec, 2)[:, 0], [1, 99]))
+    assert w2 < w0 - 0.015  # plates moved in by 12 mm each
+
+
+def test_ransac_finds_table(dough_rec, rope_rec):
+    for path in (dough_rec, rope_rec):
+        n, d = F.estimate_table_plane(Recording(path))
+        assert np.degrees(np.arccos(min(1.0, n[2]))) < 1.0
+        assert abs(d) < 0.002
+
+
+def test_fit_table_plane_with_clutter():
+    rng = np.random.default_rng(0)
+    plane = np.c_[rng.uniform(-0.3, 0.3, (3000, 2)), rng.normal(0.1, 0.001, 3000)]
+    clutter = rng.uniform([-0.1, -0.1, 0.11], [0.1, 0.1, 0.2], (800, 3))  # 1 cm above
+    n, d, inl = F.fit_table_plane(np.r_[plane, clutter], up_hint=(0, 0, -1))
+    np.testing.assert_allclose(n, [0, 0, -1], atol=0.01)  # oriented along the hint
+    assert d == pytest.approx(0.1, abs=0.001)
+    assert np.sum(inl < 3000) > 2800 and np.sum(inl >= 3000) == 0
+
+
+def test_close_against_table_columns():
+    p = np.array([[0.0, 0.0, 0.05], [0.1, 0.0, -0.01]])
+    out = F.close_against_table(p, (np.array([0, 0, 1.0]), 0.0), 0.01)
+    col = out[np.isclose(out[:, 0], 0.0)]
+    np.testing.assert_allclose(np.sort(np.unique(np.round(col[:, 2], 9))), [0, 0.01, 0.02, 0.03, 0.04, 0.05],
+                               atol=1e-12)
+    assert not np.any(np.isclose(out[:, 0], 0.1))  # the point under the table is dropped
+
+
+def test_initial_particles_fill_the_dough(dough_rec):
+    rec = Recording(dough_rec)
+    plane = F.estimate_table_plane(rec)
+    x, vol = F.initial_particles(F.fuse_frame(rec, 0), dx=0.01, particles_per_cell=8, table_plane=plane)
+    true_vol = np.prod(DOUGH[1] - DOUGH[0])
+    assert vol.sum() == pytest.approx(true_vol, rel=0.15)
+    assert np.all(x @ plane[0] + plane[1] >= 0)
+    assert np.all((x > DOUGH[0] - 0.006) & (x < DOUGH[1] + 0.006))
+    # the interior is filled, not only the seen surface
+    assert np.min(np.linalg.norm(x - [0.0, 0.0, 0.015], axis=1)) < 0.006
+    # without closing against the table the open shell encloses far less
+    x2, vol2 = F.initial_particles(F.fuse_frame(rec, 0), dx=0.01)
+    assert vol2.sum() < 0.6 * vol.sum()
+
+
+def test_initial_particles_rope(rope_rec):
+    rec = Recording(rope_rec)
+    plane = F.estimate_table_plane(rec)
+    x, vol = F.initial_particles(F.fuse_frame(rec, 0), dx=0.005, table_plane=plane)
+    r = 0.012
+    seen_len = np.ptp(x[:, 0])
+    assert 0.2 < seen_len < 0.31
+    assert vol.sum() == pytest.approx(np.pi * r * r * seen_len, rel=0.25)
+    assert np.percentile(np.abs(x[:, 1]), 99) < r + 0.004
+
+
+def test_controls_from_hand_masks_fixture(phystwin_dir):
+    """The fixture's hand is a sphere of radius 0.025 m at known centres."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("mk", Path(phystwin_dir).parent / "make_phystwin_fixture.py")
+    mk = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mk)
+    rec = Recording(phystwin_dir)
+    c = F.load_controls(rec, radius_m=0.025, erode_px=0, nb_neighbors=5)
+    assert c["positions"].shape == (3, 1, 3) and np.all(c["grip"] == 1) and c["shape"].tolist() == ["sphere"]
+    np.testing.assert_allclose(c["positions"][:, 0], mk.HAND_CENTRES, atol=0.005)
+    # the plain centroid of the visible cap lies towards the cameras (above)
+    c2 = F.controls_from_masks(rec, radius_m=0.025, erode_px=0, nb_neighbors=5, sphere_centre=False)
+    assert np.all(c2["positions"][:, 0, 2] > mk.HAND_CENTRES[:, 2] + 0.005)
+
+
+def test_controls_from_masks_synthetic_rope(rope_rec):
+    rec = Recording(rope_rec)
+    est = F.controls_from_masks(rec, radius_m=0.018)
+    true = rec.controls()["positions"]
+    assert est["positions"].shape == true.shape
+    np.testing.assert_allclose(est["positions"], true, atol=0.008)
+
+
+def test_controls_missing_everywhere(tmp_path):
+    from empm_gym.perception.recording import write_recording
+    from empm_gym.perception.cameras import intrinsics_matrix, look_at
+
+    H, W = 12, 16
+    write_recording(tmp_path / "r", intrinsics=[intrinsics_matrix(10, 10, 7.5, 5.5)], c2w=[look_at([0, 0.3, 0.3], [0, 0, 0])],
+                    width=W, height=H, fps=30, color=[[np.zeros((H, W, 3), np.uint8)] * 2],
+                    depth_raw=[[np.full((H, W), 400, np.uint16)] * 2], masks=[[np.ones((H, W), bool)] * 2],
+                    mask_layout="simple")
+    with pytest.raises(RecordingError, match="neither controls.npz nor controller masks"):
+        F.load_controls(Recording(tmp_path / "r"))
+
+
+def test_frame_points_need_masks(tmp_path, phystwin_dir):
+    rec = Recording(phystwin_dir)
+    all_pts = F.frame_points(rec, 0, use_mask=False, erode_px=0)
+    obj = F.frame_points(rec, 0, erode_px=0)
+    assert len(obj) == sum(rec.mask(c, 0).sum() for c in range(2))
+    assert len(all_pts) > 3 * len(obj)
+    # the fixture's box object is [-0.04, 0.04] x [-0.03, 0.03] x [0, 0.03]; 1 mm depth quantisation
+    assert np.all(np.abs(obj[:, 0]) < 0.045) and np.all(obj[:, 2] < 0.035) and np.all(obj[:, 2] > -0.003)

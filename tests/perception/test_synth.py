@@ -1,0 +1,140 @@
+"""Synthetic recordings: embedded surface, depth noise model, scripted physics, tracks and the CLI."""
+
+import numpy as np
+import pytest
+
+from empm_gym.perception import synth as S
+from empm_gym.perception.fusion import fuse_frame
+from empm_gym.perception.recording import Recording
+
+
+def _rot(axis, angle):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+@pytest.fixture
+def embedding():
+    rng = np.random.default_rng(0)
+    particles = rng.uniform(-0.02, 0.02, (400, 3))
+    sp, sn, _ = S._box_surface((0.04, 0.04, 0.04), 0.004)
+    sp = sp - [0, 0, 0.02]
+    return S.SurfaceEmbedding(sp, sn, particles), particles, sp, sn
+
+
+def test_embedding_is_identity_at_rest(embedding):
+    emb, x0, sp, sn = embedding
+    p, n = emb.deform(x0)
+    np.testing.assert_allclose(p, sp, atol=1e-7)
+    np.testing.assert_allclose(n, sn, atol=1e-7)
+
+
+def test_embedding_follows_rigid_and_affine_motion(embedding):
+    emb, x0, sp, sn = embedding
+    R = _rot([1, 2, 0.5], 0.7)
+    t = np.array([0.1, -0.05, 0.2])
+    p, n = emb.deform(x0 @ R.T + t)
+    np.testing.assert_allclose(p, sp @ R.T + t, atol=1e-7)
+    np.testing.assert_allclose(n, sn @ R.T, atol=1e-7)
+    A = np.diag([1.3, 0.8, 1.0]) + 0.1 * np.eye(3)[::-1]
+    p, n = emb.deform(x0 @ A.T)
+    np.testing.assert_allclose(p, sp @ A.T, atol=1e-7)
+    n_ref = sn @ np.linalg.inv(A)
+    np.testing.assert_allclose(n, n_ref / np.linalg.norm(n_ref, axis=1, keepdims=True), atol=1e-7)
+
+
+def test_depth_noise_grows_with_depth_squared():
+    rng = np.random.default_rng(0)
+    stds = []
+    for z in (0.5, 1.0):
+        d = np.full((200, 200), z)
+        out = S.add_depth_noise(d, np.ones_like(d), rng, random_drop=0.0)
+        assert np.all(out > 0)
+        stds.append(np.std(out - z))
+    assert stds[0] == pytest.approx(1.5e-3, rel=0.05)
+    assert stds[1] / stds[0] == pytest.approx(4.0, rel=0.08)
+
+
+def test_depth_noise_drops_edges_grazing_and_out_of_range():
+    rng = np.random.default_rng(1)
+    d = np.full((100, 100), 0.6)
+    d[:, 50:] = 0.8                       # a depth edge at column 50
+    d[:10] = np.inf                       # nothing there
+    d[90:] = 2.0                          # beyond the range
+    cos = np.ones_like(d)
+    cos[40:50, :20] = 0.05                # grazing
+    out = S.add_depth_noise(d, cos, rng)
+    assert np.all(out[:10] == 0) and np.all(out[90:] == 0)
+    assert np.all(out[40:50, :20] == 0)
+    edge = out[10:90, 49:51]
+    interior = out[15:38, 10:40]
+    assert np.mean(edge == 0) > 0.4 and np.mean(interior == 0) < 0.02
+
+
+def test_rope_recording_physics_and_metadata(rope_rec):
+    rec = Recording(rope_rec)
+    gt = rec.ground_truth()
+    assert gt["material"] == {"E": 2.0e5, "nu": 0.3, "density": 1100.0, "yield_stress": None}
+    assert gt["seed"] == 1 and gt["object"] == "rope"
+    # the render is much denser than the simulation particles identification would sample
+    assert gt["render"]["surface_points"] > 4 * gt["scene"]["particle_count"]
+    ctl = rec.controls()
+    assert ctl["positions"].shape == (10, 2, 3) and ctl["shape"].tolist() == ["sphere", "sphere"]
+    assert ctl["grip"][0].tolist() == [1, 1] and ctl["grip"][-1].tolist() == [0, 0]
+    # CFL-chosen substeps: dt below the limit of the true material
+    from empm_gym.sim import MaterialConfig
+
+    c = MaterialConfig(**gt["material"]).wave_speed
+    assert gt["scene"]["dt_s"] <= 0.4 * gt["scene"]["grid"]["dx"] / c
+    z = [np.percentile(fuse_frame(rec, t)[:, 2], 99) for t in range(rec.num_frames)]
+    assert z[0] < 0.03                         # lying on the table
+    assert z[4] > 0.08                         # lifted by 8 cm while gripped
+    assert min(z[7:]) < z[5] - 0.03            # falls after release
+    # depth is quantised to whole millimetres
+    raw = rec.depth_raw(0, 0)
+    assert raw.dtype == np.uint16 and rec.depth_scale == 0.001
+    # some object pixels are missing (silhouette edges, grazing angles), most are not
+    m = rec.mask(0, 4)
+    missing = np.mean(rec.depth(0, 4)[m] == 0)
+    assert 0.01 < missing < 0.5
+
+
+def test_tracks_visible_where_the_object_is(rope_rec):
+    rec = Recording(rope_rec)
+    for c in range(rec.num_cameras):
+        tr, vis = rec.tracks(c)
+        assert tr.shape[:2] == vis.shape == (10, 128)
+        assert 0.2 < vis.mean() < 0.9
+        for t in (0, 4, 9):
+            m = rec.mask(c, t)
+            rc = np.round(tr[t][vis[t]]).astype(int)
+            assert np.mean(m[rc[:, 0], rc[:, 1]]) > 0.95
+    # tracks of a material point move with the object: lifted frames are higher in the image
+    tr, vis = rec.tracks(0)
+    both = vis[0] & vis[4]
+    assert both.sum() > 10 and np.median(tr[4, both, 0] - tr[0, both, 0]) < -5  # rows decrease upwards
+
+
+def test_synthesize_rejects_bad_arguments(tmp_path):
+    with pytest.raises(ValueError, match="object must be one of"):
+        S.synthesize(tmp_path / "a", "cloth")
+    with pytest.raises(ValueError, match="MaterialConfig.E must be > 0"):
+        S.synthesize(tmp_path / "b", "rope", E=-1.0)
+    with pytest.raises(ValueError, match="frames must be >= 2"):
+        S.synthesize(tmp_path / "c", "rope", frames=1)
+
+
+def test_cli_synth(tmp_path, capsys):
+    from empm_gym.cli import main
+
+    out = tmp_path / "d"
+    args = ["synth", str(out), "--object", "dough", "--frames", "2", "--cameras", "1", "--width", "64",
+            "--height", "48", "--E", "8e4", "--yield-stress", "2500", "--seed", "4", "--quiet"]
+    assert main(args) == 0
+    assert "wrote" in capsys.readouterr().out
+    gt = Recording(out).ground_truth()
+    assert gt["material"]["E"] == 8e4 and gt["material"]["yield_stress"] == 2500 and gt["seed"] == 4
+    assert main(args) == 2
+    assert "not empty; pass overwrite=True" in capsys.readouterr().err
+    assert main(args + ["--overwrite"]) == 0
