@@ -138,3 +138,33 @@ def test_cli_synth(tmp_path, capsys):
     assert main(args) == 2
     assert "not empty; pass overwrite=True" in capsys.readouterr().err
     assert main(args + ["--overwrite"]) == 0
+
+
+def test_controls_replay_recipe_reaches_recorded_positions(dough_rec):
+    """The docstring's recipe: add end-effectors at positions[0], command finite-difference velocities."""
+    import math
+
+    from empm_gym.perception.recording import controls_to_end_effectors, end_effector_velocities
+    from empm_gym.sim import GridConfig, MaterialConfig, ModelBuilder, SolverMPM, TableConfig, sample_box
+
+    rec = Recording(dough_rec)
+    cfgs, pos, grip = controls_to_end_effectors(rec.controls())
+    assert [c.shape for c in cfgs] == ["box", "box"]
+    b = ModelBuilder(GridConfig(lower=(-0.12, -0.09, -0.04), upper=(0.12, 0.09, 0.12), dx=0.01),
+                     table=TableConfig())
+    w = b.add_world(MaterialConfig(E=1e5, nu=0.3, density=1200.0, yield_stress=3e3))
+    x, v = sample_box((-0.025, -0.025, 0.0), (0.025, 0.025, 0.045), 0.01, 1)
+    b.add_particles(w, x, v)
+    for k, c in enumerate(cfgs):
+        b.add_end_effector(w, c, pos[0, k])
+    model = b.finalize("cpu")
+    solver = SolverMPM(model)
+    vel = end_effector_velocities(pos, rec.fps)
+    n = int(math.ceil((1 / rec.fps) / (0.9 * solver.max_stable_dt(np.abs(vel).max()))))
+    s0, s1, ctrl = model.state(), model.state(), model.control()
+    for t in range(rec.num_frames - 1):
+        ctrl.set(velocity=vel[t][None], grip=grip[t][None])
+        for _ in range(n):
+            solver.step(s0, s1, ctrl, 1.0 / (rec.fps * n))
+            s0, s1 = s1, s0
+        np.testing.assert_allclose(s0.ee_pos.numpy(), pos[t + 1], atol=2e-5)
