@@ -48,7 +48,7 @@ def parse_args(cls: Type[T], argv: Optional[Sequence[str]] = None) -> T:
     docs = field_docs(cls)
     hints = typing.get_type_hints(cls)
     p = argparse.ArgumentParser(description=(cls.__doc__ or "").strip(),
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter, allow_abbrev=False)
     for f in dataclasses.fields(cls):
         tp = hints[f.name]
         optional = typing.get_origin(tp) is typing.Union and type(None) in typing.get_args(tp)

@@ -84,7 +84,7 @@ class CEMPlanner(SamplingPlanner):
             mean = self.momentum * mean + (1 - self.momentum) * elite.mean(0)
             std = self.momentum * std + (1 - self.momentum) * elite.std(0) + 1e-3
         self.best_return = best_r
-        return best
+        return best.astype(np.float32)
 
 
 class MPPIPlanner(SamplingPlanner):
@@ -119,4 +119,4 @@ class MPPIPlanner(SamplingPlanner):
             w /= w.sum()
             mean = np.clip(np.tensordot(w, acts, axes=1), -1.0, 1.0)
         self.best_return = best_r
-        return best
+        return best.astype(np.float32)
