@@ -1,0 +1,64 @@
+"""Environment steps per second of ``gym.make_vec`` (all worlds in one batched simulation).
+
+    python benchmarks/bench_env.py --env-id EMPM/RopeReshape-v0 --sizes 1,16,256,1024,4096 --device cuda:0
+
+Prints a table: worlds, particles per world, substeps per env step, vector steps/s, env steps/s and
+particle-substeps/s. Actions are random; observations are the default "state" mode.
+"""
+
+import argparse
+import json
+import time
+
+import gymnasium as gym
+import numpy as np
+
+import empm_gym  # noqa: F401
+
+
+def bench(env_id, n, steps, warmup, kwargs):
+    venv = gym.make_vec(env_id, num_envs=n, **kwargs)
+    venv.reset(seed=0)
+    rng = np.random.default_rng(0)
+    acts = rng.uniform(-1, 1, (warmup + steps, *venv.action_space.shape)).astype(np.float32)
+    for t in range(warmup):
+        venv.step(acts[t])
+    t0 = time.perf_counter()
+    for t in range(warmup, warmup + steps):
+        venv.step(acts[t])
+    wall = time.perf_counter() - t0
+    core = venv.unwrapped.core
+    return {"num_envs": n, "particles_per_world": core.P, "substeps": core.substeps, "vec_steps_per_s": steps / wall,
+            "env_steps_per_s": n * steps / wall, "particle_substeps_per_s": n * core.P * core.substeps * steps / wall}
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+                                allow_abbrev=False)
+    p.add_argument("--env-id", default="EMPM/RopeReshape-v0", help="registered environment id")
+    p.add_argument("--sizes", default="1,4,16,64,256,1024,4096", help="comma-separated numbers of environments")
+    p.add_argument("--device", default=None, help='Warp device ("cpu", "cuda:0"); default: Warp\'s default')
+    p.add_argument("--steps", type=int, default=20, help="timed vector steps per size")
+    p.add_argument("--warmup", type=int, default=3, help="untimed vector steps first (compile, graph capture)")
+    p.add_argument("--env-kwargs", default="{}", help="JSON dict of extra environment arguments")
+    p.add_argument("--json", default=None, help="also write the rows to this JSON file")
+    a = p.parse_args(argv)
+    kwargs = json.loads(a.env_kwargs)
+    if a.device:
+        kwargs["device"] = a.device
+    rows = []
+    print(f"{a.env_id} on {a.device or 'default device'}")
+    print(f"{'envs':>6} {'P/world':>8} {'substeps':>8} {'vec steps/s':>12} {'env steps/s':>12} {'particle-substeps/s':>20}")
+    for n in [int(s) for s in a.sizes.split(",") if s]:
+        r = bench(a.env_id, n, a.steps, a.warmup, kwargs)
+        rows.append(r)
+        print(f"{r['num_envs']:>6} {r['particles_per_world']:>8} {r['substeps']:>8} {r['vec_steps_per_s']:>12.2f} "
+              f"{r['env_steps_per_s']:>12.1f} {r['particle_substeps_per_s']:>20.3e}", flush=True)
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(rows, f, indent=2)
+    return rows
+
+
+if __name__ == "__main__":
+    main()
