@@ -8,16 +8,17 @@ advances every world by one substep. :class:`Rollout` makes multi-step runs diff
 
 import warp as wp
 
+# keep Warp's per-module load notices out of users' logs (set wp.config.log_level back to see them)
+if getattr(wp.config, "log_level", None) == getattr(wp, "LOG_INFO", None):
+    wp.config.log_level = wp.LOG_WARNING
+wp.config.quiet = True
+
 from .config import EndEffectorConfig, GridConfig, MaterialConfig, SolverConfig, TableConfig
 from .model import Control, Model, ModelBuilder, State
 from .rollout import Rollout
 from .sampling import sample_box, sample_cylinder, sample_mesh, sample_points, sample_sphere
 from .solver import GridScratch, SimulationDiverged, SolverMPM, UnstableTimeStep
 
-# keep Warp's per-module load notices out of users' logs (set wp.config.log_level back to see them)
-if getattr(wp.config, "log_level", None) == getattr(wp, "LOG_INFO", None):
-    wp.config.log_level = wp.LOG_WARNING
-wp.config.quiet = True
 
 __all__ = [
     "Control", "EndEffectorConfig", "GridConfig", "GridScratch", "MaterialConfig", "Model", "ModelBuilder",
