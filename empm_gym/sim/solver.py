@@ -108,6 +108,7 @@ class SolverMPM:
             inputs=[state.particle_x, state.particle_v, state.particle_F, m.particle_world, self.config.max_speed],
             outputs=[self._flags],
             device=m.device,
+            record_tape=False,  # a guard, not part of the differentiable computation
         )
         flags = self._flags.numpy()
         if np.any(flags):
