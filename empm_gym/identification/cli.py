@@ -1,0 +1,200 @@
+"""``empm identify`` and ``empm evaluate``.
+
+    empm identify REC_DIR --out material.json [--method adam|cmaes] [--params E,nu,...] [--iters N] [--online]
+    empm evaluate REC_DIR --material material.json [--out-dir DIR]
+
+``identify`` fits the first ``--train-fraction`` of the frames (default 0.7) and writes ``material.json``,
+``<stem>_fit.png`` (loss and parameter curves) and ``<stem>.rrd`` (simulation over the measured points)
+next to it; with ``--online`` it replays the recording through the streaming identifier instead and also
+writes ``<stem>_online.json`` / ``<stem>_online.png`` with the losses with and without updates.
+``evaluate`` reports Chamfer, tracking error, mask IoU, PSNR and SSIM on the held-out frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+__all__ = ["register"]
+
+
+def _parse_params(text: str):
+    from .problem import PARAM_NAMES
+
+    names = [s.strip() for s in text.split(",") if s.strip()]
+    bad = [n for n in names if n not in PARAM_NAMES]
+    if not names or bad:
+        raise ValueError(f"--params must be a comma-separated subset of {','.join(PARAM_NAMES)}, got {text!r}")
+    return tuple(names)
+
+
+def _parse_init(text):
+    from .problem import PARAM_NAMES
+
+    out = {}
+    if not text:
+        return out
+    for item in text.split(","):
+        if "=" not in item:
+            raise ValueError(f"--init takes NAME=VALUE pairs separated by commas (e.g. E=1e5,nu=0.3), got {item!r}")
+        k, v = item.split("=", 1)
+        k = k.strip()
+        if k not in PARAM_NAMES:
+            raise ValueError(f"--init: unknown parameter {k!r}; allowed: {', '.join(PARAM_NAMES)}")
+        try:
+            out[k] = float(v)
+        except ValueError:
+            raise ValueError(f"--init: {k} must be a number, got {v!r}") from None
+    return out
+
+
+def _base_material(init, params):
+    from empm_gym.sim import MaterialConfig
+
+    ys = init.get("yield_stress", 1.0e3 if "yield_stress" in params else None)
+    return MaterialConfig(E=init.get("E", 1.0e5), nu=init.get("nu", 0.3), density=init.get("density", 1000.0),
+                          yield_stress=ys)
+
+
+def _identify(args) -> int:
+    from empm_gym.sim import MaterialConfig  # noqa: F401  (import errors surface early)
+
+    from .data import load_recording
+    from .offline import identify
+    from .report import plot_fit, plot_online, save_rrd
+
+    try:
+        params = _parse_params(args.params)
+        init = _parse_init(args.init)
+        if not (0.0 < args.train_fraction <= 1.0):
+            raise ValueError(f"--train-fraction must lie in (0, 1], got {args.train_fraction}")
+        scene, obs, views = load_recording(args.rec_dir, dx=args.dx, material=_base_material(init, params),
+                                           table_friction=init.get("friction", 0.5), frames=args.frames,
+                                           device=args.device, progress=not args.quiet)
+    except (ValueError, OSError) as exc:
+        print(f"empm identify: error: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    stem = out.with_suffix("")
+    T = obs.num_frames
+    if args.online:
+        from .online import OnlineFrame, replay
+
+        frames = (OnlineFrame(obs.points[t], scene.ee_positions[t], scene.ee_grip[t],
+                              views.masks[t] if views.masks is not None else None) for t in range(T))
+        res = replay(scene, frames, params=params, init=init or None, cameras=views.cameras, H=args.horizon,
+                     k=args.every, lr=args.lr or 0.1, progress=not args.quiet)
+        mat, mu = _material_from(scene, res["params"])
+        doc = {"E": mat.E, "nu": mat.nu, "density": mat.density,
+               "yield_stress": mat.yield_stress if mat.plastic else None, "friction": mu,
+               "fit": {"method": "online", "params": list(params), "init": res["initial_params"],
+                       "summary": res["summary"], "frames_used": T, "fps": obs.fps, "dx": scene.dx}}
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(doc, indent=2))
+        Path(f"{stem}_online.json").write_text(json.dumps(res, indent=2, default=float))
+        plot_online(res, f"{stem}_online.png")
+        s = res["summary"]
+        print(f"online: {s['updates']} updates at {s['quasi_static_frames']} quasi-static frames of {s['frames']}")
+        for k in ("chamfer", "mask_loss", "mask_iou"):
+            if f"{k}_with_updates" in s:
+                print(f"  {k:10s} with updates {s[f'{k}_with_updates']:.5f}   without {s[f'{k}_without_updates']:.5f}")
+        print(f"  params: {', '.join(f'{k}={v:.5g}' for k, v in res['params'].items())}")
+        print(f"wrote {out}")
+        return 0
+    F = max(2, int(round(args.train_fraction * T)))
+    kw = dict(params=params, method=args.method, init=init or None, iters=args.iters, frames=F,
+              progress=not args.quiet, popsize=args.popsize)
+    if args.lr:
+        kw["lr"] = args.lr
+    try:
+        res = identify(obs, scene, **kw)
+    except ValueError as exc:
+        print(f"empm identify: error: {exc}", file=sys.stderr)
+        return 2
+    res.extra["dx"] = scene.dx
+    res.extra["recording"] = str(Path(args.rec_dir).resolve())
+    res.save(out)
+    plot_fit(res, f"{stem}_fit.png")
+    if not args.no_rrd:
+        from .problem import simulate_frames
+
+        X = simulate_frames(scene, [res.material], [res.friction], frames=T)[:, 0]
+        save_rrd(f"{stem}.rrd", X, obs.points, obs.fps, ee_positions=scene.ee_positions,
+                 ee_radius=[c.radius for c in scene.ee_configs], particle_radius=scene.particle_radius)
+    print(f"{args.method}: {', '.join(f'{k}={v:.5g}' for k, v in res.params.items())}  loss {res.loss:.5g}  "
+          f"({res.wall_time_s:.1f} s, {len(res.loss_history)} iterations, frames 0-{F - 1} of {T})")
+    print(f"wrote {out}, {stem}_fit.png" + ("" if args.no_rrd else f", {stem}.rrd"))
+    return 0
+
+
+def _material_from(scene, values):
+    from empm_gym.sim import MaterialConfig
+
+    m = scene.material
+    kw = dict(E=m.E, nu=m.nu, density=m.density, yield_stress=m.yield_stress)
+    kw.update({k: v for k, v in values.items() if k != "friction"})
+    return MaterialConfig(**kw), float(values.get("friction", scene.table_friction))
+
+
+def _evaluate(args) -> int:
+    from .data import load_recording
+    from .evaluate import evaluate, held_out_frames
+    from .offline import load_material
+
+    try:
+        mat, mu = load_material(args.material)
+        fit = json.loads(Path(args.material).read_text()).get("fit") or {}
+        dx = args.dx or float(fit.get("dx", 0.01))
+        scene, obs, views = load_recording(args.rec_dir, dx=dx, material=mat,
+                                           table_friction=0.5 if mu is None else mu, device=args.device,
+                                           progress=not args.quiet)
+        frames = held_out_frames(obs.num_frames, args.train_fraction)
+    except (ValueError, OSError) as exc:
+        print(f"empm evaluate: error: {exc}", file=sys.stderr)
+        return 2
+    out_dir = Path(args.out_dir) if args.out_dir else Path(args.material).resolve().parent
+    res = evaluate(scene, mat, mu, obs, views, eval_frames=frames, downsample=args.downsample, out_dir=out_dir,
+                   progress=not args.quiet)
+    print(f"held-out frames {frames[0]}-{frames[-1]} of {obs.num_frames}:")
+    units = {"chamfer": "m", "chamfer_obs": "m", "track": "m", "iou": "", "psnr": "dB", "ssim": ""}
+    for k, v in res["summary"].items():
+        print(f"  {k:12s} {v:.5g} {units.get(k, '')}")
+    print(f"wrote {', '.join(res['files'])}")
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add ``identify`` and ``evaluate`` to the ``empm`` command."""
+    p = subparsers.add_parser("identify", help="fit material parameters to a recording",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("rec_dir", help="recording directory")
+    p.add_argument("--out", default="material.json", help="output material file (default material.json)")
+    p.add_argument("--method", choices=("adam", "cmaes"), default="adam")
+    p.add_argument("--params", default="E", help="comma-separated subset of E,nu,density,yield_stress,friction")
+    p.add_argument("--init", default="", help="starting values, e.g. E=1e5,yield_stress=2000 (SI units)")
+    p.add_argument("--iters", type=int, default=30, help="Adam steps or CMA-ES generations (default 30)")
+    p.add_argument("--lr", type=float, default=None, help="Adam learning rate in log-parameter space (default 0.15)")
+    p.add_argument("--popsize", type=int, default=6, help="CMA-ES population = simulated worlds (default 6)")
+    p.add_argument("--train-fraction", type=float, default=0.7, help="leading fraction of frames fitted (0.7)")
+    p.add_argument("--frames", type=int, default=None, help="use only the first N frames of the recording")
+    p.add_argument("--dx", type=float, default=0.01, help="simulation grid cell in m (default 0.01)")
+    p.add_argument("--online", action="store_true", help="stream the recording through the online identifier")
+    p.add_argument("--horizon", type=int, default=10, help="online: look-ahead H in frames (default 10)")
+    p.add_argument("--every", type=int, default=5, help="online: at most one update every k frames (default 5)")
+    p.add_argument("--device", default=None, help="Warp device (cpu, cuda:0)")
+    p.add_argument("--no-rrd", action="store_true", help="do not write the rerun recording")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_identify)
+
+    e = subparsers.add_parser("evaluate", help="evaluate a material file on a recording's held-out frames")
+    e.add_argument("rec_dir", help="recording directory")
+    e.add_argument("--material", required=True, help="material.json written by empm identify")
+    e.add_argument("--out-dir", default=None, help="where to write the report (default: next to the material)")
+    e.add_argument("--train-fraction", type=float, default=0.7, help="frames after this fraction are evaluated")
+    e.add_argument("--dx", type=float, default=None, help="grid cell in m (default: the one used for fitting)")
+    e.add_argument("--downsample", type=int, default=2, help="image downsampling for IoU / PSNR / SSIM (2)")
+    e.add_argument("--device", default=None, help="Warp device (cpu, cuda:0)")
+    e.add_argument("--quiet", action="store_true", help="no progress bars")
+    e.set_defaults(func=_evaluate)

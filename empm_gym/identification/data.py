@@ -1,0 +1,155 @@
+"""From a recording directory (see ``ARCHITECTURE.md``) to what identification needs.
+
+:func:`load_recording` returns ``(scene, observations, views)``: per-frame fused world point sets
+(:func:`empm_gym.perception.fusion.fuse_frame`), the table plane by RANSAC, frame-0 particles with the
+interior filled (:func:`empm_gym.perception.fusion.initial_particles`), end-effectors from
+``controls.npz`` (or the controller masks), 2D tracks lifted to 3D with the depth at the tracked pixel,
+and lazy per-frame masks and colour images. ``ground_truth.json`` is never read.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Tuple
+
+import numpy as np
+
+from empm_gym.sim import MaterialConfig, TableConfig
+
+from .problem import Observations, Scene, Views
+
+__all__ = ["load_recording", "lift_tracks", "attach_grippers"]
+
+
+class _LazyFrames:
+    """``obj[t]`` -> one entry per camera, read on demand (one frame cached)."""
+
+    def __init__(self, n, read):
+        self._n, self._read, self._cache = n, read, (None, None)
+
+    def __len__(self):
+        return self._n
+
+    def __getitem__(self, t):
+        t = int(t)
+        if not 0 <= t < self._n:
+            raise IndexError(f"frame {t} out of range [0, {self._n})")
+        if self._cache[0] != t:
+            self._cache = (t, self._read(t))
+        return self._cache[1]
+
+
+def lift_tracks(rec, *, frames: Optional[int] = None) -> Tuple[np.ndarray, np.ndarray]:
+    """World-frame tracks [T, M, 3] (m) and visibility [T, M] from every camera's 2D tracks.
+
+    A track is visible where its camera marks it visible, its pixel lies in the image and on the object
+    mask (when there are masks) and the depth there is valid; its 3D point is the back-projected depth.
+    """
+    T = rec.num_frames if frames is None else int(frames)
+    cams = rec.cameras
+    out, vis = [], []
+    for c, cam in enumerate(cams):
+        tr, v = rec.tracks(c)
+        tr, v = tr[:T], v[:T].copy()
+        P = np.zeros(tr.shape[:2] + (3,))
+        for t in range(T):
+            d = rec.depth(c, t)
+            m = rec.mask(c, t) if rec.has_masks else None
+            r = np.round(tr[t, :, 0]).astype(np.int64)
+            q = np.round(tr[t, :, 1]).astype(np.int64)
+            ok = v[t] & np.isfinite(tr[t]).all(1) & (r >= 0) & (r < rec.height) & (q >= 0) & (q < rec.width)
+            z = np.zeros(len(r))
+            z[ok] = d[r[ok], q[ok]]
+            ok &= z > 0
+            if m is not None:
+                ok[ok] &= m[r[ok], q[ok]]
+            x = (tr[t, :, 1] - cam.K[0, 2]) / cam.K[0, 0] * z
+            y = (tr[t, :, 0] - cam.K[1, 2]) / cam.K[1, 1] * z
+            pc = np.stack([x, y, z], 1)
+            P[t] = pc @ cam.c2w[:3, :3].T + cam.c2w[:3, 3]
+            v[t] = ok
+        out.append(P)
+        vis.append(v)
+    return np.concatenate(out, axis=1), np.concatenate(vis, axis=1)
+
+
+def attach_grippers(configs, positions, grip, particles, dx: float):
+    """Closed sphere / capsule grippers that do not reach the frame-0 particles, grown until they do.
+
+    A gripper hides the part of the object it holds, so the particles filled from the visible surface
+    can stop short of it and the simulated gripper would close on air. For each end-effector that is
+    closed at some frame, if the particles nearest to it at its first closed frame lie outside its
+    radius (less half a cell), the radius becomes that distance plus 0.75 dx (m). Boxes are unchanged.
+    Returns (new configs, list of (index, old radius, new radius)).
+    """
+    from dataclasses import replace
+
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(particles)
+    out, changed = list(configs), []
+    for k, cfg in enumerate(configs):
+        closed = np.nonzero(grip[:, k] == 1)[0]
+        if len(closed) == 0 or cfg.shape not in ("sphere", "capsule"):
+            continue
+        d, _ = tree.query(positions[closed[0], k])
+        if cfg.shape == "capsule":
+            d = max(d - cfg.half_height, 0.0)
+        if d > cfg.radius - 0.5 * dx:
+            out[k] = replace(cfg, radius=float(d + 0.75 * dx))
+            changed.append((k, cfg.radius, out[k].radius))
+    return out, changed
+
+
+def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 8, voxel_m: float = 0.003,
+                   material: Optional[MaterialConfig] = None, table_friction: float = 0.5,
+                   ee_friction: float = 0.8, use_tracks: bool = True, frames: Optional[int] = None,
+                   grow_grippers: bool = True,
+                   device: Optional[str] = None, progress: bool = True):
+    """(Scene, Observations, Views) of the recording in ``rec_dir`` (see the module docstring).
+
+    ``dx`` (m) is the simulation grid cell, ``voxel_m`` (m) the voxel of the fused point sets, ``material``
+    the starting / fixed material (default E = 1e5 Pa, nu = 0.3, density = 1000 kg/m^3, elastic),
+    ``frames`` limits the number of leading frames read; ``grow_grippers`` applies :func:`attach_grippers`.
+    """
+    from tqdm.auto import tqdm
+
+    from empm_gym.perception.fusion import estimate_table_plane, fuse_frame, initial_particles, load_controls
+    from empm_gym.perception.recording import Recording, controls_to_end_effectors
+
+    rec = Recording(rec_dir)
+    T = rec.num_frames if frames is None else min(int(frames), rec.num_frames)
+    if T < 2:
+        raise ValueError(f"{rec.path}: need at least 2 frames, have {T}")
+    n, off = estimate_table_plane(rec)
+    if abs(n[2]) < 0.98:
+        raise ValueError(f"{rec.path}: the table plane's normal {np.round(n, 3).tolist()} is not the world z axis; "
+                         f"the simulator needs a z-up world frame with a horizontal table (recalibrate c2w)")
+    height = -off / n[2]
+    plane = (np.array([0.0, 0.0, 1.0]), -height)
+    pts = []
+    for t in tqdm(range(T), desc="fuse point clouds", disable=not progress, leave=False):
+        p = fuse_frame(rec, t, voxel_m=voxel_m, table_plane=plane, min_height_m=0.5 * voxel_m)
+        if len(p) == 0:
+            raise ValueError(f"{rec.path}: frame {t} has no object points (check the masks and depth)")
+        pts.append(p)
+    x0, vol = initial_particles(pts[0], dx=dx, particles_per_cell=particles_per_cell, table_plane=plane)
+    controls = load_controls(rec)
+    cfgs, pos, grip = controls_to_end_effectors(controls, friction=ee_friction)
+    if grow_grippers:
+        cfgs, _ = attach_grippers(cfgs, pos, grip, x0, dx)
+    orient = controls.get("orientations")
+    tracks = vis = None
+    if use_tracks and rec.has_tracks:
+        tracks, vis = lift_tracks(rec, frames=T)
+        if not vis[0].any():
+            tracks = vis = None
+    obs = Observations(rec.fps, pts, tracks=tracks, visibility=vis)
+    scene = Scene(x0, vol, fps=rec.fps, ee_configs=cfgs, ee_positions=pos[:T], ee_grip=grip[:T],
+                  ee_orientations=None if orient is None else orient[:T],
+                  material=material or MaterialConfig(E=1e5, nu=0.3, density=1000.0),
+                  table=TableConfig(height=float(height), friction=table_friction), dx=dx, device=device)
+    C = rec.num_cameras
+    views = Views(rec.cameras,
+                  masks=_LazyFrames(T, lambda t: [rec.mask(c, t) for c in range(C)]) if rec.has_masks else None,
+                  images=_LazyFrames(T, lambda t: [rec.color(c, t) for c in range(C)]))
+    return scene, obs, views

@@ -1,0 +1,49 @@
+"""Online identification: quasi-static detection and updates that lower the mask loss."""
+
+import numpy as np
+import pytest
+
+from empm_gym.identification.online import OnlineFrame, OnlineIdentifier, replay
+
+from . import scenes
+
+
+@pytest.fixture(scope="module")
+def rope():
+    return scenes.rope_lift(E=5e4, frames=40)
+
+
+def _frames(p):
+    return [OnlineFrame(p.obs.points[t], p.scene.ee_positions[t], p.scene.ee_grip[t], p.views.masks[t])
+            for t in range(p.obs.num_frames)]
+
+
+def test_online_updates_lower_mask_loss(rope):
+    out = replay(rope.scene, _frames(rope), params=("E",), init={"E": 5e4 / 3}, cameras=rope.views.cameras,
+                 mask_downsample=2, H=10, k=5, progress=False)
+    s = out["summary"]
+    w, wo = out["with_updates"], out["without_updates"]
+    # no update while the gripper is lifting (frames 1-12), updates at most every k = 5 frames afterwards
+    upd = [r["frame"] for r in w if r["updated"]]
+    assert len(upd) >= 3 and min(upd) > 12
+    assert np.all(np.diff(upd) >= 5)
+    assert all(r["quasi_static"] for r in w if r["updated"])
+    assert not any(r["quasi_static"] for r in w[:13])
+    # the stiffness moves towards the truth and the twin then matches the masks better
+    assert out["params"]["E"] > 1.3 * (5e4 / 3)
+    assert all(r["E"] == pytest.approx(5e4 / 3) for r in wo)
+    assert s["mask_loss_with_updates"] < 0.95 * s["mask_loss_without_updates"]
+    assert s["mask_iou_with_updates"] > s["mask_iou_without_updates"]
+    # before the first update both twins are identical
+    first = s["first_update_frame"]
+    assert w[first]["mask_loss"] == pytest.approx(wo[first]["mask_loss"])
+
+
+def test_online_rejects_bad_frames(rope):
+    ident = OnlineIdentifier(rope.scene, cameras=rope.views.cameras)
+    with pytest.raises(ValueError, match=r"ee_positions must have shape \[1, 3\]"):
+        ident.step(OnlineFrame(rope.obs.points[0], np.zeros((2, 3))))
+    with pytest.raises(ValueError, match="3 cameras"):
+        ident.step(OnlineFrame(rope.obs.points[0], np.zeros((1, 3)), masks=[np.zeros((120, 160), bool)]))
+    with pytest.raises(ValueError, match="H and k"):
+        OnlineIdentifier(rope.scene, H=0)
