@@ -1,0 +1,85 @@
+"""Evaluation metrics and the end-to-end command line on an `empm synth` recording."""
+
+import json
+
+import numpy as np
+import pytest
+
+from empm_gym.cli import main
+from empm_gym.identification.evaluate import evaluate, held_out_frames
+from empm_gym.sim import MaterialConfig
+
+from . import scenes
+
+
+def test_held_out_frames():
+    assert held_out_frames(60) == list(range(42, 60))
+    assert held_out_frames(2) == [1]
+    with pytest.raises(ValueError, match="train_fraction"):
+        held_out_frames(10, 1.5)
+
+
+def test_evaluate_prefers_the_true_material(tmp_path):
+    p = scenes.rope_lift(E=5e4, frames=20, colors=True)
+    good = evaluate(p.scene, p.truth.material, None, p.obs, p.views, out_dir=tmp_path, progress=False, name="good")
+    bad = evaluate(p.scene, MaterialConfig(E=5e4 / 3, nu=0.3, density=1000.0), None, p.obs, p.views, progress=False)
+    g, b = good["summary"], bad["summary"]
+    assert good["frames"] == list(range(14, 20))
+    assert set(g) == {"chamfer", "chamfer_obs", "track", "iou", "psnr", "ssim"}
+    assert g["chamfer"] < 0.6 * b["chamfer"] and g["track"] < 0.6 * b["track"]
+    assert g["iou"] > 0.6 and g["iou"] > b["iou"] + 0.1
+    assert g["psnr"] > b["psnr"] and g["ssim"] > b["ssim"]
+    for f in good["files"]:
+        assert (tmp_path / f.split("/")[-1]).stat().st_size > 500
+    d = json.loads((tmp_path / "good.json").read_text())
+    assert len(d["per_frame"]["iou"]) == 6
+
+
+@pytest.fixture(scope="module")
+def synth_rope(tmp_path_factory):
+    from empm_gym.perception.synth import synthesize
+
+    return synthesize(tmp_path_factory.mktemp("rec") / "rope", "rope", frames=12, width=212, height=120,
+                      progress=False)
+
+
+def test_cli_identify_and_evaluate_on_synth_recording(synth_rope, tmp_path, capsys):
+    out = tmp_path / "fit" / "material.json"
+    rc = main(["identify", str(synth_rope), "--out", str(out), "--iters", "3", "--dx", "0.02", "--quiet"])
+    assert rc == 0
+    d = json.loads(out.read_text())
+    assert d["yield_stress"] is None and d["fit"]["method"] == "adam" and d["fit"]["frames_used"] == 8
+    assert d["fit"]["dx"] == 0.02
+    # the stiffness moves from the default 1e5 Pa towards the true 2e5 Pa and the loss goes down
+    assert d["E"] > 1e5 and d["fit"]["loss"] < d["fit"]["loss_history"][0]
+    assert (tmp_path / "fit" / "material_fit.png").stat().st_size > 10_000
+    assert (tmp_path / "fit" / "material.rrd").stat().st_size > 1000
+    rc = main(["evaluate", str(synth_rope), "--material", str(out), "--quiet"])
+    assert rc == 0
+    ev = json.loads((tmp_path / "fit" / "evaluation.json").read_text())
+    assert ev["frames"] == [8, 9, 10, 11]
+    assert 0.0 < ev["summary"]["iou"] <= 1.0 and ev["summary"]["chamfer"] > 0
+    assert "psnr" in ev["summary"] and "track" in ev["summary"]
+    text = capsys.readouterr().out
+    assert "held-out frames 8-11 of 12" in text
+
+
+def test_cli_online_on_synth_recording(synth_rope, tmp_path, capsys):
+    out = tmp_path / "online.json"
+    rc = main(["identify", str(synth_rope), "--out", str(out), "--online", "--dx", "0.02", "--quiet", "--every", "2",
+               "--horizon", "3"])
+    assert rc == 0
+    d = json.loads(out.read_text())
+    assert d["fit"]["method"] == "online" and d["fit"]["summary"]["frames"] == 12
+    rep = json.loads((tmp_path / "online_online.json").read_text())
+    assert len(rep["with_updates"]) == len(rep["without_updates"]) == 12
+    assert "without" in capsys.readouterr().out
+
+
+def test_cli_errors_name_the_problem(tmp_path, capsys):
+    assert main(["identify", str(tmp_path / "nope"), "--out", str(tmp_path / "m.json")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["identify", str(tmp_path), "--params", "E,G"]) == 2
+    assert "--params must be" in capsys.readouterr().err
+    assert main(["identify", str(tmp_path), "--init", "E"]) == 2
+    assert "NAME=VALUE" in capsys.readouterr().err
