@@ -238,14 +238,23 @@ def make_grid_update_kernel(ee_count: int):
         ee_vel: wp.array(dtype=wp.vec3),
         ee_omega: wp.array(dtype=wp.vec3),
         ee_grip: wp.array(dtype=int),
+        clear_inputs: int,
         grid_v: wp.array4d(dtype=wp.vec3),
     ):
-        """Grid velocity update: momentum / mass, gravity, end-effectors, table and walls."""
+        """Grid velocity update: momentum / mass, gravity, end-effectors, table and walls.
+
+        With ``clear_inputs`` the touched mass and momentum nodes are zeroed once read, which saves the
+        next substep two full-grid clears (only when no tape needs those values again).
+        """
         w, i, j, k = wp.tid()
         m = grid_m[w, i, j, k]
+        mv = grid_mv[w, i, j, k]
+        if clear_inputs != 0 and m != 0.0:
+            grid_m[w, i, j, k] = 0.0
+            grid_mv[w, i, j, k] = wp.vec3(0.0)
         vel = wp.vec3(0.0)
         if m > 1.0e-12:
-            vel = grid_mv[w, i, j, k] / m + dt * gravity
+            vel = mv / m + dt * gravity
             node = origin + wp.vec3(float(i), float(j), float(k)) * dx
             for e in range(EE):
                 s = w * EE + e

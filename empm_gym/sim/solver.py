@@ -6,6 +6,7 @@ from typing import Optional
 
 import numpy as np
 import warp as wp
+import warp._src.context as _wp_context
 
 from . import kernels as K
 from .config import SolverConfig
@@ -41,6 +42,8 @@ class GridScratch:
     def __init__(self, model: Model, requires_grad: bool = False):
         shape = (model.world_count, *model.grid_res)
         d = model.device
+        self.clean = True
+        """The mass and momentum arrays are known to be zero (freshly allocated or cleared in place)."""
         self.m = wp.zeros(shape, dtype=float, device=d, requires_grad=requires_grad)
         self.mv = wp.zeros(shape, dtype=wp.vec3, device=d, requires_grad=requires_grad)
         self.v = wp.zeros(shape, dtype=wp.vec3, device=d, requires_grad=requires_grad)
@@ -134,8 +137,12 @@ class SolverMPM:
             self.check_dt(dt, control.max_speed)
         m = self.model
         g = scratch or self.scratch
-        g.m.zero_()
-        g.mv.zero_()
+        # the solver's own grid, outside any tape, is cleared inside the grid kernel (saves two passes);
+        # a taped substep keeps its grid values for the backward pass and is cleared here instead
+        fused = scratch is None and _wp_context.runtime.tape is None
+        if not (fused and g.clean):
+            g.m.zero_()
+            g.mv.zero_()
         origin = wp.vec3(*m.grid_origin)
         res = wp.vec3i(*m.grid_res)
         wp.launch(
@@ -159,10 +166,12 @@ class SolverMPM:
                 has_table, table_z, m.world_table_friction,
                 m.ee_shape, m.ee_radius, m.ee_half_height, m.ee_half_extents, m.ee_friction,
                 state_in.ee_pos, state_in.ee_rot, control.ee_vel, control.ee_omega, control.ee_grip,
+                int(fused),
             ],
             outputs=[g.v],
             device=m.device,
         )
+        g.clean = fused
         wp.launch(
             K.g2p_kernel,
             dim=m.particle_count,
