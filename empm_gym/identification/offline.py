@@ -360,11 +360,17 @@ def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sig
         raise ValueError(f"popsize must be >= 2 for CMA-ES, got {popsize}")
     F = objective.frames
     z0 = space.to_z(init_vals)
-    opts = {"popsize": int(popsize), "seed": int(seed) + 1, "verbose": -9,
-            "bounds": [list(space.z_lo), list(space.z_hi)], "tolfun": 0.0, "tolx": 1e-6}
+    lo, hi = list(space.z_lo), list(space.z_hi)
+    # pycma does not support 1-D problems (its issues #86, #302): add a dummy coordinate the loss ignores
+    dummy = len(z0) == 1
+    if dummy:
+        z0, lo, hi = np.append(z0, 0.0), lo + [-1.0], hi + [1.0]
+    opts = {"popsize": int(popsize), "seed": int(seed) + 1, "verbose": -9, "bounds": [lo, hi],
+            "maxstd": float("inf"), "tolfun": 0.0, "tolx": 1e-6}
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # pycma warns about 1-D problems
+        warnings.simplefilter("ignore")
         es = cma.CMAEvolutionStrategy(list(z0), float(sigma0), opts)
+    n = len(space.names)
     sim = _ForwardSim(scene, [base_mat] * popsize, [scene.table_friction] * popsize)
     hist_l, hist_p, gen_mean = [], [], []
     evals = 0
@@ -373,7 +379,7 @@ def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sig
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             Z = es.ask()
-        cand = [space.from_z(z) for z in Z]
+        cand = [space.from_z(z[:n]) for z in Z]
         mats = [space.material(v, base_mat, scene.table_friction) for v in cand]
         sim.set([m for m, _ in mats], [mu for _, mu in mats])
         X, _, _ = sim.run(F)
@@ -385,7 +391,7 @@ def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sig
         i = int(np.argmin(losses))
         hist_l.append(float(losses[i]))
         hist_p.append(cand[i])
-        gen_mean.append(space.from_z(es.mean))
+        gen_mean.append(space.from_z(es.mean[:n]))
         if callback is not None:
             callback(gen, float(losses[i]), cand[i])
         bar.set_postfix(loss=f"{losses[i]:.5f}", **{k: f"{v:.4g}" for k, v in cand[i].items()})

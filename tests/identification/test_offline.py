@@ -37,13 +37,13 @@ def test_adam_recovers_rope_E_within_10_percent(rope, rope_adam):
 
 @pytest.mark.slow
 def test_cmaes_recovers_rope_E_and_agrees_with_adam(rope, rope_adam):
-    r = identify(rope.obs, rope.scene, params=("E",), method="cmaes", init={"E": ROPE_E / 3}, iters=9,
-                 popsize=6, progress=False)
+    r = identify(rope.obs, rope.scene, params=("E",), method="cmaes", init={"E": ROPE_E / 3}, iters=12,
+                 popsize=4, progress=False)
     assert abs(r.params["E"] / ROPE_E - 1) < 0.10, r.params
     # both minimise the same loss: they agree to within their tolerances (10 % each)
     assert abs(np.log(r.params["E"] / rope_adam.params["E"])) < np.log(1.10)
-    assert r.extra["evaluations"] == 9 * 6
-    assert len(r.loss_history) == 9
+    assert r.extra["evaluations"] == 12 * 4
+    assert len(r.loss_history) == 12
 
 
 @pytest.mark.slow
