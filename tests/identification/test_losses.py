@@ -140,6 +140,7 @@ def test_soft_mask_tracks_binary_mask_and_has_gradients():
     soft = R.soft_mask(pts, cam, 0.006, 2)
     hard = R.splat_mask(pts.detach().numpy(), cam, 0.006, 2)
     assert soft.shape == hard.shape
+    soft = soft.detach()
     assert float(soft[torch.as_tensor(hard)].mean()) > 0.8
     assert float(soft[torch.as_tensor(~hard)].mean()) < 0.1
     # shifting the target mask sideways must pull the points towards it
