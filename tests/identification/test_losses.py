@@ -148,7 +148,7 @@ def test_soft_mask_tracks_binary_mask_and_has_gradients():
     loss = L.soft_mask_loss(pts, [cam], [target], 0.006, 2)
     loss.backward()
     step = pts.detach() - 1e-3 * pts.grad / pts.grad.abs().max()
-    assert float(L.soft_mask_loss(step, [cam], [target], 0.006, 2)) < float(loss)
+    assert float(L.soft_mask_loss(step, [cam], [target], 0.006, 2)) < float(loss.detach())
 
 
 def test_downsample_mask():
