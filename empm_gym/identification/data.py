@@ -113,7 +113,8 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 8, 
     """
     from tqdm.auto import tqdm
 
-    from empm_gym.perception.fusion import estimate_table_plane, fuse_frame, initial_particles, load_controls
+    from empm_gym.perception.fusion import (carve_with_depth, estimate_table_plane, fuse_frame, initial_particles,
+                                            load_controls)
     from empm_gym.perception.recording import Recording, controls_to_end_effectors
 
     rec = Recording(rec_dir)
@@ -133,6 +134,7 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 8, 
             raise ValueError(f"{rec.path}: frame {t} has no object points (check the masks and depth)")
         pts.append(p)
     x0, vol = initial_particles(pts[0], dx=dx, particles_per_cell=particles_per_cell, table_plane=plane)
+    x0, vol = carve_with_depth(x0, vol, rec, 0)  # free space under overhangs that the column fill took
     controls = load_controls(rec)
     cfgs, pos, grip = controls_to_end_effectors(controls, friction=ee_friction)
     if grow_grippers:

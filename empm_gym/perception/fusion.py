@@ -250,6 +250,31 @@ def initial_particles(points: np.ndarray, *, dx: float, particles_per_cell: floa
     return x, vol
 
 
+def carve_with_depth(x: np.ndarray, vol: np.ndarray, rec: Recording, t: int = 0, *,
+                     tol_m: float = 0.004) -> Tuple[np.ndarray, np.ndarray]:
+    """Remove particles that some camera sees through (visual-hull carving with depth).
+
+    A particle at depth z along a camera's pixel is free space when that pixel's measured depth lies
+    beyond z + ``tol_m`` (m): the camera saw something behind it (typically the table under an
+    overhang that a column fill to the table had filled). Pixels without depth, outside the image, or
+    in front of the particle keep it. Volumes of the kept particles are unchanged.
+    """
+    x = np.asarray(x, float)
+    keep = np.ones(len(x), bool)
+    for c, cam in enumerate(rec.cameras):
+        depth = rec.depth(c, t)
+        rc, z = cam.project(x)
+        r = np.rint(rc[:, 0]).astype(int)
+        col = np.rint(rc[:, 1]).astype(int)
+        ok = (z > 0) & (r >= 0) & (r < depth.shape[0]) & (col >= 0) & (col < depth.shape[1])
+        d = np.zeros(len(x))
+        d[ok] = depth[r[ok], col[ok]]
+        keep &= ~(ok & (d > 0) & (d > z + tol_m))
+    if not keep.any():
+        raise RecordingError(f"{rec.path}: depth carving removed every particle of frame {t}; check the calibration")
+    return x[keep], np.asarray(vol)[keep]
+
+
 def controls_from_masks(rec: Recording, *, radius_m: float = 0.02, erode_px: int = 1,
                         nb_neighbors: int = 20, std_ratio: float = 2.0, sphere_centre: bool = True) -> dict:
     """End-effector controls estimated from the controller ("hand") masks, as sphere end-effectors.
