@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import pickle
 import sys
 import time
 from pathlib import Path
@@ -28,21 +29,30 @@ OBJECTS = {
 }
 
 
-def run_one(obj, method, args, rec):
+def load_problem(rec, args):
+    """(scene, observations, views, ground truth, load seconds) of a synthetic recording."""
     from empm_gym.identification.data import load_recording
-    from empm_gym.identification.evaluate import evaluate, held_out_frames
-    from empm_gym.identification.offline import identify
     from empm_gym.sim import MaterialConfig
 
     gt = json.loads((rec / "ground_truth.json").read_text())
     m = gt["material"]
-    params = tuple(args.params.split(",")) if args.params else OBJECTS[obj]["params"]
-    init = {p: (m[p] if p != "friction" else gt["table_friction"]) * args.start_factor for p in params}
     known = MaterialConfig(E=m["E"], nu=m["nu"], density=m["density"], yield_stress=m["yield_stress"])
     t0 = time.perf_counter()
     scene, obs, views = load_recording(rec, dx=args.dx, material=known, table_friction=gt["table_friction"],
                                        device=args.device, progress=not args.quiet)
-    t_load = time.perf_counter() - t0
+    return scene, obs, views, gt, time.perf_counter() - t0
+
+
+def run_one(obj, method, args, problem):
+    from empm_gym.identification.evaluate import evaluate, held_out_frames
+    from empm_gym.identification.offline import identify
+
+    scene, obs, views, gt, t_load = problem
+    if args.device:
+        scene.device = args.device
+    m = gt["material"]
+    params = tuple(args.params.split(",")) if args.params else OBJECTS[obj]["params"]
+    init = {p: (m[p] if p != "friction" else gt["table_friction"]) * args.start_factor for p in params}
     F = max(2, int(round(args.train_fraction * obs.num_frames)))
     kw = dict(params=params, method=method, init=init, iters=args.iters, frames=F, progress=not args.quiet,
               popsize=args.popsize)
@@ -50,8 +60,10 @@ def run_one(obj, method, args, rec):
     out_dir = Path(args.out_dir) / f"{obj}_{method}"
     res.extra["dx"] = args.dx
     res.save(out_dir / "material.json")
-    ev = evaluate(scene, res.material, res.friction, obs, views, eval_frames=held_out_frames(obs.num_frames,
-                  args.train_fraction), downsample=4, progress=False)
+    nan = {"summary": {"chamfer": float("nan"), "iou": float("nan")}}
+    ev = nan if views is None else evaluate(scene, res.material, res.friction, obs, views,
+                                            eval_frames=held_out_frames(obs.num_frames, args.train_fraction),
+                                            downsample=4, progress=False)
     rows = []
     for p in params:
         true = m[p] if p != "friction" else gt["table_friction"]
@@ -83,6 +95,10 @@ def main(argv=None):
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out-dir", default="bench_identify_out")
     p.add_argument("--quiet", action="store_true")
+    p.add_argument("--save-problems", default=None,
+                   help="synthesise and load (fusion needs open3d), pickle each problem into this folder, stop")
+    p.add_argument("--problems", default=None,
+                   help="fit pickled problems from this folder (a machine without open3d); no held-out images")
     args = p.parse_args(argv)
 
     from empm_gym.perception.synth import synthesize
@@ -92,14 +108,29 @@ def main(argv=None):
         if obj not in OBJECTS:
             print(f"unknown object {obj!r}; choose from {sorted(OBJECTS)}", file=sys.stderr)
             return 2
-        t0 = time.perf_counter()
-        rec = synthesize(Path(args.out_dir) / f"rec_{obj}", obj, seed=args.seed, frames=args.frames,
-                         cameras=args.cameras, width=args.width, height=args.height, overwrite=True,
-                         progress=not args.quiet, device=args.device or "cpu")
-        print(f"synthesised {obj}: {args.frames} frames x {args.cameras} cameras in {time.perf_counter() - t0:.1f} s",
-              flush=True)
+        if args.problems:
+            with open(Path(args.problems) / f"{obj}.pkl", "rb") as f:
+                scene, obs, gt, t_load = pickle.load(f)
+            problem = (scene, obs, None, gt, t_load)
+        else:
+            t0 = time.perf_counter()
+            rec = synthesize(Path(args.out_dir) / f"rec_{obj}", obj, seed=args.seed, frames=args.frames,
+                             cameras=args.cameras, width=args.width, height=args.height, overwrite=True,
+                             progress=not args.quiet, device=args.device or "cpu")
+            print(f"synthesised {obj}: {args.frames} frames x {args.cameras} cameras in "
+                  f"{time.perf_counter() - t0:.1f} s", flush=True)
+            problem = load_problem(rec, args)
+            if args.save_problems:
+                Path(args.save_problems).mkdir(parents=True, exist_ok=True)
+                scene, obs, _, gt, t_load = problem
+                with open(Path(args.save_problems) / f"{obj}.pkl", "wb") as f:
+                    pickle.dump((scene, obs, gt, t_load), f)
+                print(f"saved the {obj} problem to {args.save_problems}")
+                continue
         for method in args.methods.split(","):
-            rows.extend(run_one(obj, method, args, rec))
+            rows.extend(run_one(obj, method, args, problem))
+    if args.save_problems:
+        return 0
     hdr = f"{'object':6s} {'method':6s} {'param':12s} {'true':>10s} {'init':>10s} {'fitted':>10s} {'err %':>7s} " \
           f"{'fit s':>7s} {'iters':>5s} {'N':>6s} {'loss':>9s} {'CD held':>8s} {'IoU held':>8s}"
     print(hdr)
