@@ -248,12 +248,8 @@ def make_grid_update_kernel(ee_count: int):
         """
         w, i, j, k = wp.tid()
         m = grid_m[w, i, j, k]
-        if m == 0.0:
-            # no particle touches this node: every weight on it is zero and G2P skips it, so nothing is
-            # read or written here (most nodes of a batch of small worlds)
-            return
         mv = grid_mv[w, i, j, k]
-        if clear_inputs != 0:
+        if clear_inputs != 0 and m != 0.0:
             grid_m[w, i, j, k] = 0.0
             grid_mv[w, i, j, k] = wp.vec3(0.0)
         vel = wp.vec3(0.0)
@@ -325,11 +321,10 @@ def g2p_kernel(
         for j in range(3):
             for k in range(3):
                 weight = W[i, 0] * W[j, 1] * W[k, 2]
-                if weight > 0.0:  # massless nodes hold no velocity (the grid update skips them)
-                    dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
-                    gv = grid_v[w, base[0] + i, base[1] + j, base[2] + k]
-                    new_v = new_v + weight * gv
-                    new_C = new_C + (4.0 * inv_dx * inv_dx * weight) * wp.outer(gv, dpos)
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
+                gv = grid_v[w, base[0] + i, base[1] + j, base[2] + k]
+                new_v = new_v + weight * gv
+                new_C = new_C + (4.0 * inv_dx * inv_dx * weight) * wp.outer(gv, dpos)
     Fn = (wp.identity(n=3, dtype=float) + dt * new_C) * F[p]
     if particle_plastic[p] != 0:
         mu, lam = lame_parameters(particle_E[p], particle_nu[p])
