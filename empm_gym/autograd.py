@@ -24,6 +24,7 @@ PARAMETERS = {
     "nu": "world_nu",
     "density": "world_density",
     "yield_stress": "world_yield",
+    "viscosity": "world_viscosity",
     "table_friction": "world_table_friction",
     "stiffness": "particle_stiffness",
 }
@@ -65,7 +66,7 @@ class _Simulate(torch.autograd.Function):
                 state0.particle_v.assign(_to_wp(t, wp.vec3, model.device))
             else:
                 raise ValueError(f"simulate: unknown input {name!r}; known: {sorted(PARAMETERS) + ['ee_velocity', 'x0', 'v0']}")
-        if any(n in ("E", "nu", "density", "stiffness") for n in names):
+        if any(n in ("E", "nu", "density", "stiffness", "viscosity") for n in names):
             model.sync_materials_from_device()
         records = rollout.forward(state0, controls)
         ctx.rollout, ctx.state0, ctx.controls, ctx.names = rollout, state0, controls, names
@@ -97,7 +98,7 @@ class _Simulate(torch.autograd.Function):
 def simulate(rollout: Rollout, state0: State, controls: Optional[Sequence[Control]] = None, **inputs: torch.Tensor):
     """Differentiable rollout; returns recorded positions [records, N, 3] (m) as a torch tensor.
 
-    Keyword inputs (torch tensors, any of): ``E``, ``nu``, ``density``, ``yield_stress``,
+    Keyword inputs (torch tensors, any of): ``E``, ``nu``, ``density``, ``yield_stress``, ``viscosity``,
     ``table_friction`` (each [worlds]), ``stiffness`` ([N] multiplier), ``ee_velocity``
     ([controls, worlds, ee_count, 3] m/s), ``x0``, ``v0`` ([N, 3] initial positions / velocities).
     """

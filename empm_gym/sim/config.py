@@ -46,6 +46,9 @@ class MaterialConfig:
     """Mass density [kg/m^3]; > 0."""
     yield_stress: Optional[float] = None
     """Uniaxial von Mises yield stress [Pa]; ``None`` for a purely elastic material, else >= 0."""
+    viscosity: float = 0.0
+    """Newtonian (Kelvin-Voigt) viscosity eta [Pa s] adding tau = J eta (grad v + grad v^T); damps
+    deformation, not rigid motion; >= 0 (0: none)."""
 
     def __post_init__(self):
         E = _finite("MaterialConfig.E", self.E)
@@ -60,6 +63,10 @@ class MaterialConfig:
         object.__setattr__(self, "E", E)
         object.__setattr__(self, "nu", nu)
         object.__setattr__(self, "density", rho)
+        eta = _finite("MaterialConfig.viscosity", self.viscosity)
+        if eta < 0.0:
+            raise ValueError(f"MaterialConfig.viscosity must be >= 0 Pa s, got {self.viscosity!r}")
+        object.__setattr__(self, "viscosity", eta)
         if self.yield_stress is not None:
             ys = _finite("MaterialConfig.yield_stress", self.yield_stress)
             if ys < 0.0:

@@ -183,6 +183,7 @@ def p2g_kernel(
     particle_E: wp.array(dtype=float),
     particle_nu: wp.array(dtype=float),
     particle_density: wp.array(dtype=float),
+    particle_viscosity: wp.array(dtype=float),
     origin: wp.vec3,
     dx: float,
     inv_dx: float,
@@ -197,8 +198,13 @@ def p2g_kernel(
     vol = particle_vol[p]
     mass = particle_density[p] * vol
     mu, lam = lame_parameters(particle_E[p], particle_nu[p])
-    tau = fixed_corotated_kirchhoff(F[p], mu, lam)
-    affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * C[p]
+    Fp = F[p]
+    Cp = C[p]
+    tau = fixed_corotated_kirchhoff(Fp, mu, lam)
+    # Kelvin-Voigt viscous stress (zero when eta = 0); APIC's C is the velocity gradient, so
+    # tau_v = J eta (C + C^T). No branch: a data-dependent branch here slows the adjoint kernel.
+    tau = tau + (particle_viscosity[p] * wp.determinant(Fp)) * (Cp + wp.transpose(Cp))
+    affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * Cp
     mv = mass * v[p]
     base, fx = cell_base(x[p], origin, inv_dx, res)
     W = bspline_weights(fx)
@@ -349,11 +355,13 @@ def expand_materials_kernel(
     world_density: wp.array(dtype=float),
     world_yield: wp.array(dtype=float),
     world_plastic: wp.array(dtype=int),
+    world_viscosity: wp.array(dtype=float),
     particle_E: wp.array(dtype=float),
     particle_nu: wp.array(dtype=float),
     particle_density: wp.array(dtype=float),
     particle_yield: wp.array(dtype=float),
     particle_plastic: wp.array(dtype=int),
+    particle_viscosity: wp.array(dtype=float),
 ):
     """Copy each world's material to its particles (E scaled by the per-particle stiffness multiplier)."""
     p = wp.tid()
@@ -363,6 +371,7 @@ def expand_materials_kernel(
     particle_density[p] = world_density[w]
     particle_yield[p] = world_yield[w]
     particle_plastic[p] = world_plastic[w]
+    particle_viscosity[p] = world_viscosity[w]
 
 
 @wp.kernel
@@ -374,10 +383,12 @@ def reduce_material_grads_kernel(
     gnu: wp.array(dtype=float),
     grho: wp.array(dtype=float),
     gys: wp.array(dtype=float),
+    geta: wp.array(dtype=float),
     world_E_grad: wp.array(dtype=float),
     world_nu_grad: wp.array(dtype=float),
     world_density_grad: wp.array(dtype=float),
     world_yield_grad: wp.array(dtype=float),
+    world_viscosity_grad: wp.array(dtype=float),
     stiffness_grad: wp.array(dtype=float),
 ):
     """Adjoint of expand_materials_kernel: sum per-particle parameter gradients into their worlds."""
@@ -387,6 +398,7 @@ def reduce_material_grads_kernel(
     wp.atomic_add(world_nu_grad, w, gnu[p])
     wp.atomic_add(world_density_grad, w, grho[p])
     wp.atomic_add(world_yield_grad, w, gys[p])
+    wp.atomic_add(world_viscosity_grad, w, geta[p])
     stiffness_grad[p] = stiffness_grad[p] + gE[p] * world_E[w]
 
 

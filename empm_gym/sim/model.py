@@ -197,7 +197,7 @@ class Model:
     """What does not change during a rollout: grid, particle rest volumes, materials, end-effector shapes.
 
     Material parameters are Warp arrays, one entry per world (``world_E`` [Pa], ``world_nu``,
-    ``world_density`` [kg/m^3], ``world_yield`` [Pa], ``world_table_friction``), plus a per-particle
+    ``world_density`` [kg/m^3], ``world_yield`` [Pa], ``world_viscosity`` [Pa s], ``world_table_friction``), plus a per-particle
     stiffness multiplier ``particle_stiffness`` for spatially varying stiffness; with
     ``requires_grad=True`` they carry gradients.
     """
@@ -239,6 +239,7 @@ class Model:
         self.world_density = wp.zeros(self.world_count, dtype=float, device=d, requires_grad=requires_grad)
         self.world_yield = wp.zeros(self.world_count, dtype=float, device=d, requires_grad=requires_grad)
         self.world_plastic = wp.zeros(self.world_count, dtype=int, device=d)
+        self.world_viscosity = wp.zeros(self.world_count, dtype=float, device=d, requires_grad=requires_grad)
         self.world_table_friction = _arr(
             np.array([w.table_friction for w in builder.worlds], np.float32), float, d, requires_grad
         )
@@ -250,6 +251,7 @@ class Model:
         self.particle_density = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
         self.particle_yield = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
         self.particle_plastic = wp.zeros(n, dtype=int, device=d)
+        self.particle_viscosity = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
         self.set_materials(self.materials)
 
         K, W = self.ee_count, self.world_count
@@ -293,6 +295,7 @@ class Model:
         self.world_density.assign(np.array([m.density for m in materials], np.float32))
         self.world_yield.assign(np.array([m.yield_stress or 0.0 for m in materials], np.float32))
         self.world_plastic.assign(np.array([int(m.plastic) for m in materials], np.int32))
+        self.world_viscosity.assign(np.array([m.viscosity for m in materials], np.float32))
         self.update_particle_materials()
 
     def update_particle_materials(self):
@@ -304,9 +307,9 @@ class Model:
             _kernels.expand_materials_kernel,
             dim=self.particle_count,
             inputs=[self.particle_world, self.particle_stiffness, self.world_E, self.world_nu, self.world_density,
-                    self.world_yield, self.world_plastic],
+                    self.world_yield, self.world_plastic, self.world_viscosity],
             outputs=[self.particle_E, self.particle_nu, self.particle_density, self.particle_yield,
-                     self.particle_plastic],
+                     self.particle_plastic, self.particle_viscosity],
             device=self.device,
         )
 
@@ -318,27 +321,33 @@ class Model:
             _kernels.reduce_material_grads_kernel,
             dim=self.particle_count,
             inputs=[self.particle_world, self.particle_stiffness, self.world_E, self.particle_E.grad,
-                    self.particle_nu.grad, self.particle_density.grad, self.particle_yield.grad],
+                    self.particle_nu.grad, self.particle_density.grad, self.particle_yield.grad,
+                    self.particle_viscosity.grad],
             outputs=[self.world_E.grad, self.world_nu.grad, self.world_density.grad, self.world_yield.grad,
-                     self.particle_stiffness.grad],
+                     self.world_viscosity.grad, self.particle_stiffness.grad],
             device=self.device,
         )
 
     def parameter_arrays(self):
         """Arrays that can carry gradients: world materials, table and end-effector friction, per-particle copies."""
-        return [self.world_E, self.world_nu, self.world_density, self.world_yield, self.world_table_friction,
-                self.particle_stiffness, self.ee_friction, self.particle_E, self.particle_nu,
-                self.particle_density, self.particle_yield]
+        return [self.world_E, self.world_nu, self.world_density, self.world_yield, self.world_viscosity,
+                self.world_table_friction, self.particle_stiffness, self.ee_friction, self.particle_E,
+                self.particle_nu, self.particle_density, self.particle_yield, self.particle_viscosity]
 
     def sync_materials_from_device(self):
         """Refresh the host copies (``materials``) after the device arrays were changed (e.g. by an optimiser)."""
-        E, nu, rho, ys = (a.numpy() for a in (self.world_E, self.world_nu, self.world_density, self.world_yield))
+        E, nu, rho, ys, eta = (a.numpy() for a in (self.world_E, self.world_nu, self.world_density,
+                                                    self.world_yield, self.world_viscosity))
         pl = self.world_plastic.numpy()
         self.materials = [
             MaterialConfig(E=float(E[i]), nu=float(nu[i]), density=float(rho[i]),
-                           yield_stress=float(ys[i]) if pl[i] else None)
+                           yield_stress=float(ys[i]) if pl[i] else None, viscosity=float(eta[i]))
             for i in range(self.world_count)
         ]
+
+    def max_viscous_rate(self) -> float:
+        """Largest kinematic viscosity eta / rho over worlds [m^2/s] (limits the explicit step)."""
+        return max(m.viscosity / m.density for m in self.materials)
 
     def max_wave_speed(self) -> float:
         """Largest elastic P-wave speed over worlds [m/s], including the per-particle stiffness multiplier."""

@@ -83,9 +83,14 @@ class SolverMPM:
 
     # -- guards --------------------------------------------------------------
     def max_stable_dt(self, max_speed: float = 0.0) -> float:
-        """Largest stable substep [s]: C * dx / (c + |v|max) with c the elastic P-wave speed."""
+        """Largest stable substep [s]: C * dx / (c + |v|max) with c the elastic P-wave speed, and, with
+        viscosity, C * dx^2 / (3 eta / rho) (explicit diffusion of momentum)."""
         c = self.model.max_wave_speed()
-        return self.config.cfl * self.model.dx / (c + max(0.0, float(max_speed)))
+        dt = self.config.cfl * self.model.dx / (c + max(0.0, float(max_speed)))
+        nu_k = self.model.max_viscous_rate()
+        if nu_k > 0.0:
+            dt = min(dt, self.config.cfl * self.model.dx**2 / (3.0 * nu_k))
+        return dt
 
     def check_dt(self, dt: float, max_speed: float = 0.0):
         """Raise :class:`UnstableTimeStep` if dt [s] exceeds the stable limit."""
@@ -96,7 +101,8 @@ class SolverMPM:
             raise UnstableTimeStep(
                 f"dt={dt:.3g} s exceeds the stable limit {limit:.3g} s "
                 f"(CFL {self.config.cfl} * dx {self.model.dx:.3g} m / (wave speed "
-                f"{self.model.max_wave_speed():.3g} m/s + end-effector speed {max_speed:.3g} m/s)); "
+                f"{self.model.max_wave_speed():.3g} m/s + end-effector speed {max_speed:.3g} m/s)"
+                f"{', or the viscous limit' if self.model.max_viscous_rate() > 0 else ''}); "
                 f"use dt <= {limit:.3g} s",
                 max_dt=limit,
             )
@@ -151,6 +157,7 @@ class SolverMPM:
             inputs=[
                 state_in.particle_x, state_in.particle_v, state_in.particle_C, state_in.particle_F,
                 m.particle_world, m.particle_vol, m.particle_E, m.particle_nu, m.particle_density,
+                m.particle_viscosity,
                 origin, m.dx, m.inv_dx, res, dt,
             ],
             outputs=[g.m, g.mv],

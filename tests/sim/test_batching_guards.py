@@ -61,6 +61,7 @@ def test_state_numpy_round_trip_is_exact():
         (dict(nu=-1.0), "nu"),
         (dict(density=0.0), "density"),
         (dict(yield_stress=-1.0), "yield_stress"),
+        (dict(viscosity=-1.0), "viscosity"),
         (dict(E=float("nan")), "E"),
     ],
 )

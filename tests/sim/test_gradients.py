@@ -72,9 +72,10 @@ def _initial_velocity(s0, ctrls):
     s0.particle_v.assign(v)
 
 
-@pytest.mark.parametrize("param,value,rel", [("world_E", 2e4, 0.02), ("world_nu", 0.3, 0.03)])
+@pytest.mark.parametrize("param,value,rel", [("world_E", 2e4, 0.02), ("world_nu", 0.3, 0.03),
+                                             ("world_viscosity", 5.0, 0.05), ("world_density", 1000.0, 0.02)])
 def test_material_gradient_matches_finite_difference(param, value, rel):
-    model = _squeeze_scene(MaterialConfig(E=2e4, nu=0.3, density=1000.0))
+    model = _squeeze_scene(MaterialConfig(E=2e4, nu=0.3, density=1000.0, viscosity=5.0))
     steps = 40
     W = _weights(model, 1)
     _, _, _, _ = _loss_and_grads(model, steps, setup=_initial_velocity, W=W)

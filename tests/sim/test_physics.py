@@ -189,3 +189,51 @@ def test_dropped_block_comes_to_rest_on_table():
     assert zmin >= -dx, f"a particle went {-zmin:.4f} m below the table (limit one cell, {dx} m)"
     assert np.linalg.norm(v.mean(0)) < 0.02 and np.abs(v).max() < 0.1, "block did not come to rest"
     assert x[:, 2].max() < 0.06  # it fell onto the table
+
+
+def _bar_lengths(viscosity):
+    """Length signal of the free-free bar of the vibration test, with the given viscosity [Pa s]."""
+    E, rho, L, dx = 1.0e4, 1000.0, 0.4, 0.02
+    b = ModelBuilder(GridConfig(lower=(-0.3, -0.1, -0.1), upper=(0.3, 0.1, 0.1), dx=dx), gravity=(0, 0, 0), table=None)
+    w = b.add_world(MaterialConfig(E=E, nu=0.0, density=rho, viscosity=viscosity))
+    x, vol = sample_box((-L / 2, -dx, -dx), (L / 2, dx, dx), dx, 8)
+    b.add_particles(w, x, vol)
+    m = b.finalize(DEVICE)
+    s = m.state()
+    v0 = np.zeros_like(x, dtype=np.float32)
+    v0[:, 0] = 0.02 * np.sin(np.pi * x[:, 0] / L)
+    s.particle_v.assign(v0)
+    solver = SolverMPM(m)
+    dt = 0.5 * solver.max_stable_dt()
+    steps = int(0.6 / dt)
+    right, left = x[:, 0] > L / 4, x[:, 0] < -L / 4
+    a, bst = s, m.state()
+    out = []
+    for _ in range(steps):
+        solver.step(a, bst, m.control(), dt)
+        a, bst = bst, a
+        xp = a.particle_x.numpy()
+        out.append(xp[right, 0].mean() - xp[left, 0].mean())
+    return np.asarray(out) - L, dt, rho, L
+
+
+def _decay_rate(sig, dt):
+    """Exponential decay rate [1/s] of the oscillation's successive peak amplitudes."""
+    sig = sig - sig[len(sig) // 2:].mean()
+    peaks = [i for i in range(1, len(sig) - 1) if abs(sig[i]) >= abs(sig[i - 1]) and abs(sig[i]) >= abs(sig[i + 1])
+             and abs(sig[i]) > 0.2 * np.abs(sig).max()]
+    t, amp = np.asarray(peaks) * dt, np.abs(sig[peaks])
+    return -np.polyfit(t, np.log(amp), 1)[0]
+
+
+def test_viscosity_damps_the_bar_mode_at_the_analytic_rate():
+    # rho u_tt = E u_xx + 2 eta u_txx (lateral strain rates vanish at nu = 0): mode k = pi / L decays
+    # as exp(-gamma t) with gamma = eta k^2 / rho.
+    eta = 30.0
+    sig, dt, rho, L = _bar_lengths(eta)
+    gamma = eta * (np.pi / L) ** 2 / rho
+    base, dt0, _, _ = _bar_lengths(0.0)
+    g_num = _decay_rate(base, dt0)  # the scheme's own damping, small
+    g = _decay_rate(sig, dt)
+    assert abs(g_num) < 0.15 * gamma, g_num
+    assert abs((g - g_num) - gamma) < 0.15 * gamma, (g, g_num, gamma)
