@@ -189,9 +189,10 @@ def p2g_kernel(
     inv_dx: float,
     res: wp.vec3i,
     dt: float,
-    grid_mv: wp.array4d(dtype=wp.vec4),
+    grid_m: wp.array4d(dtype=float),
+    grid_mv: wp.array4d(dtype=wp.vec3),
 ):
-    """Scatter particle momentum plus stress impulse (xyz) and mass (w) to the grid (MLS-MPM / APIC)."""
+    """Scatter particle mass, momentum and stress impulse to the grid (MLS-MPM / APIC)."""
     p = wp.tid()
     w = particle_world[p]
     vol = particle_vol[p]
@@ -212,10 +213,8 @@ def p2g_kernel(
             for k in range(3):
                 weight = W[i, 0] * W[j, 1] * W[k, 2]
                 dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
-                mom = weight * (mv + affine * dpos)
-                # one packed 16-byte node (momentum, mass): four atomics on one cache line
-                wp.atomic_add(grid_mv, w, base[0] + i, base[1] + j, base[2] + k,
-                              wp.vec4(mom[0], mom[1], mom[2], weight * mass))
+                wp.atomic_add(grid_mv, w, base[0] + i, base[1] + j, base[2] + k, weight * (mv + affine * dpos))
+                wp.atomic_add(grid_m, w, base[0] + i, base[1] + j, base[2] + k, weight * mass)
 
 
 def make_grid_update_kernel(ee_count: int):
@@ -224,7 +223,8 @@ def make_grid_update_kernel(ee_count: int):
 
     @wp.kernel(module="unique")
     def grid_update_kernel(
-        grid_mv: wp.array4d(dtype=wp.vec4),
+        grid_m: wp.array4d(dtype=float),
+        grid_mv: wp.array4d(dtype=wp.vec3),
         origin: wp.vec3,
         dx: float,
         res: wp.vec3i,
@@ -249,15 +249,15 @@ def make_grid_update_kernel(ee_count: int):
     ):
         """Grid velocity update: momentum / mass, gravity, end-effectors, table and walls.
 
-        With ``clear_inputs`` the touched momentum/mass nodes are zeroed once read, which saves the next
-        substep a full-grid clear (only when no tape needs those values again).
+        With ``clear_inputs`` the touched mass and momentum nodes are zeroed once read, which saves the
+        next substep two full-grid clears (only when no tape needs those values again).
         """
         w, i, j, k = wp.tid()
-        q = grid_mv[w, i, j, k]
-        m = q[3]
-        mv = wp.vec3(q[0], q[1], q[2])
+        m = grid_m[w, i, j, k]
+        mv = grid_mv[w, i, j, k]
         if clear_inputs != 0 and m != 0.0:
-            grid_mv[w, i, j, k] = wp.vec4(0.0)
+            grid_m[w, i, j, k] = 0.0
+            grid_mv[w, i, j, k] = wp.vec3(0.0)
         vel = wp.vec3(0.0)
         if m > 1.0e-12:
             vel = mv / m + dt * gravity

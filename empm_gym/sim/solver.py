@@ -33,8 +33,7 @@ class UnstableTimeStep(ValueError):
 
 
 class GridScratch:
-    """Grid arrays of one substep for every world: ``mv`` packs momentum [kg m/s] (xyz) and mass [kg] (w),
-    ``v`` is the velocity [m/s].
+    """Grid arrays of one substep (mass [kg], momentum [kg m/s], velocity [m/s]) for every world.
 
     A differentiable rollout keeps one per taped substep, since the tape replays kernels with the
     arrays' current values.
@@ -44,15 +43,13 @@ class GridScratch:
         shape = (model.world_count, *model.grid_res)
         d = model.device
         self.clean = True
-        """The momentum/mass array is known to be zero (freshly allocated or cleared in place)."""
-        self.mv = wp.zeros(shape, dtype=wp.vec4, device=d, requires_grad=requires_grad)
+        """The mass and momentum arrays are known to be zero (freshly allocated or cleared in place)."""
+        self.m = wp.zeros(shape, dtype=float, device=d, requires_grad=requires_grad)
+        self.mv = wp.zeros(shape, dtype=wp.vec3, device=d, requires_grad=requires_grad)
         self.v = wp.zeros(shape, dtype=wp.vec3, device=d, requires_grad=requires_grad)
 
-    def arrays(self):
-        return (self.mv, self.v)
-
     def zero_grad(self):
-        for a in self.arrays():
+        for a in (self.m, self.mv, self.v):
             if a.grad is not None:
                 a.grad.zero_()
 
@@ -150,6 +147,7 @@ class SolverMPM:
         # a taped substep keeps its grid values for the backward pass and is cleared here instead
         fused = scratch is None and _wp_context.runtime.tape is None
         if not (fused and g.clean):
+            g.m.zero_()
             g.mv.zero_()
         origin = wp.vec3(*m.grid_origin)
         res = wp.vec3i(*m.grid_res)
@@ -162,7 +160,7 @@ class SolverMPM:
                 m.particle_viscosity,
                 origin, m.dx, m.inv_dx, res, dt,
             ],
-            outputs=[g.mv],
+            outputs=[g.m, g.mv],
             device=m.device,
         )
         has_table = 1 if m.table is not None else 0
@@ -171,7 +169,7 @@ class SolverMPM:
             self._grid_kernel,
             dim=(m.world_count, *m.grid_res),
             inputs=[
-                g.mv, origin, m.dx, res, dt, wp.vec3(*m.gravity), m.grid.boundary_cells,
+                g.m, g.mv, origin, m.dx, res, dt, wp.vec3(*m.gravity), m.grid.boundary_cells,
                 has_table, table_z, m.world_table_friction,
                 m.ee_shape, m.ee_radius, m.ee_half_height, m.ee_half_extents, m.ee_friction,
                 state_in.ee_pos, state_in.ee_rot, control.ee_vel, control.ee_omega, control.ee_grip,
