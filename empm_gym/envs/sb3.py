@@ -135,6 +135,10 @@ def train_and_report(args, make_model, *, algo_name: str) -> dict:
             return True
 
     model = make_model(venv)
+    from stable_baselines3.common.logger import configure
+
+    # SB3's training statistics go next to the other outputs (its default is a new folder in /tmp per run)
+    model.set_logger(configure(os.path.join(args.out, "sb3_log"), ["csv"]))
     curve = Curve()
     t0 = time.time()
     model.learn(total_timesteps=args.total_steps, callback=curve)
