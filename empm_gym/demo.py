@@ -199,7 +199,8 @@ def run_mpc_demo(out: Path, material: Path, *, steps: int = 8, samples: int = 12
     from .planning import MPPIPlanner
     from .viz import image_strip
 
-    kwargs = {"material": str(material), "device": device, "dx": 0.015, "particles_per_cell": 4}
+    kwargs = {"material": str(material), "device": device, "dx": 0.015, "particles_per_cell": 4,
+              "task_options": {"shapes": ("bar",)}}  # elongate the lump into a bar
     env = gym.make("EMPM/DoughShape-v0", render_mode="rgb_array", **kwargs)
     A = env.action_space.shape[0]
 
