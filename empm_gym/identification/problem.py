@@ -37,6 +37,8 @@ PARAM_NAMES = ("E", "nu", "density", "yield_stress", "friction")
 # reference scales of the log-space parameters (E normalised by 1e6 as in the paper)
 _SCALE = {"E": 1.0e6, "density": 1.0e3, "yield_stress": 1.0e3, "friction": 1.0}
 _NU_LO, _NU_HI = -1.0, 0.5
+# a table node layer sits this fraction of a cell below the table height (see Scene.grid_config)
+_TABLE_NODE_EPS = 1.0e-4
 
 
 def quat_angular_velocity(q: np.ndarray, fps: float) -> np.ndarray:
@@ -173,6 +175,15 @@ class Scene:
             lower[2] = min(self.particles[:, 2].min(), self.table.height) - 3.0 * dx
         lower = np.floor(lower / dx) * dx
         upper = np.ceil(upper / dx) * dx
+        if self.table is not None:
+            # The solver applies the table to the grid nodes at or below its height, so the contact
+            # plane it simulates is the highest node layer not above the table. Put a node layer on the
+            # table (a hair below it, so that float32 rounding of the node position keeps it a table
+            # node): otherwise a table measured 0.1 mm low drops the effective contact a whole cell.
+            h = float(self.table.height)
+            k = math.ceil((h - lower[2]) / dx)
+            lower[2] = h - k * dx - _TABLE_NODE_EPS * dx
+            upper[2] = lower[2] + math.ceil((upper[2] - lower[2]) / dx - 1e-9) * dx
         return GridConfig(lower=tuple(lower), upper=tuple(upper), dx=dx)
 
     def builder(self, materials: Sequence[MaterialConfig], frictions: Sequence[float]) -> ModelBuilder:
@@ -197,7 +208,9 @@ class Observations:
 
     ``points``: one fused object point set [n_t, 3] per frame. Optional ``tracks`` [T, M, 3] tracked
     surface points with ``visibility`` [T, M] (bool; occluded entries are ignored), ``colors``: per-frame
-    colours [n_t, 3] in [0, 1] of ``points``.
+    colours [n_t, 3] in [0, 1] of ``points``. ``surface``: the points sample the object's measured surface
+    (depth cameras), not simulation particles; identification then compares them with the frame-0 surface
+    carried by the simulated body instead of with particle centres.
     """
 
     fps: float
@@ -205,6 +218,7 @@ class Observations:
     tracks: Optional[np.ndarray] = None
     visibility: Optional[np.ndarray] = None
     colors: Optional[Sequence[np.ndarray]] = None
+    surface: bool = False
 
     def __post_init__(self):
         if not (self.fps > 0 and math.isfinite(self.fps)):
