@@ -680,7 +680,8 @@ class Recording:
 # writing
 # ----------------------------------------------------------------------------------------------
 
-_LAYOUT_FILES = ("metadata.json", "calibrate.json", "calibrate.pkl", "controls.npz", "ground_truth.json")
+_LAYOUT_FILES = ("metadata.json", "calibrate.json", "calibrate.pkl", "controls.npz", "ground_truth.json",
+                 "ground_truth_particles.npz")
 _LAYOUT_DIRS = ("color", "depth", "mask", "tracks", "cotracker")
 
 

@@ -550,6 +550,10 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
                           orientations=np.tile([0.0, 0.0, 0.0, 1.0], (T, len(ee_cfgs), 1)))
     for c in range(C):
         writer.write_tracks(c, tracks[c], vis[c])
+    # debug only (never read by identification): the simulated particle trajectories [T, N, 3] (m) and
+    # the end-effector centres per frame, to check that a replay of the recording reproduces them
+    np.savez_compressed(out / "ground_truth_particles.npz", positions=X, volumes=model.particle_vol.numpy(),
+                        ee_positions=pos.astype(np.float32), grip=grip)
     writer.write_ground_truth({
         "synthetic": True,
         "object": object,
