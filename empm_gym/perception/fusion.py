@@ -32,6 +32,9 @@ __all__ = [
     "close_against_table",
     "smooth_points",
     "initial_particles",
+    "carve_with_depth",
+    "complete_occluded",
+    "end_effector_sdf",
     "controls_from_masks",
     "load_controls",
 ]
@@ -260,16 +263,7 @@ def carve_with_depth(x: np.ndarray, vol: np.ndarray, rec: Recording, t: int = 0,
     in front of the particle keep it. Volumes of the kept particles are unchanged.
     """
     x = np.asarray(x, float)
-    keep = np.ones(len(x), bool)
-    for c, cam in enumerate(rec.cameras):
-        depth = rec.depth(c, t)
-        rc, z = cam.project(x)
-        r = np.rint(rc[:, 0]).astype(int)
-        col = np.rint(rc[:, 1]).astype(int)
-        ok = (z > 0) & (r >= 0) & (r < depth.shape[0]) & (col >= 0) & (col < depth.shape[1])
-        d = np.zeros(len(x))
-        d[ok] = depth[r[ok], col[ok]]
-        keep &= ~(ok & (d > 0) & (d > z + tol_m))
+    keep, _ = _carve(x, rec, t, tol_m)
     if not keep.any():
         raise RecordingError(f"{rec.path}: depth carving removed every particle of frame {t}; check the calibration")
     return x[keep], np.asarray(vol)[keep]
@@ -350,3 +344,132 @@ def controls_from_masks(rec: Recording, *, radius_m: float = 0.02, erode_px: int
 def load_controls(rec: Recording, **kw) -> dict:
     """The recording's controls: ``controls.npz`` when present, else :func:`controls_from_masks` (keywords)."""
     return rec.controls() if rec.has_controls else controls_from_masks(rec, **kw)
+
+
+def _quat_matrix(q) -> np.ndarray:
+    x, y, z, w = (float(v) for v in q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def end_effector_sdf(points: np.ndarray, cfg, centre, quat=None) -> np.ndarray:
+    """Signed distance (m, negative inside) of world points [N, 3] to an end-effector (sphere, capsule
+    along its local z, or box) of config ``cfg`` at ``centre`` (m) with orientation ``quat`` (x, y, z, w)."""
+    R = np.eye(3) if quat is None else _quat_matrix(quat)
+    p = (np.asarray(points, float) - np.asarray(centre, float)) @ R  # local frame
+    if cfg.shape == "sphere":
+        return np.linalg.norm(p, axis=1) - cfg.radius
+    if cfg.shape == "capsule":
+        q = p.copy()
+        q[:, 2] = np.clip(q[:, 2], -cfg.half_height, cfg.half_height)
+        return np.linalg.norm(p - q, axis=1) - cfg.radius
+    he = np.asarray(cfg.half_extents, float)
+    d = np.abs(p) - he
+    return np.linalg.norm(np.maximum(d, 0.0), axis=1) + np.minimum(d.max(1), 0.0)
+
+
+def complete_occluded(points: np.ndarray, rec: Recording, t: int, ee_configs, ee_positions, *,
+                      grip=None, ee_orientations=None, table_plane: Tuple[np.ndarray, float],
+                      spacing_m: float = 0.0025, margin_m: float = 0.01, reach_m: float = 0.02) -> np.ndarray:
+    """Solid samples [M, 3] (m) of the object's parts that the end-effectors hide from every camera.
+
+    A gripper or pusher in front of the object hides the part it holds or touches, so a fill of the
+    visible surface alone stops short of it (a rope's ends under two grippers; a block's faces behind
+    two plates). Around each end-effector at frame ``t`` (its bounding box grown by ``margin_m``, from
+    the table up to the 95th percentile height of the visible object within ``reach_m`` of that box),
+    lattice points every ``spacing_m`` (m) are kept when every camera that measures depth there saw a
+    surface in front of them (the end-effector or the object: hidden), they lie outside the end-effector unless it is closed
+    (a closed gripper carries the material inside it) and they connect to the visible object. With
+    ``grip`` [K] (1 = closed) and ``ee_orientations`` [K, 4] (x, y, z, w) for the same frame.
+    """
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, float).reshape(-1, 3)
+    n = np.asarray(table_plane[0], float)
+    n = n / np.linalg.norm(n)
+    off = float(table_plane[1])
+    if len(pts) == 0 or len(ee_configs) == 0:
+        return np.zeros((0, 3))
+    pos = np.asarray(ee_positions, float).reshape(-1, 3)
+    grip = np.zeros(len(ee_configs), int) if grip is None else np.asarray(grip).reshape(-1)
+    tree = cKDTree(pts)
+    out = []
+    for k, cfg in enumerate(ee_configs):
+        q = None if ee_orientations is None else np.asarray(ee_orientations).reshape(-1, 4)[k]
+        R = np.eye(3) if q is None else _quat_matrix(q)
+        if cfg.shape == "box":
+            half = np.abs(R) @ np.asarray(cfg.half_extents, float)
+        elif cfg.shape == "capsule":
+            half = np.abs(R[:, 2]) * cfg.half_height + cfg.radius
+        else:
+            half = np.full(3, cfg.radius)
+        lo, hi = pos[k] - half - margin_m, pos[k] + half + margin_m
+        near = pts[np.all((pts[:, :2] >= lo[:2] - reach_m) & (pts[:, :2] <= hi[:2] + reach_m), axis=1)]
+        if len(near) < 10:
+            continue  # the end-effector is not at the object
+        cap = float(np.percentile(near @ n + off, 95))
+        axes = [np.arange(lo[i] + 0.5 * spacing_m, hi[i], spacing_m) for i in range(2)]
+        # heights above the table from half a spacing up to the cap (the table plane is horizontal here)
+        zs = np.arange(0.5 * spacing_m, cap, spacing_m)
+        if len(zs) == 0 or any(len(a) == 0 for a in axes):
+            continue
+        G = np.stack(np.meshgrid(axes[0], axes[1], np.arange(len(zs)), indexing="ij"), -1).reshape(-1, 3)
+        cand = np.column_stack([G[:, 0], G[:, 1], np.zeros(len(G))])
+        # lift each column point to height zs above the plane (z solved on the plane n . x + off = h)
+        h = zs[G[:, 2].astype(int)]
+        cand[:, 2] = (h - off - cand[:, :2] @ n[:2]) / n[2]
+        ok = np.ones(len(cand), bool)
+        if not grip[k]:
+            ok &= end_effector_sdf(cand, cfg, pos[k], q) > 0.0
+        cand = cand[ok]
+        if len(cand) == 0:
+            continue
+        cand = cand[_hidden(cand, rec, t, front_m=0.5 * spacing_m)]
+        if len(cand) == 0:
+            continue
+        # keep the components of the kept lattice that touch the visible object
+        idx = np.rint((cand - cand.min(0)) / spacing_m).astype(int)
+        occ = np.zeros(idx.max(0) + 1, bool)
+        occ[tuple(idx.T)] = True
+        lab, nl = ndimage.label(occ, structure=np.ones((3, 3, 3), bool))
+        lab_pts = lab[tuple(idx.T)]
+        touching = np.unique(lab_pts[tree.query(cand)[0] <= 1.5 * spacing_m])
+        out.append(cand[np.isin(lab_pts, touching[touching > 0])])
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def _carve(x: np.ndarray, rec: Recording, t: int, tol_m: float):
+    keep = np.ones(len(x), bool)
+    for c, cam in enumerate(rec.cameras):
+        depth = rec.depth(c, t)
+        rc, z = cam.project(x)
+        r = np.rint(rc[:, 0]).astype(int)
+        col = np.rint(rc[:, 1]).astype(int)
+        ok = (z > 0) & (r >= 0) & (r < depth.shape[0]) & (col >= 0) & (col < depth.shape[1])
+        d = np.zeros(len(x))
+        d[ok] = depth[r[ok], col[ok]]
+        keep &= ~(ok & (d > 0) & (d > z + tol_m))
+    return keep, None
+
+
+def _hidden(x: np.ndarray, rec: Recording, t: int, front_m: float) -> np.ndarray:
+    """True where every camera that measures a depth at the point's pixel saw a surface at least
+    ``front_m`` (m) in front of the point (so no camera sees the point itself or beyond it)."""
+    from scipy import ndimage
+
+    keep = np.ones(len(x), bool)
+    for c, cam in enumerate(rec.cameras):
+        depth = np.asarray(rec.depth(c, t), float)
+        # depth is missing mostly at silhouettes, where a nearer and a farther surface meet: assume the
+        # farther one (the largest valid depth within 2 pixels), so that a silhouette hides nothing
+        depth = np.where(depth > 0, depth, ndimage.maximum_filter(depth, size=5))
+        rc, z = cam.project(x)
+        r = np.rint(rc[:, 0]).astype(int)
+        col = np.rint(rc[:, 1]).astype(int)
+        ok = (z > 0) & (r >= 0) & (r < depth.shape[0]) & (col >= 0) & (col < depth.shape[1])
+        d = np.zeros(len(x))
+        d[ok] = depth[r[ok], col[ok]]
+        keep &= ~(ok & (d > 0) & (d > z - front_m))
+    return keep
