@@ -103,18 +103,20 @@ def attach_grippers(configs, positions, grip, particles, dx: float):
 def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 8, voxel_m: float = 0.003,
                    material: Optional[MaterialConfig] = None, table_friction: float = 0.5,
                    ee_friction: float = 0.8, use_tracks: bool = True, frames: Optional[int] = None,
-                   grow_grippers: bool = True,
+                   grow_grippers: bool = True, complete_hidden: bool = True,
                    device: Optional[str] = None, progress: bool = True):
     """(Scene, Observations, Views) of the recording in ``rec_dir`` (see the module docstring).
 
     ``dx`` (m) is the simulation grid cell, ``voxel_m`` (m) the voxel of the fused point sets, ``material``
     the starting / fixed material (default E = 1e5 Pa, nu = 0.3, density = 1000 kg/m^3, elastic),
-    ``frames`` limits the number of leading frames read; ``grow_grippers`` applies :func:`attach_grippers`.
+    ``frames`` limits the number of leading frames read; ``complete_hidden`` adds to the frame-0 body the parts
+    that the end-effectors hide from every camera (:func:`empm_gym.perception.fusion.complete_occluded`);
+    ``grow_grippers`` then applies :func:`attach_grippers` to closed grippers that still miss the body.
     """
     from tqdm.auto import tqdm
 
-    from empm_gym.perception.fusion import (carve_with_depth, estimate_table_plane, fuse_frame, initial_particles,
-                                            load_controls)
+    from empm_gym.perception.fusion import (carve_with_depth, complete_occluded, estimate_table_plane, fuse_frame,
+                                            initial_particles, load_controls)
     from empm_gym.perception.recording import Recording, controls_to_end_effectors
 
     rec = Recording(rec_dir)
@@ -133,19 +135,26 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 8, 
         if len(p) == 0:
             raise ValueError(f"{rec.path}: frame {t} has no object points (check the masks and depth)")
         pts.append(p)
-    x0, vol = initial_particles(pts[0], dx=dx, particles_per_cell=particles_per_cell, table_plane=plane)
-    x0, vol = carve_with_depth(x0, vol, rec, 0)  # free space under overhangs that the column fill took
     controls = load_controls(rec)
     cfgs, pos, grip = controls_to_end_effectors(controls, friction=ee_friction)
+    orient = controls.get("orientations")
+    body = pts[0]
+    if complete_hidden and len(cfgs):
+        # the parts of the object that the end-effectors hide from every camera (a rope's held ends)
+        hidden = complete_occluded(pts[0], rec, 0, cfgs, pos[0], grip=grip[0],
+                                   ee_orientations=None if orient is None else orient[0], table_plane=plane,
+                                   spacing_m=dx / 4.0, margin_m=dx)
+        body = np.concatenate([body, hidden])
+    x0, vol = initial_particles(body, dx=dx, particles_per_cell=particles_per_cell, table_plane=plane)
+    x0, vol = carve_with_depth(x0, vol, rec, 0)  # free space under overhangs that the column fill took
     if grow_grippers:
         cfgs, _ = attach_grippers(cfgs, pos, grip, x0, dx)
-    orient = controls.get("orientations")
     tracks = vis = None
     if use_tracks and rec.has_tracks:
         tracks, vis = lift_tracks(rec, frames=T)
         if not vis[0].any():
             tracks = vis = None
-    obs = Observations(rec.fps, pts, tracks=tracks, visibility=vis)
+    obs = Observations(rec.fps, pts, tracks=tracks, visibility=vis, surface=True)
     scene = Scene(x0, vol, fps=rec.fps, ee_configs=cfgs, ee_positions=pos[:T], ee_grip=grip[:T],
                   ee_orientations=None if orient is None else orient[:T],
                   material=material or MaterialConfig(E=1e5, nu=0.3, density=1000.0),

@@ -35,7 +35,7 @@ from empm_gym.sim import MaterialConfig, Rollout, SimulationDiverged, SolverConf
 from .losses import chamfer_distance, chamfer_numpy, tracking_loss
 from .problem import PARAM_NAMES, Observations, ParamSpace, Scene, _ForwardSim, substeps_for
 
-__all__ = ["identify", "FitResult", "Objective", "default_bounds", "METHODS"]
+__all__ = ["identify", "FitResult", "Objective", "default_bounds", "surface_embedding", "METHODS", "OBSERVATION_MODELS"]
 
 METHODS = ("adam", "cmaes")
 _DIVERGED_LOSS = 1.0e3
@@ -54,43 +54,114 @@ def default_bounds(init: Dict[str, float]) -> Dict[str, Tuple[float, float]]:
     return out
 
 
+OBSERVATION_MODELS = ("surface", "particles")
+
+
+def surface_embedding(points0: np.ndarray, particles0: np.ndarray, k: int = 12) -> Tuple[np.ndarray, np.ndarray]:
+    """Carry points observed at frame 0 with the simulated body: ``(index [S, k], weight [S, k])`` such that
+    ``sum_j weight[s, j] * X[index[s, j]]`` is point s on the deformed body X [N, 3].
+
+    Each point p0 is tied to its ``k`` nearest frame-0 particles x_j with Gaussian weights w_j (width
+    twice the median nearest-particle distance); its position follows the weighted least-squares affine
+    map of those particles from frame 0 to now, c + A (p0 - c0), which is linear in the particle
+    positions. At frame 0 it reproduces p0 exactly, also when p0 lies outside the particles (the
+    observed surface is about half a particle spacing outside the outermost particle centres).
+    """
+    from scipy.spatial import cKDTree
+
+    p0 = np.asarray(points0, np.float64).reshape(-1, 3)
+    x0 = np.asarray(particles0, np.float64).reshape(-1, 3)
+    k = int(min(k, len(x0)))
+    dist, idx = cKDTree(x0).query(p0, k=k)
+    dist, idx = dist.reshape(len(p0), k), idx.reshape(len(p0), k)
+    h = 2.0 * float(np.median(dist[:, 0])) + 1e-9
+    w = np.exp(-(dist / h) ** 2)
+    w /= w.sum(1, keepdims=True)
+    nb = x0[idx]
+    c0 = np.einsum("sk,skd->sd", w, nb)
+    r0 = nb - c0[:, None]
+    M = np.einsum("sk,ski,skj->sij", w, r0, r0)
+    tr = np.trace(M, axis1=1, axis2=2)[:, None, None]
+    Minv = np.linalg.inv(M + 1e-6 * tr * np.eye(3) + 1e-18 * np.eye(3))
+    # p = c + sum_j w_j (x_j - c) (r0_j . Minv off0) = sum_j (w_j (1 - G) + g_j) x_j, g_j = w_j r0_j . Minv off0
+    g = w * np.einsum("ski,sij,sj->sk", r0, Minv, p0 - c0)
+    a = w * (1.0 - g.sum(1, keepdims=True)) + g
+    return idx.astype(np.int64), a
+
+
 class Objective:
-    """The identification loss of a scene against observations on the first ``frames`` frames."""
+    """The identification loss of a scene against observations on the first ``frames`` frames.
+
+    ``observation="surface"`` compares the observations with the frame-0 observed surface
+    carried by the simulated body (:func:`surface_embedding`): the cameras see the object's surface, which
+    lies outside the particle centres, so comparing observed points with particle centres directly
+    (``observation="particles"``) favours bodies that bulge out towards the surface (a softer material).
+    Tracked points are carried the same way from their frame-0 position.
+    """
 
     def __init__(self, scene: Scene, obs: Observations, frames: int, *, l_dist: float = 1.0, l_trk: float = 100.0,
-                 chamfer: str = "both", max_points: int = 2000, seed: int = 0):
+                 chamfer: str = "both", max_points: int = 2000, seed: int = 0, observation: str = "surface"):
         if frames < 2:
             raise ValueError(f"frames must be >= 2 (frame 0 is the initial state), got {frames}")
         if frames > obs.num_frames:
             raise ValueError(f"frames={frames} exceeds the {obs.num_frames} observed frames")
+        if observation not in OBSERVATION_MODELS:
+            raise ValueError(f"observation must be one of {OBSERVATION_MODELS}, got {observation!r}")
         self.frames, self.l_dist, self.l_trk, self.direction = frames, float(l_dist), float(l_trk), chamfer
+        self.observation = observation
         rng = np.random.default_rng(seed)
         self.points = []
         for p in obs.points[:frames]:
             if len(p) > max_points:
                 p = p[rng.choice(len(p), max_points, replace=False)]
             self.points.append(np.ascontiguousarray(p))
-        self.track_index = None
+        self.surf = None
+        if observation == "surface":
+            self.surf = surface_embedding(self.points[0], scene.particles)
+        self.track_index = self.track_emb = None
         if obs.tracks is not None and l_trk > 0:
             vis0 = obs.visibility[0]
             if vis0.any():
                 from scipy.spatial import cKDTree
 
                 keep = np.nonzero(vis0)[0]
-                _, idx = cKDTree(scene.particles).query(obs.tracks[0, keep])
+                if observation == "surface":
+                    self.track_emb = surface_embedding(obs.tracks[0, keep], scene.particles)
+                    self.track_index = self.track_emb[0]
+                else:
+                    _, idx = cKDTree(scene.particles).query(obs.tracks[0, keep])
+                    self.track_emb = None
+                    self.track_index = np.asarray(idx, np.int64)
                 self.track_keep = keep
-                self.track_index = np.asarray(idx, np.int64)
                 self.tracks = obs.tracks[:frames, keep]
                 self.visible = obs.visibility[:frames, keep]
 
+    @staticmethod
+    def _carry(X, emb):
+        """Embedded points [frames, S, 3] of positions X [frames, N, 3] (torch or numpy)."""
+        idx, a = emb
+        if isinstance(X, torch.Tensor):
+            return torch.einsum("tskd,sk->tsd", X[:, torch.as_tensor(idx)], torch.as_tensor(a, dtype=X.dtype))
+        return np.einsum("tskd,sk->tsd", X[:, idx], a)
+
+    def predicted_points(self, X):
+        """What the loss compares with the observed points: [frames, S, 3] carried surface points, or X itself."""
+        return X if self.surf is None else self._carry(X[: self.frames], self.surf)
+
+    def _predicted_tracks(self, X):
+        if self.track_emb is None:
+            return X[1:self.frames, torch.as_tensor(self.track_index) if isinstance(X, torch.Tensor) else self.track_index]
+        return self._carry(X[1:self.frames], self.track_emb)
+
     def torch(self, X: torch.Tensor) -> torch.Tensor:
         """Loss of simulated positions X [frames, N, 3] (torch), differentiable."""
+        P = self.predicted_points(X)
         terms = []
         for t in range(1, self.frames):
-            terms.append(chamfer_distance(X[t], self.points[t], direction=self.direction))
+            terms.append(chamfer_distance(P[t], self.points[t], direction=self.direction))
         loss = self.l_dist * torch.stack(terms).mean()
         if self.track_index is not None:
-            pred = X[1:self.frames, torch.as_tensor(self.track_index)]
+            pred = self._predicted_tracks(X)
             loss = loss + self.l_trk * tracking_loss(pred, self.tracks[1:], self.visible[1:])
         return loss
 
@@ -98,10 +169,11 @@ class Objective:
         """Loss of simulated positions X [frames, N, 3] (numpy); non-finite input gives a large finite value."""
         if not np.all(np.isfinite(X[: self.frames])):
             return _DIVERGED_LOSS
-        d = np.mean([chamfer_numpy(X[t], self.points[t], direction=self.direction) for t in range(1, self.frames)])
+        P = self.predicted_points(np.asarray(X[: self.frames], np.float64))
+        d = np.mean([chamfer_numpy(P[t], self.points[t], direction=self.direction) for t in range(1, self.frames)])
         loss = self.l_dist * d
         if self.track_index is not None:
-            pred = X[1:self.frames, self.track_index]
+            pred = self._predicted_tracks(np.asarray(X, np.float64))
             vis = self.visible[1:]
             if vis.any():
                 loss += self.l_trk * float(np.mean(np.sum((pred - self.tracks[1:]) ** 2, -1)[vis]))
@@ -203,7 +275,7 @@ def _initial_values(scene: Scene, params: Sequence[str], init: Optional[Dict[str
 def identify(observations: Observations, scene: Scene, *, params: Sequence[str] = ("E",), method: str = "adam",
              init: Optional[Dict[str, float]] = None, iters: int = 30, frames: Optional[int] = None,
              lr: float = 0.15, betas: Tuple[float, float] = (0.8, 0.95), popsize: int = 6, sigma0: float = 0.5, l_dist: float = 1.0, l_trk: float = 100.0,
-             chamfer: str = "both", max_points: int = 2000,
+             chamfer: str = "both", max_points: int = 2000, observation: str = "auto",
              bounds: Optional[Dict[str, Tuple[float, float]]] = None, seed: int = 0, progress: bool = True,
              checkpoint_every: Union[str, int, None] = "auto", memory_budget_bytes: float = 1.0e9,
              callback: Optional[Callable[[int, float, Dict[str, float]], None]] = None) -> FitResult:
@@ -213,7 +285,9 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
     number of leading frames fitted (default all observed frames the controls cover), ``iters`` Adam steps
     or CMA-ES generations, ``lr`` Adam's learning rate in the unconstrained space, ``popsize`` /
     ``sigma0`` CMA-ES's population (= simulated worlds) and initial step, ``bounds`` SI search boxes
-    (default :func:`default_bounds`). ``callback(iteration, loss, params)`` is called every iteration.
+    (default :func:`default_bounds`), ``observation`` the observation model of :class:`Objective`
+    ("surface": the frame-0 observed surface carried by the body; "particles": particle centres; "auto":
+    "surface" when ``observations.surface`` says the points are a measured surface, as from a recording). ``callback(iteration, loss, params)`` is called every iteration.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -231,8 +305,10 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
     F = frames or min(observations.num_frames, scene.num_frames or observations.num_frames)
     if scene.num_frames is not None and F > scene.num_frames:
         raise ValueError(f"frames={F} exceeds the {scene.num_frames} frames of end-effector controls")
+    if observation == "auto":
+        observation = "surface" if observations.surface else "particles"
     objective = Objective(scene, observations, F, l_dist=l_dist, l_trk=l_trk, chamfer=chamfer,
-                          max_points=max_points, seed=seed)
+                          max_points=max_points, seed=seed, observation=observation)
     base_mat = scene.material
     if "yield_stress" in params and base_mat.yield_stress is None:
         base_mat = MaterialConfig(E=base_mat.E, nu=base_mat.nu, density=base_mat.density,
