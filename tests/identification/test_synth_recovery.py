@@ -70,8 +70,9 @@ def test_hidden_rope_ends_are_filled_and_grippers_keep_their_size(rope_rec):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="issue 4: the surface fit of the loaded body still biases yield stress / E by 20-30 %",
-                   strict=False)
+@pytest.mark.xfail(reason="issue 4 open: from 3x off the dough's yield stress still lands 20-30 % off and the rope's "
+                          "loaded body diverges from the recording after release (and takes ~100 s per Adam step "
+                          "on one core); not run until fixed, to keep make test short", run=False)
 @pytest.mark.parametrize("obj,param,tol", [("dough", "yield_stress", 0.15), ("rope", "E", 0.10)])
 def test_identify_recovers_synth_parameters_from_3x_off(obj, param, tol, request):
     rec = request.getfixturevalue(f"{obj}_rec")
