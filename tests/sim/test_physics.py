@@ -237,3 +237,17 @@ def test_viscosity_damps_the_bar_mode_at_the_analytic_rate():
     g = _decay_rate(sig, dt)
     assert abs(g_num) < 0.15 * gamma, g_num
     assert abs((g - g_num) - gamma) < 0.15 * gamma, (g, g_num, gamma)
+
+
+def test_table_lands_on_the_nearest_node_layer():
+    # tables 0.4 cells above and 0.4 cells below a node layer both act on that layer: the block rests at
+    # the same height (a table just below a layer used to drop the contact by a whole cell)
+    dx = 0.01
+    rest = []
+    for h in (0.4 * dx, -0.4 * dx):
+        m = block_model(dx=dx, table=TableConfig(height=h, friction=0.5), lower=(-0.02, -0.02, 0.01),
+                        upper=(0.02, 0.02, 0.04), material=MaterialConfig(E=3e4, nu=0.3, density=1000.0,
+                                                                          yield_stress=3e3))
+        s, _ = run(m, 500, 5e-4)
+        rest.append(s.particle_x.numpy()[:, 2].mean())
+    assert abs(rest[0] - rest[1]) < 0.2 * dx, rest
