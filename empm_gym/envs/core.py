@@ -309,16 +309,20 @@ class BatchedCore:
         if seeds is not None and len(seeds) != len(worlds):
             raise ValueError(f"reset: got {len(seeds)} seeds for {len(worlds)} worlds")
         mask = np.zeros(W, np.int32)
+        materials_changed = False
         for i, w in enumerate(worlds):
             if seeds is not None and seeds[i] is not None:
                 self.rngs[w] = np.random.default_rng(int(seeds[i]))
             rng = self.rngs[w]
-            self.materials[w] = self._sample_material(rng)
+            material = self._sample_material(rng)
+            materials_changed |= material != self.materials[w]
+            self.materials[w] = material
             self.targets[w] = self.task.sample_target(rng).astype(np.float32)
             mask[w] = 1
             self._target_dev[w].assign(self.targets[w, : self.chamfer_target_points])
             self._occ_target[w].assign(voxelize(self.targets[w], self.occ_origin, self.occ_voxel, self.occ_res))
-        self._apply_materials()
+        if materials_changed:  # without randomisation nothing changes: skip rewriting every world's material
+            self._apply_materials()
         self._mask.assign(mask)
         s, r = self.state, self._rest
         wp.launch(EK.reset_worlds_kernel, dim=self.model.particle_count,
