@@ -238,6 +238,7 @@ class BatchedCore:
         # -- per-world bookkeeping ------------------------------------------------------------------
         self.rngs: List[np.random.Generator] = [np.random.default_rng() for _ in range(W)]
         self.targets = np.zeros((W, task.target_points, 3), np.float32)
+        self._target_obs = np.zeros((W, self.obs_target_points, 3), np.float32)
         self.materials: List[Dict] = [dict(self.material) for _ in range(W)]
         self.grip = np.tile(np.asarray(task.default_grip or (0,) * self.K, np.int32), (W, 1))
         self.cd0 = np.ones(W, np.float64)
@@ -300,6 +301,14 @@ class BatchedCore:
         return cd, iou
 
     # ------------------------------------------------------------------------------------ reset
+    def _set_target(self, w: int, target):
+        """World w's target point cloud [m], with everything derived from it (device copies, voxels, observation)."""
+        self.targets[w] = np.asarray(target, np.float32)
+        self._target_dev[w].assign(self.targets[w, : self.chamfer_target_points])
+        self._occ_target[w].assign(voxelize(self.targets[w], self.occ_origin, self.occ_voxel, self.occ_res))
+        # the target part of the observation changes only here, so it is clipped once, not every step
+        self._target_obs[w] = self._clip_points(self.targets[w, : self.obs_target_points])
+
     def reset(self, worlds: Optional[Sequence[int]] = None, seeds: Optional[Sequence[Optional[int]]] = None):
         """Reset the given worlds (default all); ``seeds[i]`` (None keeps the world's generator) reseeds them."""
         W = self.num_envs
@@ -317,10 +326,8 @@ class BatchedCore:
             material = self._sample_material(rng)
             materials_changed |= material != self.materials[w]
             self.materials[w] = material
-            self.targets[w] = self.task.sample_target(rng).astype(np.float32)
+            self._set_target(w, self.task.sample_target(rng))
             mask[w] = 1
-            self._target_dev[w].assign(self.targets[w, : self.chamfer_target_points])
-            self._occ_target[w].assign(voxelize(self.targets[w], self.occ_origin, self.occ_voxel, self.occ_res))
         if materials_changed:  # without randomisation nothing changes: skip rewriting every world's material
             self._apply_materials()
         self._mask.assign(mask)
@@ -431,7 +438,7 @@ class BatchedCore:
         W = self.num_envs
         self._gather()
         g = self._gathered.numpy()
-        tgt = self._clip_points(self.targets[:, : self.obs_target_points])
+        tgt = self._target_obs.copy()
         ee = self._ee_obs()
         if self.obs_mode == "state":
             p = self._clip_points(g[:, : self.obs_particles])
@@ -492,9 +499,7 @@ class BatchedCore:
             for k in ("ee_pos", "ee_rot"):
                 sim[k][es] = np.asarray(st["sim"][k], np.float32).reshape(sim[k][es].shape)
             self.materials[w] = load_material(st["material"], self.task.material)
-            self.targets[w] = np.asarray(st["target"], np.float32)
-            self._target_dev[w].assign(self.targets[w, : self.chamfer_target_points])
-            self._occ_target[w].assign(voxelize(self.targets[w], self.occ_origin, self.occ_voxel, self.occ_res))
+            self._set_target(w, st["target"])
             self.cd0[w], self.cd_prev[w], self.iou_prev[w] = st["cd0"], st["cd_prev"], st["iou_prev"]
             self.elapsed[w] = st["elapsed"]
             self.grip[w] = np.asarray(st["grip"], np.int32)
