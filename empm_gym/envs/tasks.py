@@ -71,15 +71,16 @@ class Task:
     """Height [m] of the top-down depth camera."""
 
     def end_effectors(self) -> Sequence[Tuple[EndEffectorConfig, Tuple[float, float, float]]]:
-        raise NotImplementedError
+        """(config, initial position [m]) of every end-effector."""
+        raise NotImplementedError(f"{type(self).__name__}.end_effectors: abstract, each task defines it")
 
     def object_particles(self, dx: float, particles_per_cell: float):
         """(positions [n, 3] m, rest volumes [n] m^3) of the object at rest."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__}.object_particles: abstract, each task defines it")
 
     def sample_target(self, rng: np.random.Generator) -> np.ndarray:
         """A target point cloud [target_points, 3] drawn from the task's family."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__}.sample_target: abstract, each task defines it")
 
     def grid(self, dx: float) -> GridConfig:
         """The grid for cell size dx [m]: three cell layers below the table (z = 0) whatever dx is."""

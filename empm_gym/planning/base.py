@@ -52,7 +52,7 @@ class Planner:
 
     def plan(self, state: dict, horizon: int, init: Optional[np.ndarray] = None) -> np.ndarray:
         """An action sequence [horizon, action_dim] in [-1, 1] from ``state``; ``init`` warm-starts it."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__}.plan: abstract, implemented by CEM, MPPI and gradient planners")
 
     @staticmethod
     def _check_horizon(horizon) -> int:
