@@ -440,36 +440,38 @@ def complete_occluded(points: np.ndarray, rec: Recording, t: int, ee_configs, ee
     return np.concatenate(out) if out else np.zeros((0, 3))
 
 
-def _carve(x: np.ndarray, rec: Recording, t: int, tol_m: float):
-    keep = np.ones(len(x), bool)
+def _measured_depths(x: np.ndarray, rec: Recording, t: int, *, fill_silhouettes: bool = False):
+    """Per camera: (measured depth [m] at each point's pixel, 0 where none; the point's own depth z [m]).
+
+    With ``fill_silhouettes`` a missing depth takes the largest valid depth within 2 pixels: depth is
+    missing mostly at silhouettes, where a nearer and a farther surface meet, so assume the farther one.
+    """
+    from scipy import ndimage
+
     for c, cam in enumerate(rec.cameras):
-        depth = rec.depth(c, t)
+        depth = np.asarray(rec.depth(c, t), float)
+        if fill_silhouettes:
+            depth = np.where(depth > 0, depth, ndimage.maximum_filter(depth, size=5))
         rc, z = cam.project(x)
         r = np.rint(rc[:, 0]).astype(int)
         col = np.rint(rc[:, 1]).astype(int)
         ok = (z > 0) & (r >= 0) & (r < depth.shape[0]) & (col >= 0) & (col < depth.shape[1])
         d = np.zeros(len(x))
         d[ok] = depth[r[ok], col[ok]]
-        keep &= ~(ok & (d > 0) & (d > z + tol_m))
+        yield d, z
+
+
+def _carve(x: np.ndarray, rec: Recording, t: int, tol_m: float):
+    keep = np.ones(len(x), bool)
+    for d, z in _measured_depths(x, rec, t):
+        keep &= ~((d > 0) & (d > z + tol_m))
     return keep, None
 
 
 def _hidden(x: np.ndarray, rec: Recording, t: int, front_m: float) -> np.ndarray:
     """True where every camera that measures a depth at the point's pixel saw a surface at least
     ``front_m`` (m) in front of the point (so no camera sees the point itself or beyond it)."""
-    from scipy import ndimage
-
     keep = np.ones(len(x), bool)
-    for c, cam in enumerate(rec.cameras):
-        depth = np.asarray(rec.depth(c, t), float)
-        # depth is missing mostly at silhouettes, where a nearer and a farther surface meet: assume the
-        # farther one (the largest valid depth within 2 pixels), so that a silhouette hides nothing
-        depth = np.where(depth > 0, depth, ndimage.maximum_filter(depth, size=5))
-        rc, z = cam.project(x)
-        r = np.rint(rc[:, 0]).astype(int)
-        col = np.rint(rc[:, 1]).astype(int)
-        ok = (z > 0) & (r >= 0) & (r < depth.shape[0]) & (col >= 0) & (col < depth.shape[1])
-        d = np.zeros(len(x))
-        d[ok] = depth[r[ok], col[ok]]
-        keep &= ~(ok & (d > 0) & (d > z - front_m))
+    for d, z in _measured_depths(x, rec, t, fill_silhouettes=True):
+        keep &= ~((d > 0) & (d > z - front_m))
     return keep
