@@ -19,6 +19,16 @@ def _plt():
     return plt
 
 
+def _save(plt, fig, path) -> Path:
+    """Lay out, write (creating folders) and close a figure; returns the path."""
+    fig.tight_layout()
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    return p
+
+
 def plot_fit(result, path) -> Path:
     """Loss curve and parameter trajectories of a :class:`~.offline.FitResult` (one panel per parameter)."""
     plt = _plt()
@@ -44,12 +54,7 @@ def plot_fit(result, path) -> Path:
         a.set_xlabel("iteration")
         a.grid(alpha=0.3)
         a.legend(fontsize=7)
-    fig.tight_layout()
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    return p
+    return _save(plt, fig, path)
 
 
 def plot_metrics(per_frame: Dict[str, Sequence[float]], frames: Sequence[int], path, title: str = "") -> Path:
@@ -64,12 +69,7 @@ def plot_metrics(per_frame: Dict[str, Sequence[float]], frames: Sequence[int], p
         a.grid(alpha=0.3)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    return p
+    return _save(plt, fig, path)
 
 
 def plot_online(result: dict, path) -> Path:
@@ -95,12 +95,7 @@ def plot_online(result: dict, path) -> Path:
         a.set_title(n)
         a.set_xlabel("frame")
         a.grid(alpha=0.3)
-    fig.tight_layout()
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    return p
+    return _save(plt, fig, path)
 
 
 def save_rrd(path, sim_positions: np.ndarray, obs_points: Sequence[np.ndarray], fps: float, *,
