@@ -242,7 +242,7 @@ def run_loop_demo(out: Path, *, device: str = "cpu", frames: int = 30, iters: in
     from .cli import main as empm
 
     rec = out / "dough_recording"
-    truth_ys = 3000.0
+    truth_ys = 2000.0
     steps = [
         ("synthesise a 3-camera dough recording",
          ["synth", str(rec), "--object", "dough", "--frames", str(frames), "--width", "424", "--height", "240",

@@ -6,7 +6,7 @@ N cameras around the table into the recording layout of :mod:`empm_gym.perceptio
 * ``rope``: an elastic cylinder (0.3 m long, radius 1.2 cm) lying on the table along x, held at both
   ends by two closed sphere grippers (radius 1.8 cm, centred 2 mm above the rope's top, so that they
   carry its upper part and lift off cleanly when opened); script: hold (grasp), lift by 8 cm while
-  stretching by 1.5 cm per side, hold, release (grippers open and move up), settle.
+  stretching by 1.5 cm per side, hold, put it back down, release (grippers open and move up), settle.
 * ``dough``: an elastoplastic block (5 x 5 x 4.5 cm) between two box plates (pushers, grip open =
   frictional contact); script: hold, squeeze by 1 cm per side, hold, release (plates back out), settle.
 
@@ -54,10 +54,15 @@ from .recording import RecordingError, RecordingWriter
 __all__ = ["synthesize", "register", "OBJECT_DEFAULTS", "render_view", "add_depth_noise", "camera_ring",
            "SurfaceEmbedding"]
 
-#: Default material parameters per object (SI: Pa, -, kg/m^3, Pa).
+#: Default material parameters per object (SI: Pa, -, kg/m^3, Pa). They are chosen so that the
+#: scripted motion shows them: a soft rubber rope (E / density sets how far the lifted, stretched rope
+#: sags and how it sways) and a soft modelling dough whose yield strain (yield_stress / E = 10 %) sets
+#: how far it springs back after the squeeze. A stiffer rope only stretches (its sag changes by a
+#: fraction of a millimetre with E), and a dough with a yield strain of 1-3 % springs back too little
+#: for any camera to tell its yield stress.
 OBJECT_DEFAULTS: Dict[str, dict] = {
-    "rope": {"E": 2.0e5, "nu": 0.3, "density": 1100.0, "yield_stress": None},
-    "dough": {"E": 1.0e5, "nu": 0.3, "density": 1200.0, "yield_stress": 3.0e3},
+    "rope": {"E": 5.0e4, "nu": 0.3, "density": 1100.0, "yield_stress": None},
+    "dough": {"E": 2.0e4, "nu": 0.3, "density": 1200.0, "yield_stress": 2.0e3},
 }
 
 _ROPE_LENGTH_M, _ROPE_RADIUS_M, _ROPE_GRIPPER_RADIUS_M = 0.30, 0.012, 0.018
@@ -87,23 +92,30 @@ def _phases(T: int, fractions: List[float]) -> List[int]:
 
 
 def _rope_script(T: int):
-    """End-effector positions [T, 2, 3] m and grip [T, 2] for the rope: hold, lift+stretch, hold, release, settle."""
+    """End-effector positions [T, 2, 3] m and grip [T, 2] for the rope: hold, lift + stretch, hold (the
+    taut rope sways and sags by an amount set by E / density), lower back to the table and slacken,
+    release (grippers open and lift away), settle.
+
+    The rope is put down before it is released: a rope dropped from the air bounces chaotically on
+    the table, and a fit would then chase that chaos instead of the material.
+    """
     L, r = _ROPE_LENGTH_M, _ROPE_RADIUS_M
     # sphere centres above the rope's top: a closed sphere carries the upper 2/3 of the rope's ends,
     # and on release it lifts away from the rope without dragging it
     x0, zc = L / 2 - 0.015, 2 * r + 0.002
     start = np.array([[-x0, 0.0, zc], [x0, 0.0, zc]])
-    _, g0, g1, g2, g3, _ = _phases(T, [0.1, 0.35, 0.15, 0.1, 0.3])
+    _, g0, g1, g2, g3, g4, _ = _phases(T, [0.07, 0.28, 0.25, 0.2, 0.07, 0.13])
     t = np.arange(T, dtype=np.float64)
-    lift = 0.08 * _smooth((t - g0) / max(g1 - g0, 1))
-    stretch = 0.015 * _smooth((t - g0) / max(g1 - g0, 1))
-    up = 0.05 * _smooth((t - g2) / max(g3 - g2, 1))
+    up = _smooth((t - g0) / max(g1 - g0, 1)) - _smooth((t - g2) / max(g3 - g2, 1))
+    lift = 0.08 * up
+    stretch = 0.015 * up
+    away = 0.04 * _smooth((t - g3) / max(g4 - g3, 1))
     pos = np.repeat(start[None], T, axis=0)
     pos[:, 0, 0] -= stretch
     pos[:, 1, 0] += stretch
-    pos[:, :, 2] += (lift + up)[:, None]
+    pos[:, :, 2] += (lift + away)[:, None]
     grip = np.ones((T, 2), np.int32)
-    grip[g2:] = 0
+    grip[g3:] = 0
     return pos, grip
 
 
@@ -617,11 +629,11 @@ def register(subparsers) -> None:
     p.add_argument("out_dir", help="output recording directory (must be empty unless --overwrite)")
     p.add_argument("--object", choices=sorted(OBJECT_DEFAULTS), default="rope")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--E", type=float, default=None, help="Young's modulus, Pa (rope 2e5, dough 1e5)")
+    p.add_argument("--E", type=float, default=None, help="Young's modulus, Pa (rope 5e4, dough 2e4)")
     p.add_argument("--nu", type=float, default=None, help="Poisson's ratio (default 0.3)")
     p.add_argument("--density", type=float, default=None, help="kg/m^3 (rope 1100, dough 1200)")
     p.add_argument("--yield-stress", dest="yield_stress", type=float, default=None,
-                   help="von Mises yield stress, Pa (dough 3e3; rope elastic unless given)")
+                   help="von Mises yield stress, Pa (dough 2e3; rope elastic unless given)")
     p.add_argument("--frames", type=int, default=60)
     p.add_argument("--cameras", type=int, default=3)
     p.add_argument("--width", type=int, default=848)

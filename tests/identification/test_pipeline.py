@@ -50,8 +50,8 @@ def test_cli_identify_and_evaluate_on_synth_recording(synth_rope, tmp_path, caps
     d = json.loads(out.read_text())
     assert d["yield_stress"] is None and d["fit"]["method"] == "adam" and d["fit"]["frames_used"] == 8
     assert d["fit"]["dx"] == 0.02
-    # the stiffness moves from the default 1e5 Pa towards the true 2e5 Pa and the loss goes down
-    assert d["E"] > 1e5 and d["fit"]["loss"] < d["fit"]["loss_history"][0]
+    # the stiffness moves from the default 1e5 Pa towards the true 5e4 Pa and the loss goes down
+    assert d["E"] < 1e5 and d["fit"]["loss"] < d["fit"]["loss_history"][0]
     assert (tmp_path / "fit" / "material_fit.png").stat().st_size > 10_000
     assert (tmp_path / "fit" / "material.rrd").stat().st_size > 1000
     rc = main(["evaluate", str(synth_rope), "--material", str(out), "--quiet"])

@@ -138,7 +138,7 @@ def test_synthetic_recording_reads_back_what_was_written(tmp_path, monkeypatch):
     np.testing.assert_array_equal(ctl["positions"], captured["controls"]["positions"])
     np.testing.assert_array_equal(ctl["grip"], captured["controls"]["grip"])
     gt = rec.ground_truth()
-    assert gt["object"] == "dough" and gt["material"]["yield_stress"] == 3.0e3
+    assert gt["object"] == "dough" and gt["material"]["yield_stress"] == 2.0e3
 
 
 def test_phystwin_fixture_loads(phystwin_dir):

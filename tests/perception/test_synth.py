@@ -75,7 +75,7 @@ def test_depth_noise_drops_edges_grazing_and_out_of_range():
 def test_rope_recording_physics_and_metadata(rope_rec):
     rec = Recording(rope_rec)
     gt = rec.ground_truth()
-    assert gt["material"] == {"E": 2.0e5, "nu": 0.3, "density": 1100.0, "yield_stress": None}
+    assert gt["material"] == {"E": 5.0e4, "nu": 0.3, "density": 1100.0, "yield_stress": None}
     assert gt["seed"] == 1 and gt["object"] == "rope"
     # the render is much denser than the simulation particles identification would sample
     assert gt["render"]["surface_points"] > 4 * gt["scene"]["particle_count"]
@@ -90,7 +90,7 @@ def test_rope_recording_physics_and_metadata(rope_rec):
     z = [np.percentile(fuse_frame(rec, t)[:, 2], 99) for t in range(rec.num_frames)]
     assert z[0] < 0.03                         # lying on the table
     assert z[4] > 0.08                         # lifted by 8 cm while gripped
-    assert min(z[7:]) < z[5] - 0.03            # falls after release
+    assert min(z[7:]) < z[5] - 0.03            # put back down and released
     # depth is quantised to whole millimetres
     raw = rec.depth_raw(0, 0)
     assert raw.dtype == np.uint16 and rec.depth_scale == 0.001
@@ -105,7 +105,7 @@ def test_tracks_visible_where_the_object_is(rope_rec):
     for c in range(rec.num_cameras):
         tr, vis = rec.tracks(c)
         assert tr.shape[:2] == vis.shape == (10, 128)
-        assert 0.2 < vis.mean() < 0.9
+        assert 0.15 < vis.mean() < 0.9
         for t in (0, 4, 9):
             m = rec.mask(c, t)
             rc = np.round(tr[t][vis[t]]).astype(int)
