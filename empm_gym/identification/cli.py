@@ -70,7 +70,8 @@ def _identify(args) -> int:
         init = _parse_init(args.init)
         if not (0.0 < args.train_fraction <= 1.0):
             raise ValueError(f"--train-fraction must lie in (0, 1], got {args.train_fraction}")
-        scene, obs, views = load_recording(args.rec_dir, dx=args.dx, material=_base_material(init, params),
+        scene, obs, views = load_recording(args.rec_dir, dx=args.dx, particles_per_cell=args.particles_per_cell,
+                                           material=_base_material(init, params),
                                            table_friction=init.get("friction", 0.5), frames=args.frames,
                                            device=args.device, progress=not args.quiet)
     except (ValueError, OSError) as exc:
@@ -90,7 +91,8 @@ def _identify(args) -> int:
         doc = {"E": mat.E, "nu": mat.nu, "density": mat.density,
                "yield_stress": mat.yield_stress if mat.plastic else None, "friction": mu,
                "fit": {"method": "online", "params": list(params), "init": res["initial_params"],
-                       "summary": res["summary"], "frames_used": T, "fps": obs.fps, "dx": scene.dx}}
+                       "summary": res["summary"], "frames_used": T, "fps": obs.fps, "dx": scene.dx,
+                       "particles_per_cell": args.particles_per_cell}}
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(doc, indent=2))
         Path(f"{stem}_online.json").write_text(json.dumps(res, indent=2, default=float))
@@ -114,6 +116,7 @@ def _identify(args) -> int:
         print(f"empm identify: error: {exc}", file=sys.stderr)
         return 2
     res.extra["dx"] = scene.dx
+    res.extra["particles_per_cell"] = args.particles_per_cell
     res.extra["recording"] = str(Path(args.rec_dir).resolve())
     res.save(out)
     plot_fit(res, f"{stem}_fit.png")
@@ -147,7 +150,8 @@ def _evaluate(args) -> int:
         mat, mu = load_material(args.material)
         fit = json.loads(Path(args.material).read_text()).get("fit") or {}
         dx = args.dx or float(fit.get("dx", 0.01))
-        scene, obs, views = load_recording(args.rec_dir, dx=dx, material=mat,
+        ppc = args.particles_per_cell or float(fit.get("particles_per_cell", 27))
+        scene, obs, views = load_recording(args.rec_dir, dx=dx, particles_per_cell=ppc, material=mat,
                                            table_friction=0.5 if mu is None else mu, device=args.device,
                                            progress=not args.quiet)
         frames = held_out_frames(obs.num_frames, args.train_fraction)
@@ -180,6 +184,8 @@ def register(subparsers) -> None:
     p.add_argument("--train-fraction", type=float, default=0.7, help="leading fraction of frames fitted (0.7)")
     p.add_argument("--frames", type=int, default=None, help="use only the first N frames of the recording")
     p.add_argument("--dx", type=float, default=0.01, help="simulation grid cell in m (default 0.01)")
+    p.add_argument("--particles-per-cell", type=float, default=27,
+                   help="particles per grid cell filling the frame-0 body (default 27)")
     p.add_argument("--online", action="store_true", help="stream the recording through the online identifier")
     p.add_argument("--horizon", type=int, default=10, help="online: look-ahead H in frames (default 10)")
     p.add_argument("--every", type=int, default=5, help="online: at most one update every k frames (default 5)")
@@ -194,6 +200,8 @@ def register(subparsers) -> None:
     e.add_argument("--out-dir", default=None, help="where to write the report (default: next to the material)")
     e.add_argument("--train-fraction", type=float, default=0.7, help="frames after this fraction are evaluated")
     e.add_argument("--dx", type=float, default=None, help="grid cell in m (default: the one used for fitting)")
+    e.add_argument("--particles-per-cell", type=float, default=None,
+                   help="particles per grid cell (default: the one used for fitting)")
     e.add_argument("--downsample", type=int, default=2, help="image downsampling for IoU / PSNR / SSIM (2)")
     e.add_argument("--device", default=None, help="Warp device (cpu, cuda:0)")
     e.add_argument("--quiet", action="store_true", help="no progress bars")
