@@ -161,7 +161,8 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     scene = Scene(x0, vol, fps=rec.fps, ee_configs=cfgs, ee_positions=pos[:T], ee_grip=grip[:T],
                   ee_orientations=None if orient is None else orient[:T],
                   material=material or MaterialConfig(E=1e5, nu=0.3, density=1000.0),
-                  table=TableConfig(height=float(height), friction=table_friction), dx=dx, device=device)
+                  table=TableConfig(height=float(height), friction=table_friction), dx=dx, device=device,
+                  motion_bounds=(np.min([p.min(0) for p in pts], 0), np.max([p.max(0) for p in pts], 0)))
     C = rec.num_cameras
     views = Views(rec.cameras,
                   masks=_LazyFrames(T, lambda t: [rec.mask(c, t) for c in range(C)]) if rec.has_masks else None,
