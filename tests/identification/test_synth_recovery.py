@@ -66,3 +66,104 @@ def test_hidden_rope_ends_are_filled_and_grippers_keep_their_size(rope_rec):
     assert [c.radius for c in scene.ee_configs] == [e["radius"] for e in gt["scene"]["end_effectors"]]
     true_vol = np.pi * gt["scene"]["object_geometry"]["radius_m"] ** 2 * length
     assert abs(scene.volumes.sum() / true_vol - 1) < 0.3
+
+
+# -- recovery through the whole pipeline ---------------------------------------------------------------
+#
+# `empm synth` recordings (3 cameras, rendered surface, depth noise, tracks) -> perception -> identify, from
+# 3x off. 45 frames at 424 x 240 keep the CPU cost down; the script (lift + stretch, hold, put down,
+# release) is the one the 60-frame benchmark recordings use. The fit uses the first 70 % of the frames.
+
+RECOVERY_FRAMES = 45
+
+
+def _recovery_problem(tmp_path_factory, obj):
+    from empm_gym.perception.synth import synthesize
+
+    rec = synthesize(tmp_path_factory.mktemp("recovery") / obj, obj, frames=RECOVERY_FRAMES, width=424, height=240,
+                     progress=False)
+    gt, true = _truth(rec)
+    scene, obs, views = load_recording(rec, material=true, table_friction=gt["table_friction"], progress=False)
+    return gt, scene, obs, int(round(0.7 * obs.num_frames)), views
+
+
+@pytest.fixture(scope="module")
+def rope_problem(tmp_path_factory):
+    return _recovery_problem(tmp_path_factory, "rope")
+
+
+@pytest.fixture(scope="module")
+def dough_problem(tmp_path_factory):
+    return _recovery_problem(tmp_path_factory, "dough")
+
+
+def _fit(problem, param, method, **kw):
+    from empm_gym.identification.offline import identify
+
+    gt, scene, obs, F, _ = problem
+    true = gt["material"][param]
+    res = identify(obs, scene, params=(param,), method=method, init={param: 3.0 * true}, frames=F, progress=False,
+                   **kw)
+    return res.params[param] / true, res
+
+
+@pytest.fixture(scope="module")
+def rope_adam(rope_problem):
+    return _fit(rope_problem, "E", "adam", iters=12)
+
+
+@pytest.fixture(scope="module")
+def dough_adam(dough_problem):
+    return _fit(dough_problem, "yield_stress", "adam", iters=10)
+
+
+@pytest.mark.slow
+def test_adam_recovers_the_rope_E_from_a_synthetic_recording(rope_adam):
+    ratio, res = rope_adam
+    assert abs(ratio - 1.0) < 0.10, (ratio, res.param_history)
+    assert res.loss_history[0] > 2.0 * res.loss  # it started far off
+
+
+@pytest.mark.slow
+def test_cmaes_recovers_the_rope_E_and_agrees_with_adam(rope_problem, rope_adam):
+    ratio, res = _fit(rope_problem, "E", "cmaes", iters=6, popsize=4, sigma0=0.3)
+    assert abs(ratio - 1.0) < 0.10, (ratio, res.param_history)
+    assert abs(np.log(ratio / rope_adam[0])) < np.log(1.10)
+
+
+@pytest.mark.slow
+def test_adam_recovers_the_dough_yield_stress_from_a_synthetic_recording(dough_adam):
+    ratio, res = dough_adam
+    assert abs(ratio - 1.0) < 0.15, (ratio, res.param_history)
+    assert res.material.plastic and res.material.E == pytest.approx(2.0e4)  # E is not identified: kept
+
+
+@pytest.mark.slow
+def test_cmaes_recovers_the_dough_yield_stress_and_agrees_with_adam(dough_problem, dough_adam):
+    ratio, res = _fit(dough_problem, "yield_stress", "cmaes", iters=8, popsize=6)
+    assert abs(ratio - 1.0) < 0.15, (ratio, res.param_history)
+    assert abs(np.log(ratio / dough_adam[0])) < np.log(1.15)
+
+
+@pytest.mark.slow
+def test_online_updates_on_a_synthetic_recording_beat_no_updates(rope_problem):
+    """The recording streamed frame by frame from E 3x too low: the twin that updates E at quasi-static
+    moments matches the segmented masks and the fused points better than one that keeps the starting E.
+
+    Measured (45 frames, 424 x 240): mask loss 0.448 against 0.464, Chamfer 9.5 mm against 10.4 mm. The
+    update at rest before the lift raises E (16.7 -> 22.5 kPa); the later ones, while the lifted rope
+    still sways, lower it again a little (to 16.3 kPa at the end): the update assumes a body at rest.
+    """
+    from empm_gym.identification.online import OnlineFrame, replay
+
+    gt, scene, obs, _, views = rope_problem
+    E = gt["material"]["E"]
+    frames = [OnlineFrame(obs.points[t], scene.ee_positions[t], scene.ee_grip[t], views.masks[t])
+              for t in range(obs.num_frames)]
+    out = replay(scene, frames, params=("E",), init={"E": E / 3}, cameras=views.cameras, H=10, k=3, lr=0.3,
+                 progress=False)
+    s = out["summary"]
+    assert s["updates"] >= 4
+    assert s["mask_loss_with_updates"] < 0.99 * s["mask_loss_without_updates"]
+    assert s["mask_iou_with_updates"] > s["mask_iou_without_updates"]
+    assert s["chamfer_with_updates"] < 0.97 * s["chamfer_without_updates"]
