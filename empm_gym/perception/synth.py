@@ -608,7 +608,7 @@ def _cli(args) -> int:
         path = synthesize(args.out_dir, object=args.object, seed=args.seed, E=args.E, nu=args.nu,
                           density=args.density, yield_stress=args.yield_stress, frames=args.frames,
                           cameras=args.cameras, width=args.width, height=args.height, overwrite=args.overwrite,
-                          progress=not args.quiet, device=args.device)
+                          depth_format=args.depth_format, progress=not args.quiet, device=args.device)
     except (RecordingError, ValueError) as exc:
         print(f"empm synth: error: {exc}", file=sys.stderr)
         return 2
@@ -638,6 +638,9 @@ def register(subparsers) -> None:
     p.add_argument("--cameras", type=int, default=3)
     p.add_argument("--width", type=int, default=848)
     p.add_argument("--height", type=int, default=480)
+    p.add_argument("--depth-format", choices=("npy", "png"), default="npy",
+                   help="depth files: PhysTwin's .npy (default) or 16-bit PNG in millimetres (PGND-style, "
+                        "about 8x smaller)")
     p.add_argument("--device", default="cpu", help="Warp device for the simulation (cpu, cuda:0)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing recording in out_dir")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -138,6 +138,12 @@ def test_cli_synth(tmp_path, capsys):
     assert main(args) == 2
     assert "not empty; pass overwrite=True" in capsys.readouterr().err
     assert main(args + ["--overwrite"]) == 0
+    npy = Recording(out).depth(0, 1)
+    # the same recording with 16-bit PNG depth: same millimetres, read back through the same reader
+    png_out = tmp_path / "p"
+    assert main([png_out.as_posix() if a == str(out) else a for a in args] + ["--depth-format", "png"]) == 0
+    assert (png_out / "depth" / "0" / "1.png").is_file() and not (png_out / "depth" / "0" / "1.npy").exists()
+    np.testing.assert_array_equal(Recording(png_out).depth(0, 1), npy)
 
 
 def test_controls_replay_recipe_reaches_recorded_positions(dough_rec):
