@@ -17,10 +17,10 @@ from empm_gym.sim import MaterialConfig
 FRAMES = 24
 
 
-def _synth(tmp_path_factory, obj):
+def _synth(tmp_path_factory, obj, frames=FRAMES, width=212, height=120):
     from empm_gym.perception.synth import synthesize
 
-    return synthesize(tmp_path_factory.mktemp("synth") / obj, obj, frames=FRAMES, width=212, height=120,
+    return synthesize(tmp_path_factory.mktemp("synth") / obj, obj, frames=frames, width=width, height=height,
                       cameras=3, progress=False)
 
 
@@ -78,10 +78,7 @@ RECOVERY_FRAMES = 45
 
 
 def _recovery_problem(tmp_path_factory, obj):
-    from empm_gym.perception.synth import synthesize
-
-    rec = synthesize(tmp_path_factory.mktemp("recovery") / obj, obj, frames=RECOVERY_FRAMES, width=424, height=240,
-                     progress=False)
+    rec = _synth(tmp_path_factory, obj, frames=RECOVERY_FRAMES, width=424, height=240)
     gt, true = _truth(rec)
     scene, obs, views = load_recording(rec, material=true, table_friction=gt["table_friction"], progress=False)
     return gt, scene, obs, int(round(0.7 * obs.num_frames)), views
