@@ -18,16 +18,20 @@ from .sim import Control, Rollout, State
 
 __all__ = ["simulate", "PARAMETERS"]
 
-#: Material / contact parameters that ``simulate`` accepts, with the model array each maps to.
-PARAMETERS = {
-    "E": "world_E",
-    "nu": "world_nu",
-    "density": "world_density",
-    "yield_stress": "world_yield",
-    "viscosity": "world_viscosity",
-    "table_friction": "world_table_friction",
-    "stiffness": "particle_stiffness",
-}
+def _parameters():
+    from .sim.effects import PARAMETERS as EFFECT_PARAMS
+
+    out = {"E": ("world_E", None), "nu": ("world_nu", None), "density": ("world_density", None),
+           "table_friction": ("world_table_friction", None), "stiffness": ("particle_stiffness", None)}
+    for p in EFFECT_PARAMS.values():
+        if p.name != "friction":
+            out[p.name] = (p.array, p.component)
+    return out
+
+
+#: Material / contact parameters that ``simulate`` accepts: name -> (model array, vector component or None).
+#: Every effect parameter of :mod:`empm_gym.sim.effects` is one (the table's ``friction`` is ``table_friction``).
+PARAMETERS = _parameters()
 
 
 def _check(name, t: torch.Tensor, shape):
@@ -51,9 +55,15 @@ class _Simulate(torch.autograd.Function):
         model = rollout.model
         for name, t in zip(names, tensors):
             if name in PARAMETERS:
-                arr = getattr(model, PARAMETERS[name])
+                arr_name, comp = PARAMETERS[name]
+                arr = getattr(model, arr_name)
                 _check(name, t, arr.shape)
-                arr.assign(_to_wp(t, float, model.device))
+                if comp is None:
+                    arr.assign(_to_wp(t, float, model.device))
+                else:
+                    host = arr.numpy().copy()
+                    host[:, comp] = t.detach().to("cpu", torch.float32).numpy()
+                    arr.assign(host)
             elif name == "ee_velocity":
                 _check(name, t, (len(controls), model.world_count, model.ee_count, 3))
                 for c, tc in zip(controls, t):
@@ -66,7 +76,7 @@ class _Simulate(torch.autograd.Function):
                 state0.particle_v.assign(_to_wp(t, wp.vec3, model.device))
             else:
                 raise ValueError(f"simulate: unknown input {name!r}; known: {sorted(PARAMETERS) + ['ee_velocity', 'x0', 'v0']}")
-        if any(n in ("E", "nu", "density", "stiffness", "viscosity") for n in names):
+        if any(n in PARAMETERS and n not in ("table_friction",) for n in names):
             model.sync_materials_from_device()
         records = rollout.forward(state0, controls)
         ctx.rollout, ctx.state0, ctx.controls, ctx.names = rollout, state0, controls, names
@@ -85,7 +95,12 @@ class _Simulate(torch.autograd.Function):
         grads = []
         for name, t in zip(ctx.names, tensors):
             if name in PARAMETERS:
-                grads.append(_to_torch(getattr(model, PARAMETERS[name]).grad, t))
+                arr_name, comp = PARAMETERS[name]
+                g = getattr(model, arr_name).grad
+                if comp is None:
+                    grads.append(_to_torch(g, t))
+                else:
+                    grads.append(torch.from_numpy(g.numpy()[:, comp].copy()).to(device=t.device, dtype=t.dtype))
             elif name == "ee_velocity":
                 grads.append(torch.stack([_to_torch(c.ee_vel.grad, t).reshape(t.shape[1:]) for c in ctx.controls]))
             elif name == "x0":
@@ -98,8 +113,9 @@ class _Simulate(torch.autograd.Function):
 def simulate(rollout: Rollout, state0: State, controls: Optional[Sequence[Control]] = None, **inputs: torch.Tensor):
     """Differentiable rollout; returns recorded positions [records, N, 3] (m) as a torch tensor.
 
-    Keyword inputs (torch tensors, any of): ``E``, ``nu``, ``density``, ``yield_stress``, ``viscosity``,
-    ``table_friction`` (each [worlds]), ``stiffness`` ([N] multiplier), ``ee_velocity``
+    Keyword inputs (torch tensors, any of): ``E``, ``nu``, ``density``, ``table_friction`` and every effect
+    parameter of :mod:`empm_gym.sim.effects` (``yield_stress``, ``viscosity``, ``grip_friction``,
+    ``stiffness_slope_1..3``, ``fracture_strain``, ``fracture_softening``; each [worlds]), ``stiffness`` ([N] multiplier), ``ee_velocity``
     ([controls, worlds, ee_count, 3] m/s), ``x0``, ``v0`` ([N, 3] initial positions / velocities).
     """
     controls = list(controls) if controls is not None else rollout.make_controls()

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields
-from typing import Optional, Sequence, Tuple
+from typing import Dict, Mapping, Optional, Sequence, Tuple
 
 __all__ = [
     "MaterialConfig",
@@ -49,6 +49,10 @@ class MaterialConfig:
     viscosity: float = 0.0
     """Newtonian (Kelvin-Voigt) viscosity eta [Pa s] adding tau = J eta (grad v + grad v^T); damps
     deformation, not rigid motion; >= 0 (0: none)."""
+    params: Optional[Mapping[str, float]] = None
+    """Values of the other effect parameters of :mod:`empm_gym.sim.effects` (``friction`` [-] of the table,
+    ``grip_friction`` [-], ``stiffness_slope_1..3`` [-], ``fracture_strain`` [-], ``fracture_softening``
+    [-]); an absent parameter takes its effect's ``off`` value. ``friction`` overrides the table's own."""
 
     def __post_init__(self):
         E = _finite("MaterialConfig.E", self.E)
@@ -72,10 +76,80 @@ class MaterialConfig:
             if ys < 0.0:
                 raise ValueError(f"MaterialConfig.yield_stress must be >= 0 Pa or None, got {self.yield_stress!r}")
             object.__setattr__(self, "yield_stress", ys)
+        from .effects import PARAMETERS
+
+        extra = {}
+        for k, v in dict(self.params or {}).items():
+            if k in ("yield_stress", "viscosity") or k not in PARAMETERS:
+                raise ValueError(f"MaterialConfig.params: unknown effect parameter {k!r}; allowed: "
+                                 f"{', '.join(n for n in PARAMETERS if n not in ('yield_stress', 'viscosity'))}"
+                                 f" (yield_stress and viscosity are fields)")
+            if v is None:
+                continue
+            extra[k] = PARAMETERS[k].check(v, "MaterialConfig.params: ")
+        if "fracture_strain" not in extra and "fracture_softening" in extra:
+            raise ValueError("MaterialConfig.params: fracture_softening needs fracture_strain")
+        object.__setattr__(self, "params", dict(sorted(extra.items())))
 
     @property
     def plastic(self) -> bool:
         return self.yield_stress is not None
+
+    def get(self, name: str) -> Optional[float]:
+        """Value of any effect parameter (``yield_stress``, ``viscosity`` or an entry of ``params``); None or
+        the effect's ``off`` value when the effect is absent."""
+        from .effects import PARAMETERS
+
+        if name == "yield_stress":
+            return self.yield_stress
+        if name == "viscosity":
+            return self.viscosity
+        if name not in PARAMETERS:
+            raise ValueError(f"unknown effect parameter {name!r}; known: {', '.join(PARAMETERS)}")
+        return self.params.get(name, PARAMETERS[name].off)
+
+    def kernel_value(self, name: str) -> float:
+        """What the simulator's per-world array holds for parameter ``name`` (its ``kernel_off`` when absent)."""
+        from .effects import PARAMETERS
+
+        v = self.get(name)
+        p = PARAMETERS[name]
+        if v is None or (p.off is not None and v == p.off):
+            if name == "fracture_softening" and self.params.get("fracture_strain") is not None:
+                return p.start
+            return p.kernel_off
+        return float(v)
+
+    def effects(self) -> Tuple[str, ...]:
+        """Names of the effects this material simulates (table friction only when given in ``params``)."""
+        from .effects import EFFECTS
+
+        on = []
+        for e in EFFECTS.values():
+            for p in e.params:
+                v = self.get(p.name)
+                if v is not None and (p.off is None or v != p.off):
+                    on.append(e.name)
+                    break
+        return tuple(on)
+
+    def replace(self, **values) -> "MaterialConfig":
+        """A copy with base fields (E, nu, density) or effect parameters set; ``None`` removes an effect
+        parameter."""
+        kw = dict(E=self.E, nu=self.nu, density=self.density, yield_stress=self.yield_stress,
+                  viscosity=self.viscosity)
+        params = dict(self.params)
+        for k, v in values.items():
+            if k in kw:
+                kw[k] = (0.0 if v is None else v) if k == "viscosity" else v
+            else:
+                params[k] = v
+        return MaterialConfig(**kw, params={k: v for k, v in params.items() if v is not None})
+
+    def to_dict(self) -> Dict[str, Optional[float]]:
+        """Flat dict: E, nu, density, yield_stress, viscosity and every set effect parameter (SI)."""
+        return {"E": self.E, "nu": self.nu, "density": self.density, "yield_stress": self.yield_stress,
+                "viscosity": self.viscosity, **self.params}
 
     @property
     def lame(self) -> Tuple[float, float]:
@@ -91,10 +165,16 @@ class MaterialConfig:
         return math.sqrt((lam + 2.0 * mu) / self.density)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "MaterialConfig":
-        """Build from a dict such as identification's ``material.json`` (extra keys are ignored)."""
-        known = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in known})
+    def from_dict(cls, d: Mapping) -> "MaterialConfig":
+        """Build from a flat dict of base fields and effect parameters (other keys are ignored; the
+        material file is read strictly by :mod:`empm_gym.sim.material_file`)."""
+        from .effects import PARAMETERS
+
+        known = {f.name for f in fields(cls)} - {"params"}
+        kw = {k: v for k, v in d.items() if k in known}
+        extra = {k: v for k, v in d.items() if k in PARAMETERS and k not in known and v is not None}
+        extra.update(d.get("params") or {})
+        return cls(**kw, params=extra)
 
 
 @dataclass(frozen=True)

@@ -62,6 +62,48 @@ def von_mises_return(F: wp.mat33, mu: float, yield_stress: float, min_singular: 
     return out
 
 
+@wp.func
+def damaged_kirchhoff(F: wp.mat33, mu: float, lam: float, damage: float):
+    """Fixed-corotated Kirchhoff stress [Pa] with the deviatoric part, and the volumetric part under
+    tension (J > 1), scaled by (1 - damage): a broken particle resists compression but not pulling."""
+    U = wp.mat33()
+    s = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F, U, s, V)
+    R = U * wp.transpose(V)
+    J = wp.determinant(F)
+    keep = 1.0 - damage
+    vol = lam * J * (J - 1.0)
+    if J > 1.0:
+        vol = vol * keep
+    return (2.0 * mu * keep) * (F - R) * wp.transpose(F) + wp.identity(n=3, dtype=float) * vol
+
+
+@wp.func
+def damage_from_stretch(F: wp.mat33, strain: float, softening: float):
+    """Damage [0, 1] reached by the elastic F: a smoothstep of the largest principal strain (stretch - 1)
+    from ``strain`` to ``strain + softening``."""
+    U = wp.mat33()
+    s = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F, U, s, V)
+    e = wp.max(s[0], wp.max(s[1], s[2])) - 1.0
+    r = wp.clamp((e - strain) / softening, 0.0, 1.0)
+    return r * r * (3.0 - 2.0 * r)
+
+
+@wp.func
+def grip_hold(v_rel: wp.vec3, limit: float):
+    """Relative velocity left after a grip that can remove at most ``limit`` [m/s] of it (Coulomb: sticks
+    when |v_rel| <= limit)."""
+    n2 = wp.dot(v_rel, v_rel)
+    out = wp.vec3(0.0)
+    if n2 > limit * limit:
+        n = wp.sqrt(n2)
+        out = v_rel * (1.0 - limit / n)
+    return out
+
+
 @wp.kernel
 def eval_kirchhoff_kernel(F: wp.array(dtype=wp.mat33), E: float, nu: float, tau: wp.array(dtype=wp.mat33)):
     """Evaluate the fixed-corotated Kirchhoff stress for a batch of F (tests and tools)."""
@@ -178,6 +220,7 @@ def p2g_kernel(
     v: wp.array(dtype=wp.vec3),
     C: wp.array(dtype=wp.mat33),
     F: wp.array(dtype=wp.mat33),
+    damage: wp.array(dtype=float),
     particle_world: wp.array(dtype=int),
     particle_vol: wp.array(dtype=float),
     particle_E: wp.array(dtype=float),
@@ -200,7 +243,7 @@ def p2g_kernel(
     mu, lam = lame_parameters(particle_E[p], particle_nu[p])
     Fp = F[p]
     Cp = C[p]
-    tau = fixed_corotated_kirchhoff(Fp, mu, lam)
+    tau = damaged_kirchhoff(Fp, mu, lam, damage[p])
     # Kelvin-Voigt viscous stress (zero when eta = 0); APIC's C is the velocity gradient, so
     # tau_v = J eta (C + C^T). No branch: a data-dependent branch here slows the adjoint kernel.
     tau = tau + (particle_viscosity[p] * wp.determinant(Fp)) * (Cp + wp.transpose(Cp))
@@ -244,6 +287,7 @@ def make_grid_update_kernel(ee_count: int):
         ee_vel: wp.array(dtype=wp.vec3),
         ee_omega: wp.array(dtype=wp.vec3),
         ee_grip: wp.array(dtype=int),
+        world_grip_friction: wp.array(dtype=float),
         clear_inputs: int,
         grid_v: wp.array4d(dtype=wp.vec3),
     ):
@@ -271,7 +315,12 @@ def make_grid_update_kernel(ee_count: int):
                     if d < 0.0:
                         v_ee = ee_vel[s] + wp.cross(ee_omega[s], node - c)
                         if ee_grip[s] != 0:
-                            vel = v_ee  # Dirichlet: a closed gripper carries the nodes it covers
+                            # a closed gripper carries the nodes it covers, by friction: it removes at most
+                            # grip_friction * g0 * dt of their relative velocity per substep (g0 = 9.81 m/s^2:
+                            # the squeeze presses with the grasped weight; the rigid,
+                            # Dirichlet grip when that is large)
+                            limit = wp.min(world_grip_friction[w] * 9.81 * dt, 1.0e10)
+                            vel = v_ee + grip_hold(vel - v_ee, limit)
                         else:
                             vel = v_ee + coulomb_project(vel - v_ee, n, ee_friction[s])
             if has_table != 0:
@@ -301,11 +350,14 @@ def make_grid_update_kernel(ee_count: int):
 def g2p_kernel(
     x: wp.array(dtype=wp.vec3),
     F: wp.array(dtype=wp.mat33),
+    damage: wp.array(dtype=float),
     particle_world: wp.array(dtype=int),
     particle_E: wp.array(dtype=float),
     particle_nu: wp.array(dtype=float),
     particle_yield: wp.array(dtype=float),
     particle_plastic: wp.array(dtype=int),
+    particle_fracture_strain: wp.array(dtype=float),
+    particle_fracture_softening: wp.array(dtype=float),
     grid_v: wp.array4d(dtype=wp.vec3),
     origin: wp.vec3,
     dx: float,
@@ -317,6 +369,7 @@ def g2p_kernel(
     v_out: wp.array(dtype=wp.vec3),
     C_out: wp.array(dtype=wp.mat33),
     F_out: wp.array(dtype=wp.mat33),
+    damage_out: wp.array(dtype=float),
 ):
     """Gather velocity and affine field, update F (with plastic return mapping) and advect particles."""
     p = wp.tid()
@@ -337,6 +390,12 @@ def g2p_kernel(
     if particle_plastic[p] != 0:
         mu, lam = lame_parameters(particle_E[p], particle_nu[p])
         Fn = von_mises_return(Fn, mu, particle_yield[p], min_singular)
+    # damage only grows (fracture effect; a threshold of 1e30 keeps it at 0)
+    dmg = damage[p]
+    strain = particle_fracture_strain[p]
+    if strain < 1.0e20:
+        dmg = wp.max(dmg, damage_from_stretch(Fn, strain, particle_fracture_softening[p]))
+    damage_out[p] = dmg
     xn = x[p] + dt * new_v
     # keep every particle's stencil inside the grid
     lo = origin + wp.vec3(dx)
@@ -352,56 +411,78 @@ def g2p_kernel(
 def expand_materials_kernel(
     particle_world: wp.array(dtype=int),
     particle_stiffness: wp.array(dtype=float),
+    particle_body_coord: wp.array(dtype=wp.vec3),
     world_E: wp.array(dtype=float),
     world_nu: wp.array(dtype=float),
     world_density: wp.array(dtype=float),
     world_yield: wp.array(dtype=float),
     world_plastic: wp.array(dtype=int),
     world_viscosity: wp.array(dtype=float),
+    world_stiffness_slope: wp.array(dtype=wp.vec3),
+    world_fracture_strain: wp.array(dtype=float),
+    world_fracture_softening: wp.array(dtype=float),
     particle_E: wp.array(dtype=float),
     particle_nu: wp.array(dtype=float),
     particle_density: wp.array(dtype=float),
     particle_yield: wp.array(dtype=float),
     particle_plastic: wp.array(dtype=int),
     particle_viscosity: wp.array(dtype=float),
+    particle_fracture_strain: wp.array(dtype=float),
+    particle_fracture_softening: wp.array(dtype=float),
 ):
-    """Copy each world's material to its particles (E scaled by the per-particle stiffness multiplier)."""
+    """Copy each world's material to its particles (E scaled by the per-particle stiffness multiplier and
+    the heterogeneous-stiffness field exp(slope . u))."""
     p = wp.tid()
     w = particle_world[p]
-    particle_E[p] = world_E[w] * particle_stiffness[p]
+    particle_E[p] = world_E[w] * particle_stiffness[p] * wp.exp(wp.dot(world_stiffness_slope[w], particle_body_coord[p]))
     particle_nu[p] = world_nu[w]
     particle_density[p] = world_density[w]
     particle_yield[p] = world_yield[w]
     particle_plastic[p] = world_plastic[w]
     particle_viscosity[p] = world_viscosity[w]
+    particle_fracture_strain[p] = world_fracture_strain[w]
+    particle_fracture_softening[p] = world_fracture_softening[w]
 
 
 @wp.kernel
 def reduce_material_grads_kernel(
     particle_world: wp.array(dtype=int),
     particle_stiffness: wp.array(dtype=float),
+    particle_body_coord: wp.array(dtype=wp.vec3),
     world_E: wp.array(dtype=float),
+    world_stiffness_slope: wp.array(dtype=wp.vec3),
     gE: wp.array(dtype=float),
     gnu: wp.array(dtype=float),
     grho: wp.array(dtype=float),
     gys: wp.array(dtype=float),
     geta: wp.array(dtype=float),
+    gfs: wp.array(dtype=float),
+    gfw: wp.array(dtype=float),
     world_E_grad: wp.array(dtype=float),
     world_nu_grad: wp.array(dtype=float),
     world_density_grad: wp.array(dtype=float),
     world_yield_grad: wp.array(dtype=float),
     world_viscosity_grad: wp.array(dtype=float),
     stiffness_grad: wp.array(dtype=float),
+    world_stiffness_slope_grad: wp.array(dtype=wp.vec3),
+    world_fracture_strain_grad: wp.array(dtype=float),
+    world_fracture_softening_grad: wp.array(dtype=float),
 ):
     """Adjoint of expand_materials_kernel: sum per-particle parameter gradients into their worlds."""
     p = wp.tid()
     w = particle_world[p]
-    wp.atomic_add(world_E_grad, w, gE[p] * particle_stiffness[p])
+    u = particle_body_coord[p]
+    field = wp.exp(wp.dot(world_stiffness_slope[w], u))
+    Ep = world_E[w] * particle_stiffness[p] * field
+    wp.atomic_add(world_E_grad, w, gE[p] * particle_stiffness[p] * field)
     wp.atomic_add(world_nu_grad, w, gnu[p])
     wp.atomic_add(world_density_grad, w, grho[p])
     wp.atomic_add(world_yield_grad, w, gys[p])
     wp.atomic_add(world_viscosity_grad, w, geta[p])
-    stiffness_grad[p] = stiffness_grad[p] + gE[p] * world_E[w]
+    wp.atomic_add(world_stiffness_slope_grad, w, (gE[p] * Ep) * u)
+    wp.atomic_add(world_fracture_strain_grad, w, gfs[p])
+    wp.atomic_add(world_fracture_softening_grad, w, gfw[p])
+    stiffness_grad[p] = stiffness_grad[p] + gE[p] * world_E[w] * field
 
 
 @wp.kernel

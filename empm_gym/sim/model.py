@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import List, Optional, Sequence
 
@@ -10,6 +11,7 @@ import warp as wp
 
 from . import kernels as _kernels
 from .config import SHAPE_IDS, EndEffectorConfig, GridConfig, MaterialConfig, TableConfig, as_vec3
+from .effects import PARAMETERS as _EFFECT_PARAMS
 
 __all__ = ["Model", "ModelBuilder", "State", "Control"]
 
@@ -19,8 +21,9 @@ def _arr(a, dtype, device, requires_grad=False):
 
 
 class State:
-    """Time-varying quantities: particle x [m], v [m/s], affine velocity C [1/s], elastic F [-],
-    end-effector positions [m] and orientations (quaternion x, y, z, w)."""
+    """Time-varying quantities: particle x [m], v [m/s], affine velocity C [1/s], elastic F [-], damage
+    [-] (0 intact .. 1 broken; the fracture effect), end-effector positions [m] and orientations
+    (quaternion x, y, z, w)."""
 
     def __init__(self, model: "Model", requires_grad: bool = False):
         n, e, d = model.particle_count, model.world_count * model.ee_count, model.device
@@ -29,10 +32,11 @@ class State:
         self.particle_v = wp.zeros(n, dtype=wp.vec3, device=d, requires_grad=requires_grad)
         self.particle_C = wp.zeros(n, dtype=wp.mat33, device=d, requires_grad=requires_grad)
         self.particle_F = wp.zeros(n, dtype=wp.mat33, device=d, requires_grad=requires_grad)
+        self.particle_damage = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
         self.ee_pos = wp.zeros(max(e, 1), dtype=wp.vec3, device=d, requires_grad=requires_grad)
         self.ee_rot = wp.zeros(max(e, 1), dtype=wp.quat, device=d, requires_grad=requires_grad)
 
-    ARRAYS = ("particle_x", "particle_v", "particle_C", "particle_F", "ee_pos", "ee_rot")
+    ARRAYS = ("particle_x", "particle_v", "particle_C", "particle_F", "particle_damage", "ee_pos", "ee_rot")
 
     def arrays(self):
         return [getattr(self, a) for a in self.ARRAYS]
@@ -53,6 +57,9 @@ class State:
 
     def from_numpy(self, data: dict) -> "State":
         for name, arr in zip(self.ARRAYS, self.arrays()):
+            if name == "particle_damage" and name not in data:  # a state saved before the fracture effect
+                arr.zero_()
+                continue
             val = np.asarray(data[name], dtype=np.float32)
             if val.shape != tuple(arr.numpy().shape):
                 raise ValueError(f"State.from_numpy: {name} has shape {val.shape}, expected {arr.numpy().shape}")
@@ -105,6 +112,30 @@ def _checked(value, shape, name):
     return a
 
 
+def principal_coords(x: np.ndarray) -> np.ndarray:
+    """Rest coordinates [n, 3] of points x [n, 3] (m) along their principal axes (1 = longest), each scaled
+    to [-1, 1]; an axis points towards the world axis it is most aligned with (so the field is the same
+    for two samplings of one body)."""
+    x = np.asarray(x, np.float64)
+    c = x.mean(0)
+    r = x - c
+    if len(x) < 2:
+        return np.zeros_like(x)
+    w, V = np.linalg.eigh(r.T @ r / len(x))
+    V = V[:, np.argsort(w)[::-1]]
+    for i in range(3):
+        j = int(np.argmax(np.abs(V[:, i])))
+        if V[j, i] < 0:
+            V[:, i] = -V[:, i]
+    u = r @ V
+    ext = np.maximum(np.abs(u).max(0), 1e-9)
+    return u / ext
+
+
+def _principal_coords(per_world: List[np.ndarray]) -> np.ndarray:
+    return np.concatenate([principal_coords(x) for x in per_world]).astype(np.float32)
+
+
 @dataclass
 class _World:
     material: MaterialConfig
@@ -138,6 +169,8 @@ class ModelBuilder:
         """Add a world with its material; returns the world index."""
         if not isinstance(material, MaterialConfig):
             raise TypeError(f"material must be a MaterialConfig, got {type(material).__name__}")
+        if table_friction is None:
+            table_friction = material.get("friction")  # the material's own table friction, if it has one
         mu = self.table.friction if (table_friction is None and self.table is not None) else (table_friction or 0.0)
         TableConfig(friction=mu)  # validates
         self.worlds.append(_World(material, float(mu), [], [], [], []))
@@ -243,6 +276,14 @@ class Model:
         self.world_table_friction = _arr(
             np.array([w.table_friction for w in builder.worlds], np.float32), float, d, requires_grad
         )
+        # effects of empm_gym.sim.effects beyond plasticity, viscosity and table friction (per world)
+        self.world_grip_friction = wp.zeros(self.world_count, dtype=float, device=d, requires_grad=requires_grad)
+        self.world_stiffness_slope = wp.zeros(self.world_count, dtype=wp.vec3, device=d, requires_grad=requires_grad)
+        self.world_fracture_strain = wp.zeros(self.world_count, dtype=float, device=d, requires_grad=requires_grad)
+        self.world_fracture_softening = wp.zeros(self.world_count, dtype=float, device=d,
+                                                 requires_grad=requires_grad)
+        # rest coordinates along each world's principal axes, in [-1, 1] (heterogeneous stiffness)
+        self.particle_body_coord = _arr(_principal_coords(xs), wp.vec3, d)
         # per-particle copies read by the kernels: no gradient contention on one address per world;
         # the rollout sums their gradients into the world arrays once per backward pass
         n = self.particle_count
@@ -252,6 +293,8 @@ class Model:
         self.particle_yield = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
         self.particle_plastic = wp.zeros(n, dtype=int, device=d)
         self.particle_viscosity = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
+        self.particle_fracture_strain = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
+        self.particle_fracture_softening = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
         self.set_materials(self.materials)
 
         K, W = self.ee_count, self.world_count
@@ -296,7 +339,30 @@ class Model:
         self.world_yield.assign(np.array([m.yield_stress or 0.0 for m in materials], np.float32))
         self.world_plastic.assign(np.array([int(m.plastic) for m in materials], np.int32))
         self.world_viscosity.assign(np.array([m.viscosity for m in materials], np.float32))
+        self._set_effect_arrays(materials)
         self.update_particle_materials()
+
+    def _set_effect_arrays(self, materials: Sequence[MaterialConfig]):
+        """Write every effect parameter of :mod:`empm_gym.sim.effects` held in ``params`` to its per-world
+        array (the effect's ``kernel_off`` value when absent; table friction only where a material sets it)."""
+        arrays = {}
+        for p in _EFFECT_PARAMS.values():
+            if p.name in ("yield_stress", "viscosity"):
+                continue
+            arr = getattr(self, p.array)
+            if p.array not in arrays:
+                arrays[p.array] = arr.numpy().copy()
+            host = arrays[p.array]
+            for w, m in enumerate(materials):
+                if p.name == "friction" and m.get("friction") is None:
+                    continue  # keep the world's table friction
+                v = m.kernel_value(p.name)
+                if p.component is None:
+                    host[w] = v
+                else:
+                    host[w, p.component] = v
+        for name, host in arrays.items():
+            getattr(self, name).assign(host)
 
     def update_particle_materials(self):
         """Copy the world material arrays (and stiffness multipliers) to the per-particle arrays the kernels read.
@@ -306,10 +372,12 @@ class Model:
         wp.launch(
             _kernels.expand_materials_kernel,
             dim=self.particle_count,
-            inputs=[self.particle_world, self.particle_stiffness, self.world_E, self.world_nu, self.world_density,
-                    self.world_yield, self.world_plastic, self.world_viscosity],
+            inputs=[self.particle_world, self.particle_stiffness, self.particle_body_coord, self.world_E,
+                    self.world_nu, self.world_density, self.world_yield, self.world_plastic, self.world_viscosity,
+                    self.world_stiffness_slope, self.world_fracture_strain, self.world_fracture_softening],
             outputs=[self.particle_E, self.particle_nu, self.particle_density, self.particle_yield,
-                     self.particle_plastic, self.particle_viscosity],
+                     self.particle_plastic, self.particle_viscosity, self.particle_fracture_strain,
+                     self.particle_fracture_softening],
             device=self.device,
         )
 
@@ -320,30 +388,54 @@ class Model:
         wp.launch(
             _kernels.reduce_material_grads_kernel,
             dim=self.particle_count,
-            inputs=[self.particle_world, self.particle_stiffness, self.world_E, self.particle_E.grad,
+            inputs=[self.particle_world, self.particle_stiffness, self.particle_body_coord, self.world_E,
+                    self.world_stiffness_slope, self.particle_E.grad,
                     self.particle_nu.grad, self.particle_density.grad, self.particle_yield.grad,
-                    self.particle_viscosity.grad],
+                    self.particle_viscosity.grad, self.particle_fracture_strain.grad,
+                    self.particle_fracture_softening.grad],
             outputs=[self.world_E.grad, self.world_nu.grad, self.world_density.grad, self.world_yield.grad,
-                     self.world_viscosity.grad, self.particle_stiffness.grad],
+                     self.world_viscosity.grad, self.particle_stiffness.grad, self.world_stiffness_slope.grad,
+                     self.world_fracture_strain.grad, self.world_fracture_softening.grad],
             device=self.device,
         )
 
     def parameter_arrays(self):
         """Arrays that can carry gradients: world materials, table and end-effector friction, per-particle copies."""
         return [self.world_E, self.world_nu, self.world_density, self.world_yield, self.world_viscosity,
-                self.world_table_friction, self.particle_stiffness, self.ee_friction, self.particle_E,
-                self.particle_nu, self.particle_density, self.particle_yield, self.particle_viscosity]
+                self.world_table_friction, self.world_grip_friction, self.world_stiffness_slope,
+                self.world_fracture_strain, self.world_fracture_softening, self.particle_stiffness,
+                self.ee_friction, *self.particle_parameter_arrays()]
+
+    def particle_parameter_arrays(self):
+        """Per-particle parameter copies read by the kernels (their gradients are summed into the world arrays)."""
+        return [self.particle_E, self.particle_nu, self.particle_density, self.particle_yield,
+                self.particle_viscosity, self.particle_fracture_strain, self.particle_fracture_softening]
 
     def sync_materials_from_device(self):
         """Refresh the host copies (``materials``) after the device arrays were changed (e.g. by an optimiser)."""
         E, nu, rho, ys, eta = (a.numpy() for a in (self.world_E, self.world_nu, self.world_density,
                                                     self.world_yield, self.world_viscosity))
         pl = self.world_plastic.numpy()
-        self.materials = [
-            MaterialConfig(E=float(E[i]), nu=float(nu[i]), density=float(rho[i]),
-                           yield_stress=float(ys[i]) if pl[i] else None, viscosity=float(eta[i]))
-            for i in range(self.world_count)
-        ]
+        host = {}
+        mats = []
+        for i in range(self.world_count):
+            params = {}
+            for p in _EFFECT_PARAMS.values():
+                if p.name in ("yield_stress", "viscosity", "friction"):
+                    continue
+                if p.array not in host:
+                    host[p.array] = getattr(self, p.array).numpy()
+                v = float(host[p.array][i] if p.component is None else host[p.array][i, p.component])
+                if np.float32(v) != np.float32(p.kernel_off) or (p.name == "fracture_softening" and "fracture_strain" in params):
+                    params[p.name] = v
+            if "fracture_strain" not in params:
+                params.pop("fracture_softening", None)
+            if self.materials[i].get("friction") is not None:
+                params["friction"] = float(self.world_table_friction.numpy()[i])
+            mats.append(MaterialConfig(E=float(E[i]), nu=float(nu[i]), density=float(rho[i]),
+                                       yield_stress=float(ys[i]) if pl[i] else None, viscosity=float(eta[i]),
+                                       params=params))
+        self.materials = mats
 
     def max_viscous_rate(self) -> float:
         """Largest kinematic viscosity eta / rho over worlds [m^2/s] (limits the explicit step)."""
@@ -352,7 +444,9 @@ class Model:
     def max_wave_speed(self) -> float:
         """Largest elastic P-wave speed over worlds [m/s], including the per-particle stiffness multiplier."""
         smax = float(np.max(self.particle_stiffness.numpy())) if self.particle_count else 1.0
-        return max(m.wave_speed for m in self.materials) * np.sqrt(max(smax, 1e-12))
+        # the heterogeneous-stiffness field multiplies E by at most exp(sum |a_i|) (|u_i| <= 1)
+        return max(m.wave_speed * math.exp(0.5 * sum(abs(m.get(f"stiffness_slope_{i}")) for i in (1, 2, 3)))
+                   for m in self.materials) * np.sqrt(max(smax, 1e-12))
 
     def particle_mass(self) -> np.ndarray:
         """Particle masses [kg] (host copy)."""

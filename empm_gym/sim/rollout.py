@@ -185,7 +185,7 @@ class Rollout:
         m = self.model
         m.accumulate_material_grads()
         if m.particle_E.grad is not None:  # zero them so that a second backward does not add them twice
-            for a in (m.particle_E, m.particle_nu, m.particle_density, m.particle_yield, m.particle_viscosity):
+            for a in m.particle_parameter_arrays():
                 a.grad.zero_()
         self.initial_grad = {name: wp.clone(a.grad) for name, a in zip(State.ARRAYS, first.arrays())}
         if state0 is not None and state0.requires_grad:

@@ -156,7 +156,7 @@ class SolverMPM:
             dim=m.particle_count,
             inputs=[
                 state_in.particle_x, state_in.particle_v, state_in.particle_C, state_in.particle_F,
-                m.particle_world, m.particle_vol, m.particle_E, m.particle_nu, m.particle_density,
+                state_in.particle_damage, m.particle_world, m.particle_vol, m.particle_E, m.particle_nu, m.particle_density,
                 m.particle_viscosity,
                 origin, m.dx, m.inv_dx, res, dt,
             ],
@@ -173,7 +173,7 @@ class SolverMPM:
                 has_table, table_z, m.world_table_friction,
                 m.ee_shape, m.ee_radius, m.ee_half_height, m.ee_half_extents, m.ee_friction,
                 state_in.ee_pos, state_in.ee_rot, control.ee_vel, control.ee_omega, control.ee_grip,
-                int(fused),
+                m.world_grip_friction, int(fused),
             ],
             outputs=[g.v],
             device=m.device,
@@ -183,11 +183,13 @@ class SolverMPM:
             K.g2p_kernel,
             dim=m.particle_count,
             inputs=[
-                state_in.particle_x, state_in.particle_F, m.particle_world,
+                state_in.particle_x, state_in.particle_F, state_in.particle_damage, m.particle_world,
                 m.particle_E, m.particle_nu, m.particle_yield, m.particle_plastic,
+                m.particle_fracture_strain, m.particle_fracture_softening,
                 g.v, origin, m.dx, m.inv_dx, res, dt, self.config.plasticity_min_singular,
             ],
-            outputs=[state_out.particle_x, state_out.particle_v, state_out.particle_C, state_out.particle_F],
+            outputs=[state_out.particle_x, state_out.particle_v, state_out.particle_C, state_out.particle_F,
+                     state_out.particle_damage],
             device=m.device,
         )
         if m.ee_count > 0:
