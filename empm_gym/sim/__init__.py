@@ -14,6 +14,7 @@ if getattr(wp.config, "log_level", None) == getattr(wp, "LOG_INFO", None):
 wp.config.quiet = True
 
 from .config import EndEffectorConfig, GridConfig, MaterialConfig, SolverConfig, TableConfig
+from .material_file import MaterialFile, read_material, write_material
 from .model import Control, Model, ModelBuilder, State
 from .rollout import Rollout
 from .sampling import sample_box, sample_cylinder, sample_mesh, sample_points, sample_sphere
@@ -21,7 +22,8 @@ from .solver import GridScratch, SimulationDiverged, SolverMPM, UnstableTimeStep
 
 
 __all__ = [
-    "Control", "EndEffectorConfig", "GridConfig", "GridScratch", "MaterialConfig", "Model", "ModelBuilder",
+    "Control", "EndEffectorConfig", "GridConfig", "GridScratch", "MaterialConfig", "MaterialFile", "Model", "ModelBuilder",
     "Rollout", "SimulationDiverged", "SolverConfig", "SolverMPM", "State", "TableConfig", "UnstableTimeStep",
     "sample_box", "sample_cylinder", "sample_mesh", "sample_points", "sample_sphere",
+    "read_material", "write_material",
 ]
