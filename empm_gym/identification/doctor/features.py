@@ -1,0 +1,510 @@
+"""Where simulation and measurement disagree: residuals per frame, per point, per region, and
+summary features computed from the data alone.
+
+All lengths are metres, times seconds; z is up and the table is the plane ``z = table_z``.
+Inputs are plain arrays: observed points per frame (list of ``[n_t, 3]``), simulated particle
+positions ``[T, N, 3]`` (same frames), end-effector controls ``[T, K, 3]`` / grip ``[T, K]``,
+optionally tracks ``[T, M, 3]`` with visibility ``[T, M]`` and the simulated positions of the same
+tracked material points ``[T, M, 3]``. Nothing keys on file names, script frame indices or ground
+truth. Every feature returns NaN (never raises) when the phase or data it needs is absent.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from .phases import (CONTACT_PHASES, FREE_PHASES, Phase, backward_speed, contact_distances, object_speed,
+                     phase_of_frames)
+
+__all__ = [
+    "FEATURE_INFO",
+    "point_residuals",
+    "residuals_per_frame",
+    "frame_residuals",
+    "track_errors",
+    "regions",
+    "body_halves",
+    "particle_residual_map",
+    "count_pieces",
+    "summary_features",
+    "localise",
+]
+
+#: name -> (unit, meaning) of every key :func:`summary_features` returns.
+FEATURE_INFO: Dict[str, Tuple[str, str]] = {
+    "residual_after_release_vs_contact": (
+        "-", "mean frame Chamfer in after_release/at_rest over that in contact/holding/moving "
+        "(>1: the model is worse once the object is free: plasticity, viscosity, table friction)"),
+    "rest_drift_m": (
+        "m", "sum over still phases (approach, holding, at_rest) of observed centroid displacement minus "
+        "simulated (>0: the real object creeps/sags where the model is still: viscosity, plasticity)"),
+    "residual_asymmetry": (
+        "-", "(r+ - r-)/(r+ + r-): mean observed-point residual on the two halves of the body split along "
+        "its principal axis at the first frame (axis oriented so its largest component is positive); "
+        "0 = symmetric, +-1 = all on one half (heterogeneous stiffness, one-sided slip)"),
+    "pieces_observed": ("count", "connected pieces of the observed points at the last frame"),
+    "pieces_observed_max": ("count", "most connected pieces of the observed points over frames"),
+    "pieces_simulated": ("count", "connected pieces of the simulated particles at the last frame"),
+    "pieces_simulated_max": ("count", "most connected pieces of the simulated particles over frames"),
+    "track_slip_m": (
+        "m", "median motion of tracked points near a closed, touching gripper relative to that gripper "
+        "over the closed interval, observed minus simulated (>0: the real object slips in the grip)"),
+    "decay_rate_obs_per_s": ("1/s", "decay rate of the observed centroid speed after its post-release peak"),
+    "decay_rate_sim_per_s": ("1/s", "same for the simulated centroid"),
+    "oscillation_decay": (
+        "-", "decay_rate_obs / decay_rate_sim (>1: the real object settles faster: missing damping/viscosity)"),
+    "table_slide_m": (
+        "m", "sum over contact-free runs of horizontal observed centroid displacement minus simulated "
+        "(>0: the real object slides further on the table than modelled: table friction)"),
+    "residual_near_ee_vs_free": (
+        "-", "mean observed-point residual near an end-effector over that on free parts "
+        "(>1: the disagreement sits at the grip: gripper slip, local plasticity)"),
+}
+
+
+# ----------------------------------------------------------------------------- residuals
+
+
+def _pts(p) -> np.ndarray:
+    return np.asarray(p, dtype=float).reshape(-1, 3)
+
+
+def point_residuals(obs_points: np.ndarray, sim_points: np.ndarray) -> np.ndarray:
+    """``[n]`` distance (m) of each observed point to the nearest simulated point (NaN if no sim points)."""
+    o, s = _pts(obs_points), _pts(sim_points)
+    if len(s) == 0:
+        return np.full(len(o), np.nan)
+    if len(o) == 0:
+        return np.zeros(0)
+    d, _ = cKDTree(s).query(o, k=1)
+    return d
+
+
+def residuals_per_frame(obs_list: Sequence[np.ndarray], sim: np.ndarray) -> List[np.ndarray]:
+    """Per frame, :func:`point_residuals` of the observed points against ``sim[t]``."""
+    sim = np.asarray(sim, dtype=float)
+    return [point_residuals(obs_list[t], sim[t]) for t in range(min(len(obs_list), len(sim)))]
+
+
+def frame_residuals(obs_list: Sequence[np.ndarray], sim: np.ndarray) -> np.ndarray:
+    """``[T]`` symmetric Chamfer per frame, ``0.5 (mean d(obs->sim) + mean d(sim->obs))`` (m).
+
+    Same definition as :func:`empm_gym.identification.losses.chamfer_numpy`; NaN where a frame has no
+    observed points.
+    """
+    sim = np.asarray(sim, dtype=float)
+    T = min(len(obs_list), len(sim))
+    out = np.full(T, np.nan)
+    for t in range(T):
+        o, s = _pts(obs_list[t]), _pts(sim[t])
+        if len(o) == 0 or len(s) == 0:
+            continue
+        a, _ = cKDTree(s).query(o, k=1)
+        b, _ = cKDTree(o).query(s, k=1)
+        out[t] = 0.5 * (a.mean() + b.mean())
+    return out
+
+
+def track_errors(tracks: np.ndarray, visible: np.ndarray, sim_tracks: np.ndarray) -> np.ndarray:
+    """``[T, M]`` position error (m) of each tracked point; NaN where the track is not visible."""
+    tr, st = np.asarray(tracks, dtype=float), np.asarray(sim_tracks, dtype=float)
+    err = np.linalg.norm(tr - st, axis=-1)
+    err[~(np.asarray(visible) > 0.5)] = np.nan
+    return err
+
+
+# ----------------------------------------------------------------------------- regions
+
+
+def regions(points: np.ndarray, ee_positions: np.ndarray, ee_radius, table_z: float = 0.0,
+            near_m: float = 0.03, table_band_m: float = 0.005) -> np.ndarray:
+    """``[n]`` region label of each point: ``"near_ee_k"``, ``"on_table"`` or ``"free"``.
+
+    ``near_ee_k``: within ``near_m`` of end-effector ``k``'s surface (centre distance minus radius; the
+    nearest end-effector wins); otherwise ``on_table`` when ``z - table_z <= table_band_m``; otherwise
+    ``free``.
+    """
+    p = _pts(points)
+    ee = np.asarray(ee_positions, dtype=float).reshape(-1, 3)
+    lab = np.full(len(p), "free", dtype=object)
+    lab[p[:, 2] - table_z <= table_band_m] = "on_table"
+    if len(ee) and len(p):
+        rad = np.broadcast_to(np.asarray(ee_radius, dtype=float), (len(ee),))
+        gap = np.linalg.norm(p[:, None, :] - ee[None, :, :], axis=-1) - rad[None, :]
+        k = np.argmin(gap, axis=1)
+        near = gap[np.arange(len(p)), k] <= near_m
+        lab[near] = np.array([f"near_ee_{i}" for i in k[near]], dtype=object)
+    return lab.astype(str)
+
+
+def body_halves(sim0: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split the simulated particles into two halves along the principal axis of ``sim0`` ``[N, 3]``.
+
+    Returns ``(positive [N] bool, axis [3], centre [3])``; the axis is oriented so that its largest
+    component is positive (deterministic sign). Halves follow the particles (material), not space.
+    """
+    s = _pts(sim0)
+    c = s.mean(axis=0)
+    _, _, vt = np.linalg.svd(s - c, full_matrices=False)
+    axis = vt[0]
+    if axis[np.argmax(np.abs(axis))] < 0:
+        axis = -axis
+    return (s - c) @ axis > 0, axis, c
+
+
+def particle_residual_map(obs_list: Sequence[np.ndarray], sim: np.ndarray,
+                          frames: Optional[Sequence[int]] = None) -> np.ndarray:
+    """``[N]`` mean residual (m) attributed to each simulated particle: every observed point's distance
+    to the simulation is credited to its nearest particle, averaged over ``frames`` (default all).
+    NaN for particles never nearest to an observed point. Shows *where on the body* the model is off.
+    """
+    sim = np.asarray(sim, dtype=float)
+    N = sim.shape[1]
+    tot, cnt = np.zeros(N), np.zeros(N)
+    frames = range(min(len(obs_list), len(sim))) if frames is None else frames
+    for t in frames:
+        o = _pts(obs_list[t])
+        if len(o) == 0:
+            continue
+        d, i = cKDTree(sim[t]).query(o, k=1)
+        np.add.at(tot, i, d)
+        np.add.at(cnt, i, 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(cnt > 0, tot / np.maximum(cnt, 1), np.nan)
+
+
+# ----------------------------------------------------------------------------- pieces
+
+
+def count_pieces(points: np.ndarray, link_m: Optional[float] = None, min_frac: float = 0.05,
+                 link_factor: float = 4.0, max_points: int = 4000, seed: int = 0) -> int:
+    """Connected pieces of a point set: points closer than ``link_m`` are linked (radius graph).
+
+    ``link_m=None``: ``link_factor`` times the median nearest-neighbour spacing of the set.
+    Components with fewer than ``min_frac`` of the points are ignored (noise, flying pixels).
+    Sets above ``max_points`` are subsampled (fixed seed). 0 for an empty set.
+    """
+    p = _pts(points)
+    if len(p) == 0:
+        return 0
+    if len(p) == 1:
+        return 1
+    if len(p) > max_points:
+        p = p[np.random.default_rng(seed).choice(len(p), max_points, replace=False)]
+    tree = cKDTree(p)
+    if link_m is None:
+        d, _ = tree.query(p, k=2)
+        link_m = link_factor * float(np.median(d[:, 1]))
+        if link_m <= 0:
+            link_m = 1e-9
+    pairs = tree.query_pairs(link_m, output_type="ndarray")
+    n = len(p)
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else \
+        coo_matrix((n, n))
+    _, lab = connected_components(g, directed=False)
+    sizes = np.bincount(lab)
+    return int(np.sum(sizes >= max(1, min_frac * n)))
+
+
+# ----------------------------------------------------------------------------- features
+
+
+def _frames_in(labels: np.ndarray, names: Sequence[str]) -> np.ndarray:
+    return np.isin(labels, list(names))
+
+
+def _segments(mask: np.ndarray) -> List[Tuple[int, int]]:
+    out, t, T = [], 0, len(mask)
+    while t < T:
+        if mask[t]:
+            s = t
+            while t < T and mask[t]:
+                t += 1
+            out.append((s, t))
+        else:
+            t += 1
+    return out
+
+
+def _edge_disp(c: np.ndarray, s: int, e: int, edge: int, dims=slice(0, 3)) -> float:
+    """|median(c[last edge frames]) - median(c[first edge frames])| over ``dims`` (NaN-safe)."""
+    w = max(1, min(edge, (e - s) // 2 or 1))
+    a = np.nanmedian(c[s:s + w, dims], axis=0)
+    b = np.nanmedian(c[e - w:e, dims], axis=0)
+    return float(np.linalg.norm(b - a))
+
+
+def _nanratio(a: float, b: float) -> float:
+    if not (np.isfinite(a) and np.isfinite(b)) or b <= 0:
+        return float("nan")
+    return float(a / b)
+
+
+def _nanmean(x) -> float:
+    x = np.asarray(x, dtype=float)
+    x = x[np.isfinite(x)]
+    return float(x.mean()) if len(x) else float("nan")
+
+
+def _decay_rate(v: np.ndarray, fps: float, floor: float, min_frames: int = 3) -> float:
+    """-slope of log(max(v, floor)) against time from the peak of ``v`` to its end (1/s)."""
+    v = np.asarray(v, dtype=float)
+    v = v[np.isfinite(v)]
+    if len(v) < min_frames:
+        return float("nan")
+    v = v[int(np.argmax(v)):]
+    if len(v) < min_frames or v[0] <= floor:
+        return float("nan")
+    t = np.arange(len(v)) / fps
+    slope = np.polyfit(t, np.log(np.maximum(v, floor)), 1)[0]
+    return float(-slope)
+
+
+def summary_features(
+    phases: Sequence[Phase],
+    obs_list: Sequence[np.ndarray],
+    sim: np.ndarray,
+    ee_positions: np.ndarray,
+    ee_grip: np.ndarray,
+    ee_radius,
+    fps: float,
+    *,
+    tracks: Optional[np.ndarray] = None,
+    visible: Optional[np.ndarray] = None,
+    sim_tracks: Optional[np.ndarray] = None,
+    table_z: float = 0.0,
+    near_m: float = 0.03,
+    contact_dist_m: float = 0.01,
+    link_m: Optional[float] = None,
+    min_piece_frac: float = 0.05,
+    piece_stride: int = 1,
+    edge_frames: int = 2,
+    floor_mps: float = 0.005,
+    frame_res: Optional[np.ndarray] = None,
+    point_res: Optional[List[np.ndarray]] = None,
+) -> Dict[str, float]:
+    """Named scalar features (see :data:`FEATURE_INFO` for units and meaning) from data alone.
+
+    Args:
+        phases: from :func:`~.phases.segment_phases`.
+        obs_list: observed object points per frame; ``sim``: ``[T, N, 3]`` simulated particles of the
+            model under test (usually the fitted base model).
+        ee_positions, ee_grip, ee_radius: controls, as for :func:`~.phases.segment_phases`.
+        tracks, visible, sim_tracks: optional point tracks (``track_slip_m`` is NaN without them).
+        table_z: table height (m); near_m: "near a gripper" distance (m) for track slip and regions.
+        contact_dist_m: gripper-surface gap (m) that counts as touching (track slip).
+        link_m, min_piece_frac, piece_stride: :func:`count_pieces` settings; every ``piece_stride``-th
+            frame enters the maxima.
+        edge_frames: displacements use medians over this many frames at both ends of a run.
+        floor_mps: speed noise floor for the decay rates (m/s).
+        frame_res, point_res: precomputed :func:`frame_residuals` / :func:`residuals_per_frame`.
+    """
+    sim = np.asarray(sim, dtype=float)
+    ee = np.asarray(ee_positions, dtype=float)
+    if ee.ndim == 2:
+        ee = ee[:, None, :]
+    T = min(len(obs_list), len(sim), len(ee))
+    K = ee.shape[1]
+    grip = np.asarray(ee_grip, dtype=float).reshape(len(ee), -1)[:T] > 0.5
+    lab = phase_of_frames(phases, T)
+    fr = frame_residuals(obs_list[:T], sim[:T]) if frame_res is None else np.asarray(frame_res)[:T]
+    pr = residuals_per_frame(obs_list[:T], sim[:T]) if point_res is None else point_res
+    c_obs = np.full((T, 3), np.nan)
+    for t in range(T):
+        o = _pts(obs_list[t])
+        if len(o):
+            c_obs[t] = o.mean(axis=0)
+    c_sim = sim[:T].mean(axis=1)
+    f: Dict[str, float] = {}
+
+    # residual after release vs during contact
+    free = _frames_in(lab, FREE_PHASES)
+    cont = _frames_in(lab, CONTACT_PHASES)
+    f["residual_after_release_vs_contact"] = _nanratio(_nanmean(fr[free]), _nanmean(fr[cont])) \
+        if free.any() and cont.any() else float("nan")
+
+    # drift where the object should be still
+    still = _frames_in(lab, ("approach", "holding", "at_rest"))
+    segs = [(s, e) for s, e in _segments(still) if e - s >= 2]
+    if segs:
+        f["rest_drift_m"] = float(sum(_edge_disp(c_obs, s, e, edge_frames) - _edge_disp(c_sim, s, e, edge_frames)
+                                      for s, e in segs))
+    else:
+        f["rest_drift_m"] = float("nan")
+
+    # asymmetry across the body (halves follow the particles of frame 0)
+    pos, _, _ = body_halves(sim[0]) if T else (None, None, None)
+    rp, rn = [], []
+    for t in range(T):
+        o = _pts(obs_list[t])
+        if len(o) == 0:
+            continue
+        _, i = cKDTree(sim[t]).query(o, k=1)
+        r = pr[t]
+        rp.append(r[pos[i]])
+        rn.append(r[~pos[i]])
+    mp = _nanmean(np.concatenate(rp)) if rp else float("nan")
+    mn = _nanmean(np.concatenate(rn)) if rn else float("nan")
+    f["residual_asymmetry"] = _nanratio(mp - mn, mp + mn) if np.isfinite(mp) and np.isfinite(mn) else float("nan")
+
+    # pieces
+    if T:
+        f["pieces_observed"] = float(count_pieces(obs_list[T - 1], link_m, min_piece_frac))
+        f["pieces_simulated"] = float(count_pieces(sim[T - 1], link_m, min_piece_frac))
+        idx = list(range(0, T, max(1, piece_stride)))
+        f["pieces_observed_max"] = float(max(count_pieces(obs_list[t], link_m, min_piece_frac) for t in idx))
+        f["pieces_simulated_max"] = float(max(count_pieces(sim[t], link_m, min_piece_frac) for t in idx))
+    else:
+        for k in ("pieces_observed", "pieces_simulated", "pieces_observed_max", "pieces_simulated_max"):
+            f[k] = float("nan")
+
+    # slip of tracked points relative to a closed gripper
+    f["track_slip_m"] = float("nan")
+    if tracks is not None and sim_tracks is not None and T:
+        tr = np.asarray(tracks, dtype=float)[:T]
+        st = np.asarray(sim_tracks, dtype=float)[:T]
+        vis = (np.ones(tr.shape[:2]) if visible is None else np.asarray(visible))[:T] > 0.5
+        gap = contact_distances(ee[:T], ee_radius, obs_list[:T])
+        rad = np.broadcast_to(np.asarray(ee_radius, dtype=float), (K,))
+        so, ss = [], []
+        for k in range(K):
+            for s, e in _segments(grip[:, k] & (gap[:, k] <= contact_dist_m)):
+                if e - s < 2:
+                    continue
+                near = vis[s] & (np.linalg.norm(tr[s] - ee[s, k], axis=-1) - rad[k] <= near_m)
+                for m in np.flatnonzero(near):
+                    vf = np.flatnonzero(vis[s:e, m])
+                    if len(vf) < 2:
+                        continue
+                    a, b = s + vf[0], s + vf[-1]
+                    so.append(np.linalg.norm((tr[b, m] - ee[b, k]) - (tr[a, m] - ee[a, k])))
+                    ss.append(np.linalg.norm((st[b, m] - ee[b, k]) - (st[a, m] - ee[a, k])))
+        if so:
+            f["track_slip_m"] = float(np.median(so) - np.median(ss))
+
+    # decay of the motion after the last contact
+    f["decay_rate_obs_per_s"] = f["decay_rate_sim_per_s"] = f["oscillation_decay"] = float("nan")
+    if cont.any() and free.any():
+        last = int(np.flatnonzero(cont)[-1]) + 1
+        if T - last >= 3:
+            vo = object_speed(c_obs, fps, 3)[last:]
+            vs = backward_speed(c_sim, fps)[last:]
+            lo, ls = _decay_rate(vo, fps, floor_mps), _decay_rate(vs, fps, floor_mps)
+            f["decay_rate_obs_per_s"], f["decay_rate_sim_per_s"] = lo, ls
+            f["oscillation_decay"] = _nanratio(lo, ls)
+
+    # sliding on the table without contact
+    nocontact = _frames_in(lab, ("approach",) + FREE_PHASES)
+    segs = [(s, e) for s, e in _segments(nocontact) if e - s >= 2]
+    if segs and (cont.any()):
+        f["table_slide_m"] = float(sum(_edge_disp(c_obs, s, e, edge_frames, slice(0, 2))
+                                       - _edge_disp(c_sim, s, e, edge_frames, slice(0, 2)) for s, e in segs))
+    else:
+        f["table_slide_m"] = float("nan")
+
+    # residual near the end-effectors vs on free parts
+    near_r, free_r = [], []
+    for t in range(T):
+        o = _pts(obs_list[t])
+        if len(o) == 0:
+            continue
+        rl = regions(o, ee[t], ee_radius, table_z, near_m)
+        near_r.append(pr[t][np.char.startswith(rl, "near_ee")])
+        free_r.append(pr[t][rl == "free"])
+    nm = _nanmean(np.concatenate(near_r)) if near_r else float("nan")
+    fm = _nanmean(np.concatenate(free_r)) if free_r else float("nan")
+    f["residual_near_ee_vs_free"] = _nanratio(nm, fm)
+    return f
+
+
+def localise(
+    phases: Sequence[Phase],
+    obs_list: Sequence[np.ndarray],
+    sim: np.ndarray,
+    ee_positions: np.ndarray,
+    ee_radius,
+    *,
+    table_z: float = 0.0,
+    near_m: float = 0.03,
+    table_band_m: float = 0.005,
+    top_k: int = 5,
+    min_points: int = 20,
+    frame_res: Optional[np.ndarray] = None,
+    point_res: Optional[List[np.ndarray]] = None,
+) -> dict:
+    """Where the disagreement is: mean observed-point residual per (phase, region), worst cell, worst frames.
+
+    Returns a dict with
+      ``table``: ``{phase: {region: mean residual (m)}}``; ``counts``: same layout, number of points;
+      ``worst_phase`` / ``worst_region`` / ``worst_cell`` (phase, region): highest mean residual among
+      cells with at least ``min_points`` points (falls back to all cells);
+      ``by_phase`` / ``by_region``: marginal means (m); ``halves``: ``{"positive", "negative"}`` mean
+      residual on the two body halves of :func:`body_halves` plus ``axis``;
+      ``frame_residuals``: ``[T]`` list (m); ``worst_frames``: the ``top_k`` frames by frame residual.
+    """
+    sim = np.asarray(sim, dtype=float)
+    ee = np.asarray(ee_positions, dtype=float)
+    if ee.ndim == 2:
+        ee = ee[:, None, :]
+    T = min(len(obs_list), len(sim), len(ee))
+    lab = phase_of_frames(phases, T)
+    fr = frame_residuals(obs_list[:T], sim[:T]) if frame_res is None else np.asarray(frame_res)[:T]
+    pr = residuals_per_frame(obs_list[:T], sim[:T]) if point_res is None else point_res
+    sums: Dict[Tuple[str, str], float] = {}
+    cnts: Dict[Tuple[str, str], int] = {}
+    pos, axis, _ = body_halves(sim[0])
+    hs, hc = np.zeros(2), np.zeros(2)
+    for t in range(T):
+        o = _pts(obs_list[t])
+        if len(o) == 0:
+            continue
+        r = pr[t]
+        rl = regions(o, ee[t], ee_radius, table_z, near_m, table_band_m)
+        for reg in np.unique(rl):
+            m = rl == reg
+            key = (str(lab[t]), str(reg))
+            sums[key] = sums.get(key, 0.0) + float(np.nansum(r[m]))
+            cnts[key] = cnts.get(key, 0) + int(np.sum(np.isfinite(r[m])))
+        _, i = cKDTree(sim[t]).query(o, k=1)
+        for h, m in enumerate((pos[i], ~pos[i])):
+            hs[h] += np.nansum(r[m])
+            hc[h] += np.sum(np.isfinite(r[m]))
+    table: Dict[str, Dict[str, float]] = {}
+    counts: Dict[str, Dict[str, int]] = {}
+    for (ph, reg), s in sums.items():
+        table.setdefault(ph, {})[reg] = s / cnts[(ph, reg)] if cnts[(ph, reg)] else float("nan")
+        counts.setdefault(ph, {})[reg] = cnts[(ph, reg)]
+    cells = [(k, sums[k] / cnts[k]) for k in sums if cnts[k] >= min_points] or \
+            [(k, sums[k] / cnts[k]) for k in sums if cnts[k] > 0]
+    worst = max(cells, key=lambda kv: kv[1])[0] if cells else (None, None)
+
+    def marginal(idx):
+        s, c = {}, {}
+        for key in sums:
+            s[key[idx]] = s.get(key[idx], 0.0) + sums[key]
+            c[key[idx]] = c.get(key[idx], 0) + cnts[key]
+        return {k: (s[k] / c[k] if c[k] else float("nan")) for k in s}
+
+    by_phase, by_region = marginal(0), marginal(1)
+    ok = np.isfinite(fr)
+    order = np.argsort(np.where(ok, -fr, np.inf))
+    worst_frames = [int(t) for t in order[:top_k] if ok[t]]
+    return {
+        "table": table,
+        "counts": counts,
+        "worst_cell": worst,
+        "worst_phase": max(by_phase, key=by_phase.get) if by_phase else None,
+        "worst_region": max(by_region, key=by_region.get) if by_region else None,
+        "by_phase": by_phase,
+        "by_region": by_region,
+        "halves": {"positive": float(hs[0] / hc[0]) if hc[0] else float("nan"),
+                   "negative": float(hs[1] / hc[1]) if hc[1] else float("nan"),
+                   "axis": [float(a) for a in axis]},
+        "frame_residuals": [float(x) for x in fr],
+        "worst_frames": worst_frames,
+    }
