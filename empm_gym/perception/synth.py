@@ -50,6 +50,7 @@ import numpy as np
 
 from .cameras import Camera, intrinsics_matrix, look_at, pixel_rays
 from .recording import RecordingError, RecordingWriter
+from .scripts import SCRIPTS, ObjectGeometry, _phases, _smooth, run_script
 
 __all__ = ["synthesize", "register", "OBJECT_DEFAULTS", "render_view", "add_depth_noise", "camera_ring",
            "SurfaceEmbedding"]
@@ -63,10 +64,12 @@ __all__ = ["synthesize", "register", "OBJECT_DEFAULTS", "render_view", "add_dept
 OBJECT_DEFAULTS: Dict[str, dict] = {
     "rope": {"E": 5.0e4, "nu": 0.3, "density": 1100.0, "yield_stress": None},
     "dough": {"E": 2.0e4, "nu": 0.3, "density": 1200.0, "yield_stress": 2.0e3},
+    "block": {"E": 6.0e4, "nu": 0.3, "density": 1000.0, "yield_stress": None},
 }
 
 _ROPE_LENGTH_M, _ROPE_RADIUS_M, _ROPE_GRIPPER_RADIUS_M = 0.30, 0.012, 0.018
 _DOUGH_SIZE_M = (0.05, 0.05, 0.045)
+_BLOCK_SIZE_M = (0.04, 0.04, 0.04)
 _PLATE_HALF_M = (0.006, 0.035, 0.028)
 _TABLE_HALF_M = 0.6
 
@@ -74,21 +77,6 @@ _TABLE_HALF_M = 0.6
 # ----------------------------------------------------------------------------------------------
 # scene and script
 # ----------------------------------------------------------------------------------------------
-
-
-def _smooth(s):
-    """Cosine ease from 0 to 1 over s in [0, 1]."""
-    s = np.clip(s, 0.0, 1.0)
-    return 0.5 - 0.5 * np.cos(np.pi * s)
-
-
-def _phases(T: int, fractions: List[float]) -> List[int]:
-    """Frame boundaries of consecutive phases with the given fractions of T (each at least one interval)."""
-    b = [0]
-    for f in np.cumsum(fractions)[:-1]:
-        b.append(max(b[-1] + 1, int(round(f * (T - 1)))))
-    b.append(max(b[-1] + 1, T - 1))
-    return b
 
 
 def _rope_script(T: int):
@@ -132,27 +120,161 @@ def _dough_script(T: int):
     return pos, np.zeros((T, 2), np.int32)
 
 
+_GEOMETRY = {"rope": ObjectGeometry((_ROPE_LENGTH_M, 2 * _ROPE_RADIUS_M, 2 * _ROPE_RADIUS_M)),
+             "dough": ObjectGeometry(_DOUGH_SIZE_M), "block": ObjectGeometry(_BLOCK_SIZE_M)}
+
+#: Script used when none is named (``--script default``): the historic rope / dough scripts.
+DEFAULT_SCRIPT = {"rope": "default", "dough": "default", "block": "press-release"}
+
+
+def _script(obj: str, script: str, T: int, dx: float = 0.01):
+    """(positions [T, K, 3], grip [T, K], end-effector kwargs, grid (lower, upper) or None)."""
+    if script == "default" and obj in ("rope", "dough"):
+        if obj == "rope":
+            pos, grip = _rope_script(T)
+            ees = [{"shape": "sphere", "radius": _ROPE_GRIPPER_RADIUS_M}] * 2
+            return pos, grip, ees, ((-0.25, -0.08, -0.04), (0.25, 0.08, 0.17))
+        pos, grip = _dough_script(T)
+        ees = [{"shape": "box", "half_extents": _PLATE_HALF_M}] * 2
+        return pos, grip, ees, ((-0.12, -0.09, -0.04), (0.12, 0.09, 0.12))
+    name = DEFAULT_SCRIPT[obj] if script == "default" else script
+    r = run_script(name, T, _GEOMETRY[obj])
+    lo, hi = np.array(r.reach[0], float), np.array(r.reach[1], float)
+    for k, e in enumerate(r.end_effectors):
+        ext = np.full(3, e["radius"]) if e["shape"] == "sphere" else np.asarray(e["half_extents"], float)
+        lo = np.minimum(lo, r.positions[:, k].min(0) - ext)
+        hi = np.maximum(hi, r.positions[:, k].max(0) + ext)
+    m = max(0.03, 3.5 * dx)                            # the grid's boundary cells are not usable
+    lo, hi = lo - m, hi + m
+    c, half = (lo + hi) / 2, np.maximum((hi - lo) / 2, 4 * dx)
+    lo, hi = c - half, c + half
+    lo[2] = min(-0.04, -2 * dx)
+    return r.positions, r.grip, r.end_effectors, (tuple(np.round(lo, 4)), tuple(np.round(hi, 4)))
+
+
 def _build(obj: str, material, *, dx: float, ppc: float, table_friction: float, ee_friction: float, seed: int,
-           device, controls_pos):
+           device, controls_pos, ee_kwargs, grid_box):
     from empm_gym.sim import (EndEffectorConfig, GridConfig, ModelBuilder, TableConfig, sample_box,
                               sample_cylinder)
 
+    grid = GridConfig(lower=grid_box[0], upper=grid_box[1], dx=dx)
     if obj == "rope":
         L, r = _ROPE_LENGTH_M, _ROPE_RADIUS_M
-        grid = GridConfig(lower=(-0.25, -0.08, -0.04), upper=(0.25, 0.08, 0.17), dx=dx)
         x, vol = sample_cylinder((-L / 2, 0, r), (L / 2, 0, r), r, dx, ppc, seed=seed)
-        ee = [EndEffectorConfig(shape="sphere", radius=_ROPE_GRIPPER_RADIUS_M, friction=ee_friction)] * 2
     else:
-        sx, sy, sz = _DOUGH_SIZE_M
-        grid = GridConfig(lower=(-0.12, -0.09, -0.04), upper=(0.12, 0.09, 0.12), dx=dx)
+        sx, sy, sz = _GEOMETRY[obj].size
         x, vol = sample_box((-sx / 2, -sy / 2, 0.0), (sx / 2, sy / 2, sz), dx, ppc, seed=seed)
-        ee = [EndEffectorConfig(shape="box", half_extents=_PLATE_HALF_M, friction=ee_friction)] * 2
+    ee = [EndEffectorConfig(friction=ee_friction, **kw) for kw in ee_kwargs]
     b = ModelBuilder(grid, gravity=(0, 0, -9.81), table=TableConfig(height=0.0, friction=table_friction))
     w = b.add_world(material)
     b.add_particles(w, x, vol)
     for k, cfg in enumerate(ee):
         b.add_end_effector(w, cfg, controls_pos[0, k])
     return b.finalize(device), ee, grid
+
+
+def default_effect_params(effect: str, material) -> Dict[str, float]:
+    """Parameters of ``effect`` when ``--effect NAME`` is given without ``--effect-param`` (SI), chosen so
+    that its signature is clear on its natural script (see docs/EFFECTS.md): a yield stress of 5 % of E
+    (press-release leaves a dent), eta = 50 Pa s (squeeze-ring), table friction 0.05 (push-slide),
+    grip friction 1 (squeeze-lift: slips unless it grasps the whole weight), a stiffness slope of 1 along
+    the long axis (pull-apart), fracture from 20 % stretch (pull-apart pulls to 80 %)."""
+    from empm_gym.sim.effects import EFFECTS
+
+    if effect not in EFFECTS:
+        raise ValueError(f"unknown effect {effect!r}; known: none, {', '.join(EFFECTS)}")
+    return {
+        "plasticity": {"yield_stress": 0.05 * material.E},
+        "viscosity": {"viscosity": 50.0},
+        "table_friction": {"friction": 0.05},
+        "gripper_slip": {"grip_friction": 1.0},
+        "heterogeneous_stiffness": {"stiffness_slope_1": 1.0},
+        "fracture": {"fracture_strain": 0.2, "fracture_softening": 0.05},
+    }[effect]
+
+
+def effect_material(object: str, effect: str, effect_params: Optional[Dict[str, float]] = None, *,
+                    base=None, E: Optional[float] = None, nu: Optional[float] = None,
+                    density: Optional[float] = None):
+    """(MaterialConfig, effects list for ground_truth.json): the base model of ``object`` (elastic, table
+    friction 0.5, rigid grip; ``base`` replaces it) with ``effect`` ("none" or a name of
+    :data:`empm_gym.sim.effects.EFFECTS`) as its only effect, its parameters being the defaults of
+    :func:`default_effect_params` updated by ``effect_params`` (validated against the registry)."""
+    from empm_gym.sim import MaterialConfig
+    from empm_gym.sim.effects import BASE_TABLE_FRICTION, EFFECTS
+
+    if object not in OBJECT_DEFAULTS:
+        raise ValueError(f"object must be one of {sorted(OBJECT_DEFAULTS)}, got {object!r}")
+    if base is None:
+        d = {k: v for k, v in OBJECT_DEFAULTS[object].items() if k != "yield_stress"}
+        base = MaterialConfig(**d, params={"friction": BASE_TABLE_FRICTION})
+    kw = {k: float(v) for k, v in (("E", E), ("nu", nu), ("density", density)) if v is not None}
+    if kw:
+        base = base.replace(**kw)
+    effect_params = dict(effect_params or {})
+    if effect in (None, "none"):
+        if effect_params:
+            raise ValueError(f"--effect none takes no effect parameters, got {', '.join(effect_params)}")
+        return base, []
+    if effect not in EFFECTS:
+        raise ValueError(f"unknown effect {effect!r}; known: none, {', '.join(EFFECTS)}")
+    eff = EFFECTS[effect]
+    params = default_effect_params(effect, base)
+    for k, v in effect_params.items():
+        if k not in eff.param_names:
+            raise ValueError(f"effect {effect!r} has no parameter {k!r}; its parameters: "
+                             f"{', '.join(eff.param_names)}")
+        params[k] = next(p for p in eff.params if p.name == k).check(v, f"effect {effect}: ")
+    material = base.replace(**params)
+    return material, [{"name": effect, "params": {k: float(v) for k, v in params.items()}}]
+
+
+def _effect_param_names(effect: str):
+    from empm_gym.sim.effects import EFFECTS
+
+    return EFFECTS[effect].param_names
+
+
+def simulate(object: str, material, *, script: str = "default", frames: int = 60, fps: float = 30.0,
+             dx: float = 0.01, particles_per_cell: float = 8, table_friction: float = 0.5,
+             gripper_friction: float = 0.8, seed: int = 0, device: str = "cpu", progress: bool = False) -> dict:
+    """Run ``script`` on ``object`` of ``material`` without rendering. Returns a dict: ``particles`` [T, N, 3]
+    (m, frame t = after t intervals), ``positions`` [T, K, 3], ``grip`` [T, K], ``end_effectors``
+    (EndEffectorConfig list), ``grid``, ``model``, ``substeps``, ``dt``. The table friction is
+    ``material.params['friction']`` where set, else ``table_friction``."""
+    from tqdm.auto import tqdm
+
+    from empm_gym.sim import SolverMPM
+
+    if object not in OBJECT_DEFAULTS:
+        raise ValueError(f"object must be one of {sorted(OBJECT_DEFAULTS)}, got {object!r}")
+    if script != "default" and script not in SCRIPTS:
+        raise ValueError(f"unknown script {script!r}; known: default, {', '.join(SCRIPTS)}")
+    if int(frames) < 2:
+        raise ValueError(f"frames must be >= 2, got {frames!r}")
+    T = int(frames)
+    pos, grip, ee_kw, grid_box = _script(object, script, T, dx)
+    model, ee_cfgs, grid = _build(object, material, dx=dx, ppc=particles_per_cell, table_friction=table_friction,
+                                  ee_friction=gripper_friction, seed=seed, device=device, controls_pos=pos,
+                                  ee_kwargs=ee_kw, grid_box=grid_box)
+    solver = SolverMPM(model)
+    vel = np.diff(pos, axis=0) * fps
+    vmax = float(np.max(np.linalg.norm(vel, axis=-1))) if len(vel) else 0.0
+    n_sub = int(math.ceil((1.0 / fps) / (0.9 * solver.max_stable_dt(vmax))))
+    dt = 1.0 / (fps * n_sub)
+    s0, s1 = model.state(), model.state()
+    ctrl = model.control()
+    X = np.zeros((T, model.particle_count, 3), np.float32)
+    X[0] = s0.particle_x.numpy()
+    for t in tqdm(range(T - 1), desc=f"simulate {object} ({model.particle_count} particles, {n_sub} substeps/frame)",
+                  disable=not progress, leave=False):
+        ctrl.set(velocity=vel[t][None], grip=grip[t][None])
+        for _ in range(n_sub):
+            solver.step(s0, s1, ctrl, dt)
+            s0, s1 = s1, s0
+        X[t + 1] = s0.particle_x.numpy()
+    return {"particles": X, "positions": pos, "grip": grip, "end_effectors": ee_cfgs, "grid": grid,
+            "model": model, "substeps": n_sub, "dt": dt}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -455,21 +577,38 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
                fy: Optional[float] = None, fps: float = 30.0, dx: float = 0.01, particles_per_cell: float = 8,
                table_friction: float = 0.5, gripper_friction: float = 0.8, surface_spacing_m: float = 0.0015,
                noise_sigma_m: float = 1.5e-3, n_tracks: int = 128, depth_format: str = "npy",
-               overwrite: bool = False, progress: bool = True, device: str = "cpu") -> Path:
+               overwrite: bool = False, progress: bool = True, device: str = "cpu", script: str = "default",
+               effect: Optional[str] = None, effect_params: Optional[Dict[str, float]] = None,
+               material=None, debug_particles: Optional[bool] = None) -> Path:
     """Simulate a scripted manipulation and write a synthetic recording with known parameters to ``out_dir``.
 
-    ``object`` is "rope" (elastic unless ``yield_stress`` is given) or "dough" (elastoplastic); material
-    parameters default to :data:`OBJECT_DEFAULTS` (E, yield_stress in Pa, density in kg/m^3). The scene
-    is rendered from ``cameras`` cameras (``width`` x ``height`` pixels, focal ``fx``, ``fy`` pixels) at
-    ``fps`` for ``frames`` frames (focal lengths default to 420 px scaled by width / 848). Returns the recording path. See the module docstring for the scene,
-    the noise model and how ``controls.npz`` replays.
+    ``object`` is "rope", "dough" or "block"; ``script`` "default" (rope lift-and-stretch, dough squeeze,
+    block press-release) or a name of :data:`empm_gym.perception.scripts.SCRIPTS`.
+
+    Materials: without ``effect`` (and ``material``) the object takes :data:`OBJECT_DEFAULTS` (the dough is
+    elastoplastic), overridden by ``E``, ``nu``, ``density``, ``yield_stress`` (Pa, -, kg/m^3, Pa), on a
+    table of friction ``table_friction``. With ``effect`` ("none" or an effect of
+    :data:`empm_gym.sim.effects.EFFECTS`) the object is the base model (elastic, whatever the object, table
+    friction 0.5, rigid closed grippers) plus that one effect with :func:`default_effect_params` updated
+    by ``effect_params``; ``material`` (a MaterialConfig, e.g. from a material file) replaces the base
+    model, or without ``effect`` is used as it is. Only ``ground_truth.json`` names the effects: every
+    other file is the same for every effect given the object, script, frames, cameras and seed (the debug
+    particle file ``ground_truth_particles.npz`` is written only when ``debug_particles``, which defaults to
+    True for the historic calls without ``effect`` / ``material`` and to False otherwise).
+
+    The scene is rendered from ``cameras`` cameras (``width`` x ``height`` pixels, focal ``fx``, ``fy``
+    pixels) at ``fps`` for ``frames`` frames (focal lengths default to 420 px scaled by width / 848).
+    Returns the recording path. See the module docstring for the scene, the noise model and how
+    ``controls.npz`` replays.
     """
     from tqdm.auto import tqdm
 
-    from empm_gym.sim import MaterialConfig, SolverMPM
+    from empm_gym.sim import MaterialConfig
 
     if object not in OBJECT_DEFAULTS:
         raise ValueError(f"object must be one of {sorted(OBJECT_DEFAULTS)}, got {object!r}")
+    if script != "default" and script not in SCRIPTS:
+        raise ValueError(f"unknown script {script!r}; known: default, {', '.join(SCRIPTS)}")
     if int(frames) < 2:
         raise ValueError(f"frames must be >= 2, got {frames!r}")
     if int(cameras) < 1:
@@ -477,17 +616,46 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
     T, C = int(frames), int(cameras)
     fx = 420.0 * width / 848.0 if fx is None else float(fx)
     fy = fx if fy is None else float(fy)
-    d = dict(OBJECT_DEFAULTS[object])
-    for k, v in (("E", E), ("nu", nu), ("density", density), ("yield_stress", yield_stress)):
-        if v is not None:
-            d[k] = float(v)
-    material = MaterialConfig(**d)
+    legacy = effect is None and material is None
+    if debug_particles is None:
+        debug_particles = legacy
+    if effect is not None:
+        if yield_stress is not None:
+            raise ValueError("yield_stress is an effect parameter: use effect='plasticity' with "
+                             "effect_params={'yield_stress': ...}")
+        material, effects = effect_material(object, effect, effect_params, base=material, E=E, nu=nu,
+                                            density=density)
+    elif material is not None:
+        if effect_params:
+            raise ValueError("effect_params needs an effect")
+        kw = {k: float(v) for k, v in (("E", E), ("nu", nu), ("density", density), ("yield_stress", yield_stress))
+              if v is not None}
+        material = material.replace(**kw) if kw else material
+        effects = [{"name": n, "params": {p: material.get(p) for p in _effect_param_names(n)}}
+                   for n in material.effects()]
+    else:
+        if effect_params:
+            raise ValueError("effect_params needs an effect")
+        d = dict(OBJECT_DEFAULTS[object])
+        for k, v in (("E", E), ("nu", nu), ("density", density), ("yield_stress", yield_stress)):
+            if v is not None:
+                d[k] = float(v)
+        material = MaterialConfig(**d)
+        effects = []
+    if material.get("friction") is not None:
+        table_friction = float(material.get("friction"))
     rng = np.random.default_rng(seed)
     t_start = time.perf_counter()
 
-    pos, grip = _rope_script(T) if object == "rope" else _dough_script(T)
-    model, ee_cfgs, grid = _build(object, material, dx=dx, ppc=particles_per_cell, table_friction=table_friction,
-                                  ee_friction=gripper_friction, seed=seed, device=device, controls_pos=pos)
+    # -- simulate -------------------------------------------------------------------------------
+    sim = simulate(object, material, script=script, frames=T, fps=fps, dx=dx, particles_per_cell=particles_per_cell,
+                   table_friction=table_friction, gripper_friction=gripper_friction, seed=seed, device=device,
+                   progress=progress)
+    X, pos, grip, ee_cfgs, grid, model = (sim["particles"], sim["positions"], sim["grip"], sim["end_effectors"],
+                                          sim["grid"], sim["model"])
+    n_sub, dt = sim["substeps"], sim["dt"]
+    t_sim = time.perf_counter() - t_start
+
     cams = camera_ring(C, width=width, height=height, fx=fx, fy=fy,
                        target=(0.0, 0.0, 0.03 if object == "rope" else 0.02))
     out = Path(out_dir)
@@ -495,34 +663,21 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
                              height=height, fps=fps, frame_num=T, depth_scale=0.001, depth_format=depth_format,
                              serial_numbers=[f"synth-{i}" for i in range(C)], object_label=object,
                              overwrite=overwrite)
-
-    # -- simulate -------------------------------------------------------------------------------
-    solver = SolverMPM(model)
-    vel = np.diff(pos, axis=0) * fps
-    vmax = float(np.max(np.linalg.norm(vel, axis=-1))) if len(vel) else 0.0
-    n_sub = int(math.ceil((1.0 / fps) / (0.9 * solver.max_stable_dt(vmax))))
-    dt = 1.0 / (fps * n_sub)
-    s0, s1 = model.state(), model.state()
-    ctrl = model.control()
-    X = np.zeros((T, model.particle_count, 3), np.float32)
-    X[0] = s0.particle_x.numpy()
-    for t in tqdm(range(T - 1), desc=f"simulate {object} ({model.particle_count} particles, {n_sub} substeps/frame)",
-                  disable=not progress, leave=False):
-        ctrl.set(velocity=vel[t][None], grip=grip[t][None])
-        for _ in range(n_sub):
-            solver.step(s0, s1, ctrl, dt)
-            s0, s1 = s1, s0
-        X[t + 1] = s0.particle_x.numpy()
-    t_sim = time.perf_counter() - t_start
+    if not debug_particles:
+        (out / "ground_truth_particles.npz").unlink(missing_ok=True)
 
     # -- dense surface ------------------------------------------------------------------------------
     if object == "rope":
         sp, sn, u = _rope_surface(surface_spacing_m)
         stripes = 0.5 + 0.5 * np.cos(2 * np.pi * u * 12)
         albedo = np.stack([0.75 - 0.25 * stripes, 0.18 + 0.3 * stripes, 0.12 + 0.1 * stripes], -1)
-    else:
+    elif object == "dough":
         sp, sn, _ = _box_surface(_DOUGH_SIZE_M, surface_spacing_m)
         albedo = np.clip(np.array([0.85, 0.72, 0.45]) + rng.normal(0, 0.04, (len(sp), 1)), 0, 1)
+    else:
+        sp, sn, _ = _box_surface(_BLOCK_SIZE_M, surface_spacing_m)
+        speckle = rng.normal(0, 0.05, (len(sp), 1))
+        albedo = np.clip(np.array([0.25, 0.45, 0.75]) + speckle, 0, 1)
     emb = SurfaceEmbedding(sp, sn, X[0])
     n_tr = min(int(n_tracks), len(sp))
     track_idx = np.sort(rng.choice(len(sp), n_tr, replace=False)) if n_tr else np.zeros(0, int)
@@ -564,17 +719,22 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
         writer.write_tracks(c, tracks[c], vis[c])
     # debug only (never read by identification): the simulated particle trajectories [T, N, 3] (m) and
     # the end-effector centres per frame, to check that a replay of the recording reproduces them
-    np.savez_compressed(out / "ground_truth_particles.npz", positions=X, volumes=model.particle_vol.numpy(),
-                        ee_positions=pos.astype(np.float32), grip=grip)
+    if debug_particles:
+        np.savez_compressed(out / "ground_truth_particles.npz", positions=X, volumes=model.particle_vol.numpy(),
+                            ee_positions=pos.astype(np.float32), grip=grip)
     writer.write_ground_truth({
         "synthetic": True,
         "object": object,
+        "script": script if script != "default" else f"default ({DEFAULT_SCRIPT[object]})",
         "seed": int(seed),
         "material": {"E": material.E, "nu": material.nu, "density": material.density,
                      "yield_stress": material.yield_stress},
+        "material_parameters": material.to_dict(),
         "table_friction": float(table_friction),
         "gripper_friction": float(gripper_friction),
-        "effects": [],
+        "grip": ("rigid" if material.get("grip_friction") is None else
+                 f"friction {material.get('grip_friction'):g}"),
+        "effects": effects,
         "scene": {
             "grid": {"lower": list(grid.lower), "upper": list(grid.upper), "dx": grid.dx},
             "particles_per_cell": float(particles_per_cell),
@@ -585,8 +745,8 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
             "table_height_m": 0.0,
             "object_geometry": ({"type": "cylinder", "length_m": _ROPE_LENGTH_M, "radius_m": _ROPE_RADIUS_M,
                                  "axis": "x", "centre": [0.0, 0.0, _ROPE_RADIUS_M]} if object == "rope" else
-                                {"type": "box", "size_m": list(_DOUGH_SIZE_M), "lower": [-_DOUGH_SIZE_M[0] / 2,
-                                 -_DOUGH_SIZE_M[1] / 2, 0.0]}),
+                                {"type": "box", "size_m": list(_GEOMETRY[object].size),
+                                 "lower": [-_GEOMETRY[object].size[0] / 2, -_GEOMETRY[object].size[1] / 2, 0.0]}),
             "end_effectors": [{"shape": c.shape, "radius": c.radius, "half_extents": list(c.half_extents)}
                               for c in ee_cfgs],
         },
