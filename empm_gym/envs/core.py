@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import json
 import math
 import os
 from typing import Dict, List, Mapping, Optional, Sequence, Union
@@ -29,7 +28,8 @@ from typing import Dict, List, Mapping, Optional, Sequence, Union
 import numpy as np
 import warp as wp
 
-from ..sim import MaterialConfig, ModelBuilder, SimulationDiverged, SolverConfig, SolverMPM, TableConfig
+from ..sim import (MaterialConfig, ModelBuilder, SimulationDiverged, SolverConfig, SolverMPM, TableConfig,
+                   read_material)
 from . import kernels as EK
 from .tasks import TASKS, Task
 
@@ -37,37 +37,31 @@ __all__ = ["BatchedCore", "OBS_MODES", "load_material", "RANDOMIZE_KEYS"]
 
 OBS_MODES = ("state", "points", "depth")
 RANDOMIZE_KEYS = ("E", "nu", "density", "yield_stress", "friction")
-_MATERIAL_KEYS = ("E", "nu", "density", "yield_stress", "friction")
 REWARD_WEIGHT_CHAMFER = 0.5
 REWARD_WEIGHT_IOU = 0.5
 
 
 def load_material(material: Union[None, str, os.PathLike, Mapping], default: Mapping) -> Dict:
-    """Merge ``material`` (a dict or a JSON file path, e.g. identification's output) into ``default``.
+    """The flat material dict (:meth:`MaterialConfig.to_dict`) of ``material`` over ``default``.
 
-    Known keys: E [Pa], nu, density [kg/m^3], yield_stress [Pa] (None = elastic), friction (table
-    Coulomb coefficient). Other keys (such as a fit report) are ignored. The result is validated.
+    ``material`` is a material file path or mapping read by :func:`empm_gym.sim.read_material` (every effect
+    in it is simulated; unknown keys raise): a schema 2 file gives the whole material (E, nu, density
+    default to ``default``'s), a flat dict (E [Pa], nu, density [kg/m^3], yield_stress [Pa] (None =
+    elastic), viscosity [Pa s], friction (table Coulomb coefficient), any effect parameter) overrides
+    ``default`` key by key.
     """
-    out = dict(default)
+    base = MaterialConfig.from_dict(default)
     if material is None:
-        pass
-    elif isinstance(material, (str, os.PathLike)):
-        if not os.path.isfile(material):
-            raise ValueError(f"material file {str(material)!r} does not exist")
-        with open(material) as f:
-            data = json.load(f)
-        if isinstance(data, dict) and isinstance(data.get("material"), dict):
-            data = data["material"]
-        if not isinstance(data, dict):
-            raise ValueError(f"material file {str(material)!r} must hold a JSON object, got {type(data).__name__}")
-        out.update({k: v for k, v in data.items() if k in _MATERIAL_KEYS})
-    elif isinstance(material, Mapping):
-        out.update({k: v for k, v in material.items() if k in _MATERIAL_KEYS})
+        mat = base
+    elif isinstance(material, (str, os.PathLike, Mapping)):
+        try:
+            mat = read_material(material, base=base).material
+        except FileNotFoundError as exc:
+            raise ValueError(f"material file {str(material)!r} does not exist") from exc
     else:
         raise ValueError(f"material must be None, a dict or a JSON file path, got {type(material).__name__}")
-    MaterialConfig.from_dict(out)  # validates E, nu, density, yield_stress
-    TableConfig(friction=out.get("friction", 0.5))
-    return out
+    TableConfig(friction=mat.get("friction") if mat.get("friction") is not None else 0.5)
+    return mat.to_dict()
 
 
 def _check_randomize(randomize, material) -> Dict[str, tuple]:
@@ -196,6 +190,10 @@ class BatchedCore:
         self.max_wave_speed = self._max_wave_speed()
         vmax = self.max_speed * math.sqrt(3.0)
         dt_max = cfl * self.dx / (self.max_wave_speed + vmax)
+        eta = float(self.material.get("viscosity") or 0.0)
+        if eta > 0.0:  # explicit viscous diffusion limit (as SolverMPM.max_stable_dt)
+            rho_min = self.material["density"] * self.randomize.get("density", (1, 1))[0]
+            dt_max = min(dt_max, cfl * self.dx ** 2 / (3.0 * eta / rho_min))
         n = max(2, int(math.ceil(self.control_dt / dt_max - 1e-9)))
         self.substeps = n + (n % 2)  # even, so the result always ends in self.state
         self.dt = self.control_dt / self.substeps
@@ -254,7 +252,9 @@ class BatchedCore:
         E = m["E"] * r.get("E", (1, 1))[1]
         rho = m["density"] * r.get("density", (1, 1))[0]
         nu = m["nu"] * (r.get("nu", (1, 1))[1] if m["nu"] > 0 else r.get("nu", (1, 1))[0])
-        return MaterialConfig(E=E, nu=nu, density=rho).wave_speed
+        # the heterogeneous-stiffness field multiplies E by at most exp(sum |a_i|) (as Model.max_wave_speed)
+        slopes = sum(abs(float(m.get(f"stiffness_slope_{i}") or 0.0)) for i in (1, 2, 3))
+        return MaterialConfig(E=E, nu=nu, density=rho).wave_speed * math.exp(0.5 * slopes)
 
     def _sample_material(self, rng: np.random.Generator) -> Dict:
         m = dict(self.material)
