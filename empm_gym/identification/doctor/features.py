@@ -393,7 +393,7 @@ def summary_features(
         last = int(np.flatnonzero(cont)[-1]) + 1
         if T - last >= 3:
             vo = object_speed(c_obs, fps, 3)[last:]
-            vs = backward_speed(c_sim, fps)[last:]
+            vs = object_speed(c_sim, fps, 3)[last:]
             lo, ls = _decay_rate(vo, fps, floor_mps), _decay_rate(vs, fps, floor_mps)
             f["decay_rate_obs_per_s"], f["decay_rate_sim_per_s"] = lo, ls
             f["oscillation_decay"] = _nanratio(lo, ls)

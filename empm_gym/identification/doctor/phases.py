@@ -20,8 +20,9 @@ Every frame gets one of :data:`PHASES`:
 
 "Touching" means: the distance from an end-effector's centre to the nearest observed object point,
 minus the end-effector's radius, is at most ``contact_dist_m``. "Moving" end-effectors and object are
-decided from speeds: the end-effector speed is the backward difference of its control positions
-(frame ``t`` moves when ``p[t] != p[t-1]``), the object speed the backward difference of the observed
+decided from speeds: an end-effector moves at frame ``t`` when both its backward and forward control
+speeds exceed ``still_speed`` (it moves into and out of ``t``: the frame where it arrives on the object
+is contact, not motion), the object speed the backward difference of the observed
 centroid, median-filtered over ``smooth_frames`` frames (keeps step edges, removes single-frame
 noise). Nothing here uses file names, script frame indices or ground truth.
 """
@@ -188,7 +189,8 @@ def segment_phases(
         ee_radius: ``[K]`` (or scalar) end-effector radius (m).
         contact_dist_m: an end-effector touches when its surface gap to the nearest observed point
             is at most this (m). Default 1 cm (depth noise plus finger thickness).
-        still_speed: an end-effector is still below this control speed (m/s).
+        still_speed: an end-effector is still unless both its backward and forward control speeds
+            exceed this (m/s).
         obj_still_speed: the object is still below this (median-filtered) observed-centroid
             speed (m/s). Default 2 cm/s: above the centroid jitter of a few-mm depth noise at 30 fps.
         smooth_frames: median-filter window (frames) for the object speed.
@@ -206,7 +208,9 @@ def segment_phases(
     grip = np.asarray(ee_grip, dtype=float).reshape(T, -1) > 0.5
     gap = contact_distances(ee, ee_radius, obj_points)
     touch = gap <= contact_dist_m  # [T, K]
-    ee_moving = backward_speed(ee, fps) > still_speed  # [T, K]
+    v_back = backward_speed(ee, fps)  # [T, K]
+    v_fwd = np.concatenate([v_back[1:], v_back[-1:]], axis=0)
+    ee_moving = np.minimum(v_back, v_fwd) > still_speed  # moves into and out of frame t
     obj_moving = object_speed(observed_centroids(obj_points, T), fps, smooth_frames) > obj_still_speed
 
     any_touch = touch.any(axis=1)

@@ -1,0 +1,188 @@
+"""Localisation pieces of the discrepancy doctor on constructed data (pure numpy, fast)."""
+
+import numpy as np
+import pytest
+
+from empm_gym.identification.doctor.features import (
+    count_pieces,
+    frame_residuals,
+    localise,
+    point_residuals,
+    regions,
+    summary_features,
+    track_errors,
+)
+from empm_gym.identification.doctor.phases import PHASES, phase_of_frames, segment_phases
+
+FPS = 30.0
+
+
+def _block(nx=20, ny=6, nz=4, size=(0.2, 0.06, 0.04), z0=0.0):
+    g = np.stack(np.meshgrid(*[np.linspace(-s / 2, s / 2, n) for s, n in zip(size, (nx, ny, nz))],
+                             indexing="ij"), -1).reshape(-1, 3)
+    g[:, 2] += size[2] / 2 + z0
+    return g
+
+
+def _scenario(rng=None, noise=0.0):
+    """One gripper: approach 0-9, contact 10-11, holding 12-19, lift 20-34, release+fall 35-44, rest 45-59."""
+    T = 60
+    block = _block()
+    top = block[:, 2].max()
+    r = 0.01
+    ee = np.zeros((T, 1, 3))
+    grip = np.zeros((T, 1))
+    c = np.zeros((T, 3))  # object offset
+    hover = top + r  # ee centre when touching the top surface
+    for t in range(T):
+        if t < 10:
+            ee[t, 0] = (0, 0, hover + 0.1 - 0.1 * t / 9.5)  # reaches contact distance at t = 10
+        elif t < 20:
+            ee[t, 0] = (0, 0, hover)
+        elif t < 35:
+            ee[t, 0] = (0, 0, hover + 0.005 * (t - 19))
+            c[t] = (0, 0, 0.005 * (t - 19))
+        else:
+            ee[t, 0] = (0, 0, hover + 0.3)
+        grip[t] = 1.0 if 12 <= t < 35 else 0.0
+    ee[9, 0, 2] = hover + 0.03  # still outside contact at frame 9
+    h = c[34, 2]
+    for t in range(35, 45):  # falls to the table, reaching it at frame 44
+        c[t, 2] = h * (1 - ((t - 34) / 10) ** 2)
+    c[45:, 2] = 0.0
+    obs = []
+    rng = rng or np.random.default_rng(0)
+    for t in range(T):
+        p = block + c[t]
+        if noise:
+            p = p + rng.normal(0, noise, p.shape)
+        obs.append(p)
+    return ee, grip, obs, np.array([r]), block, c
+
+
+def test_known_phases_found():
+    ee, grip, obs, r, _, _ = _scenario(noise=0.0005)
+    phases = segment_phases(ee, grip, FPS, obs, r)
+    assert phases[0].start == 0 and phases[-1].stop == 60
+    assert all(a.stop == b.start for a, b in zip(phases, phases[1:]))
+    assert all(p.name in PHASES for p in phases)
+    expect = {"approach": (0, 10), "contact": (10, 12), "holding": (12, 20), "moving": (20, 35),
+              "after_release": (35, 45), "at_rest": (45, 60)}
+    got = {p.name: (p.start, p.stop) for p in phases}
+    assert [p.name for p in phases] == list(expect)
+    for name, (s, e) in expect.items():
+        assert abs(got[name][0] - s) <= 1 and abs(got[name][1] - e) <= 1, (name, got[name])
+    lab = phase_of_frames(phases, 60)
+    assert lab[15] == "holding" and lab[25] == "moving" and lab[55] == "at_rest"
+
+
+def test_no_contact_is_rest():
+    ee, grip, obs, r, block, _ = _scenario()
+    ee = ee + np.array([0, 0, 1.0])  # far away
+    obs = [block] * 60
+    phases = segment_phases(ee, grip, FPS, obs, r)
+    assert [p.name for p in phases] == ["at_rest"]
+
+
+def test_residual_helpers():
+    a = np.zeros((3, 3))
+    b = np.array([[0, 0, 0.01]])
+    np.testing.assert_allclose(point_residuals(a, b), 0.01)
+    fr = frame_residuals([a, np.zeros((0, 3))], np.stack([b, b]))
+    assert fr[0] == pytest.approx(0.01) and np.isnan(fr[1])
+    tr = np.zeros((2, 2, 3))
+    st = tr + np.array([0.003, 0.004, 0])
+    e = track_errors(tr, np.array([[1, 0], [1, 1]]), st)
+    assert e[0, 0] == pytest.approx(0.005) and np.isnan(e[0, 1])
+
+
+def test_regions():
+    pts = np.array([[0, 0, 0.1], [0.5, 0, 0.002], [0.5, 0, 0.1], [1.0, 0, 0.1]])
+    ee = np.array([[0, 0, 0.12], [1.0, 0, 0.13]])
+    lab = regions(pts, ee, [0.01, 0.01])
+    assert list(lab) == ["near_ee_0", "on_table", "free", "near_ee_1"]
+
+
+def test_drifting_region_localised():
+    """Observed points of the +x end (near gripper 0) drift sideways; the simulation stays put."""
+    T = 30
+    block = _block()
+    sim = np.repeat(block[None], T, 0)
+
+    def observe(sel):
+        out = []
+        for t in range(T):
+            p = block.copy()
+            p[sel, 1] += 0.0002 * t  # stays below half the grid spacing: monotone residual
+            out.append(p + np.random.default_rng(t).normal(0, 0.0003, p.shape))
+        return out
+
+    ee = np.zeros((T, 2, 3))
+    ee[:, 0] = (0.11, 0, 0.02)   # end-effector at the +x end
+    ee[:, 1] = (-0.11, 0, 0.02)  # and at the -x end
+    grip = np.ones((T, 2))
+    r = np.array([0.01, 0.01])
+    obs = observe(block[:, 0] > 0.05)
+    phases = segment_phases(ee, grip, FPS, obs, r)
+    assert [p.name for p in phases] == ["holding"]
+    loc = localise(phases, obs, sim, ee, r, near_m=0.05, table_band_m=-1.0)
+    assert loc["worst_region"] == "near_ee_0"
+    assert loc["worst_cell"] == ("holding", "near_ee_0")
+    assert loc["halves"]["positive"] > 3 * loc["halves"]["negative"]
+    assert min(loc["worst_frames"]) >= T - 5
+    f = summary_features(phases, obs, sim, ee, grip, r, FPS, near_m=0.05)
+    assert f["residual_asymmetry"] > 0.5
+    assert f["residual_near_ee_vs_free"] > 2.0
+    # mirrored: the -x end drifts -> negative asymmetry, near_ee_1 worst
+    obs2 = observe(block[:, 0] < -0.05)
+    loc2 = localise(phases, obs2, sim, ee, r, near_m=0.05, table_band_m=-1.0)
+    f2 = summary_features(phases, obs2, sim, ee, grip, r, FPS, near_m=0.05)
+    assert loc2["worst_region"] == "near_ee_1" and f2["residual_asymmetry"] < -0.5
+
+
+def test_pieces():
+    rng = np.random.default_rng(1)
+    a = rng.normal(0, 0.01, (400, 3))
+    b = rng.normal(0, 0.01, (300, 3)) + [0.2, 0, 0]
+    stray = np.array([[1.0, 1.0, 1.0]])
+    assert count_pieces(np.concatenate([a, b, stray])) == 2
+    assert count_pieces(a) == 1
+    assert count_pieces(np.zeros((0, 3))) == 0
+
+
+def test_features_on_scenario_and_slip():
+    ee, grip, obs, r, block, c = _scenario(noise=0.0005)
+    T = len(obs)
+    phases = segment_phases(ee, grip, FPS, obs, r)
+    sim = np.stack([block + c[t] for t in range(T)])
+    # tracks: points on the top near the gripper; observed ones slide down 1 mm per frame while lifted
+    top = np.flatnonzero((block[:, 2] >= block[:, 2].max() - 1e-9) & (np.abs(block[:, 0]) < 0.02))
+    st = sim[:, top]
+    tr = st.copy()
+    for t in range(20, 35):
+        tr[t, :, 2] -= 0.001 * (t - 19)
+    tr[35:] = tr[34]
+    vis = np.ones(tr.shape[:2])
+    vis[:, 0] = 0  # one track never visible
+    f = summary_features(phases, obs, sim, ee, grip, r, FPS, tracks=tr, visible=vis, sim_tracks=st)
+    assert f["track_slip_m"] == pytest.approx(0.015, abs=0.002)
+    assert f["pieces_observed"] == 1 and f["pieces_simulated"] == 1
+    assert abs(f["rest_drift_m"]) < 0.003
+    assert abs(f["table_slide_m"]) < 0.003
+    for k, v in f.items():
+        assert isinstance(v, float), k
+    # without tracks, or with no release: NaN, no crash
+    f0 = summary_features(phases[:3], obs[:20], sim[:20], ee[:20], grip[:20], r, FPS)
+    assert np.isnan(f0["track_slip_m"]) and np.isnan(f0["residual_after_release_vs_contact"])
+    assert np.isnan(f0["oscillation_decay"])
+
+
+def test_rest_drift_and_table_slide_detected():
+    ee, grip, obs, r, block, c = _scenario()
+    T = len(obs)
+    phases = segment_phases(ee, grip, FPS, obs, r)
+    sim = np.stack([block + c[t] for t in range(T)])
+    obs2 = [p + [0.0005 * max(0, t - 45), 0, 0] for t, p in enumerate(obs)]  # slow slide while at rest
+    f = summary_features(phases, obs2, sim, ee, grip, r, FPS)
+    assert f["table_slide_m"] > 0.005
+    assert f["rest_drift_m"] > 0.005
