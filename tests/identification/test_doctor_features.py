@@ -186,3 +186,38 @@ def test_rest_drift_and_table_slide_detected():
     f = summary_features(phases, obs2, sim, ee, grip, r, FPS)
     assert f["table_slide_m"] > 0.005
     assert f["rest_drift_m"] > 0.005
+
+
+def test_figures_and_report_written(tmp_path):
+    from empm_gym.identification.doctor.features import FEATURE_INFO
+    from empm_gym.identification.doctor.report import (
+        plot_candidate_gains,
+        plot_residual_heatmap,
+        plot_residual_timeline,
+        write_report_md,
+    )
+
+    ee, grip, obs, r, block, c = _scenario(noise=0.0005)
+    T = len(obs)
+    phases = segment_phases(ee, grip, FPS, obs, r)
+    sim = np.stack([block + c[t] * 0.9 for t in range(T)])
+    fr = frame_residuals(obs, sim)
+    f1 = plot_residual_timeline(fr, fr * 0.5, phases, 40, tmp_path / "fig" / "timeline.png", "rope", fps=FPS)
+    res = point_residuals(obs[30], sim[30])
+    f2 = plot_residual_heatmap({"frame 30, base": (obs[30], res), "frame 30, refit": (obs[30], res * 0.3)},
+                               tmp_path / "fig" / "heat.png", "worst frame")
+    f3 = plot_candidate_gains(["plasticity", "viscosity", "gripper_slip"], 0.004, [0.0035, 0.0039, 0.002], 0.0003,
+                              tmp_path / "fig" / "gains.png")
+    for f in (f1, f2, f3):
+        assert f.exists() and f.stat().st_size > 1000
+    loc = localise(phases, obs, sim, ee, r)
+    md = write_report_md(
+        tmp_path / "report.md",
+        {"headline": "gripper_slip explains the gap", "heldout_gain_mm": 2.0},
+        {"Residual over time": "fig/timeline.png", "Residual on the object": "fig/heat.png"},
+        {"Where the disagreement is": loc["table"],
+         "Candidates": [{"effect": "plasticity", "gain_mm": 0.5}, {"effect": "gripper_slip", "gain_mm": 2.0}]},
+        features=summary_features(phases, obs, sim, ee, grip, r, FPS), feature_info=FEATURE_INFO)
+    text = md.read_text()
+    assert text.index("gripper_slip explains the gap") < text.index("Where the disagreement is")
+    assert "![Residual over time](fig/timeline.png)" in text and "| effect | gain_mm |" in text
