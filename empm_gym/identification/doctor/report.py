@@ -43,7 +43,7 @@ def plot_residual_timeline(frames_residual_base, frames_residual_best, phases, f
     plt = _plt()
     base = np.asarray(frames_residual_base, dtype=float) * 1e3
     T = len(base)
-    fig, ax = plt.subplots(figsize=(9, 3.6))
+    fig, ax = plt.subplots(figsize=(10, 3.6))
     top = np.nanmax(base) if np.isfinite(base).any() else 1.0
     if frames_residual_best is not None:
         best = np.asarray(frames_residual_best, dtype=float) * 1e3
@@ -77,7 +77,7 @@ def plot_residual_timeline(frames_residual_base, frames_residual_best, phases, f
         sec = ax.secondary_xaxis("top", functions=(lambda f: f / fps, lambda s: s * fps))
         sec.set_xlabel("time (s)")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left", ncol=4, framealpha=0.85)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), framealpha=0.85)
     if title:
         ax.set_title(title)
     return _save(plt, fig, path)
@@ -99,7 +99,7 @@ def plot_residual_heatmap(points_by_frame: Mapping[str, Tuple[np.ndarray, np.nda
     allr = allr[np.isfinite(allr)]
     vmax = vmax_mm if vmax_mm is not None else (float(np.percentile(allr, 95)) if len(allr) else 1.0)
     vmax = vmax if vmax > 0 else 1.0
-    fig, axes = plt.subplots(2, n, figsize=(3.4 * n + 0.8, 5.6), squeeze=False)
+    fig, axes = plt.subplots(2, n, figsize=(3.4 * n + 1.2, 4.4), squeeze=False)
     allp = [np.asarray(p, dtype=float).reshape(-1, 3) for _, (p, _) in items]
     allp = np.concatenate(allp) if allp and sum(len(p) for p in allp) else np.zeros((1, 3))
     lo, hi = allp.min(0), allp.max(0)
@@ -114,7 +114,7 @@ def plot_residual_heatmap(points_by_frame: Mapping[str, Tuple[np.ndarray, np.nda
             sc = ax.scatter(p[order, a], p[order, b], c=r[order], s=4, cmap="inferno", vmin=0, vmax=vmax)
             ax.set_xlim(lo[a] - pad, hi[a] + pad)
             ax.set_ylim(lo[b] - pad, hi[b] + pad)
-            ax.set_aspect("equal", adjustable="datalim")
+            ax.set_aspect("equal", adjustable="box")
             ax.set_xlabel("x (m)", fontsize=8)
             if j == 0:
                 ax.set_ylabel(nm, fontsize=8)
@@ -166,9 +166,11 @@ def plot_candidate_gains(names: Sequence[str], heldout_before, heldout_after, th
     ax.set_xticks(x)
     ax.set_xticklabels([s.replace("_", "\n") for s in names], fontsize=8)
     ax.set_ylabel("held-out Chamfer (mm)")
+    tops = np.concatenate([before[np.isfinite(before)], after[np.isfinite(after)], [1e-3]])
+    ax.set_ylim(0, 1.35 * float(np.max(tops)))
     ax.set_title(title, fontsize=10)
     ax.grid(axis="y", alpha=0.3)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper center", ncol=3)
     return _save(plt, fig, path)
 
 
