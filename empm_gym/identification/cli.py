@@ -51,11 +51,18 @@ def _parse_init(text):
 
 
 def _base_material(init, params):
+    """The material a recording is replayed with: E, nu, density and the effect parameters given in ``init``
+    (yield_stress 1 kPa when fitted without a start; the table friction is the scene's)."""
     from empm_gym.sim import MaterialConfig
+    from empm_gym.sim.effects import PARAMETERS
 
     ys = init.get("yield_stress", 1.0e3 if "yield_stress" in params else None)
-    return MaterialConfig(E=init.get("E", 1.0e5), nu=init.get("nu", 0.3), density=init.get("density", 1000.0),
-                          yield_stress=ys)
+    m = MaterialConfig(E=init.get("E", 1.0e5), nu=init.get("nu", 0.3), density=init.get("density", 1000.0),
+                       yield_stress=ys)
+    try:
+        return m.replace(**{k: v for k, v in init.items() if k in PARAMETERS and k not in ("yield_stress", "friction")})
+    except ValueError as exc:
+        raise ValueError(f"--init: {exc}") from None
 
 
 def _identify(args) -> int:
@@ -64,6 +71,7 @@ def _identify(args) -> int:
     from .data import load_recording
     from .offline import identify
     from .report import plot_fit, plot_online, save_rrd
+    from empm_gym.sim import write_material
 
     try:
         params = _parse_params(args.params)
@@ -88,13 +96,10 @@ def _identify(args) -> int:
         res = replay(scene, frames, params=params, init=init or None, cameras=views.cameras, H=args.horizon,
                      k=args.every, lr=args.lr or 0.1, progress=not args.quiet)
         mat, mu = _material_from(scene, res["params"])
-        doc = {"E": mat.E, "nu": mat.nu, "density": mat.density,
-               "yield_stress": mat.yield_stress if mat.plastic else None, "friction": mu,
-               "fit": {"method": "online", "params": list(params), "init": res["initial_params"],
-                       "summary": res["summary"], "frames_used": T, "fps": obs.fps, "dx": scene.dx,
-                       "particles_per_cell": args.particles_per_cell}}
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(doc, indent=2))
+        fit = {"method": "online", "params": list(params), "init": res["initial_params"],
+               "summary": res["summary"], "frames_used": T, "fps": obs.fps, "dx": scene.dx,
+               "particles_per_cell": args.particles_per_cell}
+        write_material(out, mat.replace(friction=mu), fit)
         Path(f"{stem}_online.json").write_text(json.dumps(res, indent=2, default=float))
         plot_online(res, f"{stem}_online.png")
         s = res["summary"]
@@ -133,22 +138,19 @@ def _identify(args) -> int:
 
 
 def _material_from(scene, values):
-    from empm_gym.sim import MaterialConfig
-
-    m = scene.material
-    kw = dict(E=m.E, nu=m.nu, density=m.density, yield_stress=m.yield_stress)
-    kw.update({k: v for k, v in values.items() if k != "friction"})
-    return MaterialConfig(**kw), float(values.get("friction", scene.table_friction))
+    """(MaterialConfig, table friction) of the scene's material with ``values`` substituted."""
+    mat = scene.material.replace(**{k: v for k, v in values.items() if k != "friction"})
+    return mat, float(values.get("friction", scene.table_friction))
 
 
 def _evaluate(args) -> int:
     from .data import load_recording
     from .evaluate import evaluate, held_out_frames
-    from .offline import load_material
+    from empm_gym.sim import read_material
 
     try:
-        mat, mu = load_material(args.material)
-        fit = json.loads(Path(args.material).read_text()).get("fit") or {}
+        mf = read_material(args.material)
+        mat, mu, fit = mf.material, mf.table_friction, mf.fit or {}
         dx = args.dx or float(fit.get("dx", 0.01))
         ppc = args.particles_per_cell or float(fit.get("particles_per_cell", 27))
         scene, obs, views = load_recording(args.rec_dir, dx=dx, particles_per_cell=ppc, material=mat,
@@ -176,8 +178,12 @@ def register(subparsers) -> None:
     p.add_argument("rec_dir", help="recording directory")
     p.add_argument("--out", default="material.json", help="output material file (default material.json)")
     p.add_argument("--method", choices=("adam", "cmaes"), default="adam")
-    p.add_argument("--params", default="E", help="comma-separated subset of E,nu,density,yield_stress,friction")
-    p.add_argument("--init", default="", help="starting values, e.g. E=1e5,yield_stress=2000 (SI units)")
+    from .problem import PARAM_NAMES
+
+    p.add_argument("--params", default="E", help=f"comma-separated subset of {','.join(PARAM_NAMES)} (the base "
+                   f"parameters and every effect parameter of empm_gym.sim.effects)")
+    p.add_argument("--init", default="", help="starting values, e.g. E=1e5,yield_stress=2000,viscosity=5 (SI units; "
+                   "default: E=1e5, nu=0.3, density=1000, friction=0.5, an effect's registry start value)")
     p.add_argument("--iters", type=int, default=30, help="Adam steps or CMA-ES generations (default 30)")
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate in log-parameter space (default 0.15)")
     p.add_argument("--popsize", type=int, default=6, help="CMA-ES population = simulated worlds (default 6)")
@@ -196,7 +202,7 @@ def register(subparsers) -> None:
 
     e = subparsers.add_parser("evaluate", help="evaluate a material file on a recording's held-out frames")
     e.add_argument("rec_dir", help="recording directory")
-    e.add_argument("--material", required=True, help="material.json written by empm identify")
+    e.add_argument("--material", required=True, help="material file (material.json written by empm identify)")
     e.add_argument("--out-dir", default=None, help="where to write the report (default: next to the material)")
     e.add_argument("--train-fraction", type=float, default=0.7, help="frames after this fraction are evaluated")
     e.add_argument("--dx", type=float, default=None, help="grid cell in m (default: the one used for fitting)")

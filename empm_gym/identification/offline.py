@@ -20,7 +20,6 @@ The result is the evaluated parameter vector with the lowest loss.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -30,7 +29,9 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 import torch
 
-from empm_gym.sim import MaterialConfig, Rollout, SimulationDiverged, SolverConfig, SolverMPM
+from empm_gym.sim import MaterialConfig, Rollout, SimulationDiverged, SolverConfig, SolverMPM, read_material, write_material
+from empm_gym.sim.effects import PARAMETERS, parameter
+from empm_gym.sim.material_file import material_dict
 
 from .losses import chamfer_distance, chamfer_numpy, tracking_loss
 from .problem import PARAM_NAMES, Observations, ParamSpace, Scene, _ForwardSim, substeps_for
@@ -42,15 +43,31 @@ _DIVERGED_LOSS = 1.0e3
 
 
 def default_bounds(init: Dict[str, float]) -> Dict[str, Tuple[float, float]]:
-    """Search box around the starting values: a factor 10 either way for positive parameters, nu in (-0.9, 0.49)."""
+    """Search box around the starting values, from the registry (:mod:`empm_gym.sim.effects`).
+
+    E, density, yield_stress: a factor 10 either way; friction likewise (at least 1e-3 to 0.05); nu
+    (-0.9, 0.49); the other positive ("log") effect parameters the registry's search box intersected with a
+    factor 10 either way, always holding the start; "linear" ones (stiffness slopes) the registry's search
+    box widened to hold the start.
+    """
     out = {}
     for n, v in init.items():
+        p = parameter(n)
         if n == "nu":
             out[n] = (-0.9, 0.49)
         elif n == "friction":
             out[n] = (max(v / 10.0, 1e-3), max(v * 10.0, 0.05))
-        else:
+        elif n in ("E", "density", "yield_stress"):
             out[n] = (v / 10.0, v * 10.0)
+        elif p.transform == "log":
+            lo, hi = p.search
+            lo, hi = min(v, max(v / 10.0, lo)), max(v, min(v * 10.0, hi))
+            if lo >= hi:
+                lo, hi = v / 10.0, v * 10.0
+            out[n] = (max(lo, p.valid[0]) if p.valid[0] > 0 else lo, min(hi, p.valid[1]))
+        else:
+            lo, hi = p.search
+            out[n] = (max(min(lo, v), p.valid[0]), min(max(hi, v), p.valid[1]))
     return out
 
 
@@ -197,77 +214,66 @@ class FitResult:
     init: Dict[str, float]
     extra: Dict = field(default_factory=dict)
 
-    def to_dict(self) -> dict:
-        m = self.material
+    def fit_section(self) -> dict:
+        """The ``fit`` section of the material file."""
         return {
-            "E": m.E, "nu": m.nu, "density": m.density,
-            "yield_stress": m.yield_stress if m.plastic else None,
-            "friction": self.friction,
-            "fit": {
-                "method": self.method,
-                "params": list(self.params),
-                "init": self.init,
-                "loss": self.loss,
-                "loss_history": self.loss_history,
-                "param_history": self.param_history,
-                "wall_time_s": self.wall_time_s,
-                "frames_used": self.frames_used,
-                "frames_used_range": [0, self.frames_used - 1],
-                "fps": self.fps,
-                **self.extra,
-            },
+            "method": self.method,
+            "params": list(self.params),
+            "init": self.init,
+            "loss": self.loss,
+            "loss_history": self.loss_history,
+            "param_history": self.param_history,
+            "wall_time_s": self.wall_time_s,
+            "frames_used": self.frames_used,
+            "frames_used_range": [0, self.frames_used - 1],
+            "fps": self.fps,
+            **self.extra,
         }
 
+    def file_material(self) -> MaterialConfig:
+        """The fitted material with the table friction the fit used (what the material file holds)."""
+        return self.material if self.friction is None else self.material.replace(friction=float(self.friction))
+
+    def to_dict(self) -> dict:
+        """The material file's JSON object (schema 2, see :mod:`empm_gym.sim.material_file`)."""
+        return material_dict(self.file_material(), self.fit_section())
+
     def save(self, path) -> Path:
-        """Write ``material.json`` (a flat object of SI values plus the ``fit`` section)."""
-        p = Path(path)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        with open(p, "w", encoding="utf-8") as f:
-            json.dump(self.to_dict(), f, indent=2)
-        return p
+        """Write the material file (schema 2: base parameters, effects, and the ``fit`` section), atomically."""
+        return write_material(path, self.file_material(), self.fit_section())
 
 
-def load_material(path) -> Tuple[MaterialConfig, float]:
-    """(MaterialConfig, table friction) from a ``material.json`` written by :meth:`FitResult.save`."""
-    p = Path(path)
-    try:
-        with open(p, "r", encoding="utf-8") as f:
-            d = json.load(f)
-    except FileNotFoundError:
-        raise FileNotFoundError(f"{p}: material file missing") from None
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{p}: not valid JSON ({exc})") from None
-    if not isinstance(d, dict):
-        raise ValueError(f"{p}: must hold a JSON object with keys E, nu, density, yield_stress, friction")
-    missing = [k for k in ("E", "nu", "density") if k not in d]
-    if missing:
-        raise ValueError(f"{p}: missing keys {missing} (a material file needs E, nu, density, yield_stress, friction)")
-    try:
-        mat = MaterialConfig.from_dict(d)
-    except ValueError as exc:
-        raise ValueError(f"{p}: {exc}") from None
-    fr = d.get("friction")
-    return mat, (None if fr is None else float(fr))
+def load_material(path) -> Tuple[MaterialConfig, Optional[float]]:
+    """(MaterialConfig, table friction or None) of a material file; a thin wrapper of
+    :func:`empm_gym.sim.read_material` (which reads it)."""
+    mf = read_material(path)
+    return mf.material, mf.table_friction
 
 
 def _initial_values(scene: Scene, params: Sequence[str], init: Optional[Dict[str, float]]) -> Dict[str, float]:
+    """Starting values: ``init``, else the scene's material (and table friction), else the registry's start
+    value of an effect the scene's material does not simulate."""
     init = dict(init or {})
     unknown = set(init) - set(PARAM_NAMES)
     if unknown:
         raise ValueError(f"init names unknown parameters {sorted(unknown)}; allowed: {', '.join(PARAM_NAMES)}")
     m = scene.material
-    base = {"E": m.E, "nu": m.nu, "density": m.density, "yield_stress": m.yield_stress,
-            "friction": scene.table_friction}
     out = {}
     for n in params:
-        v = init.get(n, base[n])
-        if v is None:
-            raise ValueError(f"no starting value for {n!r}: the scene's material is elastic (yield_stress=None); "
-                             f"pass init={{'{n}': value_in_Pa}}")
-        out[n] = float(v)
-    if "yield_stress" in params and m.yield_stress is None:
-        # a plastic model is requested: the starting value comes from init
-        pass
+        if n not in PARAM_NAMES:
+            raise ValueError(f"unknown parameter {n!r}; allowed: {', '.join(PARAM_NAMES)}")
+        if n in init:
+            v = init[n]
+        elif n in ("E", "nu", "density"):
+            v = getattr(m, n)
+        elif n == "friction":
+            v = scene.table_friction
+        else:
+            p = PARAMETERS[n]
+            v = m.get(n)
+            if v is None or (p.off is not None and v == p.off and p.transform == "log"):
+                v = p.start  # the scene's material lacks the effect: the registry's starting value
+        out[n] = parameter(n).check(v, "init: ")
     ParamSpace(params, default_bounds(out))  # validates names
     return out
 
@@ -279,9 +285,11 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
              bounds: Optional[Dict[str, Tuple[float, float]]] = None, seed: int = 0, progress: bool = True,
              checkpoint_every: Union[str, int, None] = "auto", memory_budget_bytes: float = 1.0e9,
              callback: Optional[Callable[[int, float, Dict[str, float]], None]] = None) -> FitResult:
-    """Identify ``params`` (any of E, nu, density, yield_stress, friction) of ``scene`` from ``observations``.
+    """Identify ``params`` (any of :data:`~.problem.PARAM_NAMES`: E, nu, density and every effect parameter) of
+    ``scene`` from ``observations``.
 
-    ``init`` gives starting values (SI; default the scene's material and table friction), ``frames`` the
+    ``init`` gives starting values (SI; default the scene's material and table friction, else the effect's
+    registry start value), ``frames`` the
     number of leading frames fitted (default all observed frames the controls cover), ``iters`` Adam steps
     or CMA-ES generations, ``lr`` Adam's learning rate in the unconstrained space, ``popsize`` /
     ``sigma0`` CMA-ES's population (= simulated worlds) and initial step, ``bounds`` SI search boxes
@@ -309,10 +317,8 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
         observation = "surface" if observations.surface else "particles"
     objective = Objective(scene, observations, F, l_dist=l_dist, l_trk=l_trk, chamfer=chamfer,
                           max_points=max_points, seed=seed, observation=observation)
-    base_mat = scene.material
-    if "yield_stress" in params and base_mat.yield_stress is None:
-        base_mat = MaterialConfig(E=base_mat.E, nu=base_mat.nu, density=base_mat.density,
-                                  yield_stress=init_vals["yield_stress"])
+    # the fitted effects are simulated from the start (their flags and arrays on), at the starting values
+    base_mat = _base_material(scene.material, init_vals)
     t0 = time.perf_counter()
     if method == "adam":
         hist_l, hist_p, extra = _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, tuple(betas),
@@ -327,6 +333,15 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
     return FitResult(method=method, params=dict(best_p), material=mat, friction=mu, loss=float(hist_l[best]),
                      loss_history=[float(v) for v in hist_l], param_history=hist_p, wall_time_s=wall,
                      frames_used=F, fps=scene.fps, init=init_vals, extra=extra)
+
+
+def _base_material(material: MaterialConfig, init_vals: Dict[str, float]) -> MaterialConfig:
+    """``material`` with every fitted effect parameter set to its starting value (table friction excluded:
+    the scene carries it)."""
+    try:
+        return material.replace(**{n: v for n, v in init_vals.items() if n in PARAMETERS and n != "friction"})
+    except ValueError as exc:
+        raise ValueError(f"cannot fit {', '.join(init_vals)} on this material: {exc}") from None
 
 
 def _bar(iters, desc, progress):

@@ -18,6 +18,7 @@ import numpy as np
 
 from empm_gym.sim import (EndEffectorConfig, GridConfig, MaterialConfig, ModelBuilder, SimulationDiverged,
                           SolverConfig, SolverMPM, TableConfig)
+from empm_gym.sim.effects import BASE_PARAMETERS, PARAMETERS, parameter
 
 __all__ = [
     "Scene",
@@ -30,12 +31,11 @@ __all__ = [
     "quat_angular_velocity",
 ]
 
-#: Identifiable parameters: material (E [Pa], nu [-], density [kg/m^3], yield_stress [Pa]) and the
-#: table's Coulomb friction coefficient (``friction`` [-]).
-PARAM_NAMES = ("E", "nu", "density", "yield_stress", "friction")
+#: Identifiable parameters: the base model's (E [Pa], nu [-], density [kg/m^3]) and every effect parameter of
+#: :mod:`empm_gym.sim.effects` (yield_stress [Pa], viscosity [Pa s], the table's ``friction`` [-], grip_friction,
+#: stiffness_slope_1..3, fracture_strain, fracture_softening).
+PARAM_NAMES = tuple(BASE_PARAMETERS) + tuple(PARAMETERS)
 
-# reference scales of the log-space parameters (E normalised by 1e6 as in the paper)
-_SCALE = {"E": 1.0e6, "density": 1.0e3, "yield_stress": 1.0e3, "friction": 1.0}
 _NU_LO, _NU_HI = -1.0, 0.5
 # a table node layer sits this fraction of a cell below the table height (see Scene.grid_config)
 _TABLE_NODE_EPS = 1.0e-4
@@ -289,15 +289,17 @@ class Views:
 class ParamSpace:
     """Map between SI parameters and the unconstrained vector z that optimisers see.
 
-    Positive parameters live in log space relative to a reference scale (E / 1e6 Pa as in the paper,
-    density / 1e3 kg/m^3, yield_stress / 1e3 Pa, friction); nu = -1 + 1.5 * sigmoid(z) stays in (-1, 0.5).
+    Each parameter's coordinate follows its registry entry (:func:`empm_gym.sim.effects.parameter`):
+    "log" parameters live in log space relative to their reference scale (E / 1e6 Pa as in the paper,
+    density / 1e3 kg/m^3, yield_stress / 1e3 Pa, viscosity / 10 Pa s, ...), "linear" ones (the stiffness
+    slopes, which may be negative) as value / scale, and nu = -1 + 1.5 * sigmoid(z) stays in (-1, 0.5).
     ``bounds`` (SI, per parameter) are enforced by clamping z.
     """
 
     def __init__(self, names: Sequence[str], bounds: Dict[str, Tuple[float, float]]):
         names = tuple(names)
         if not names:
-            raise ValueError(f"params must name at least one of {PARAM_NAMES}")
+            raise ValueError(f"params must name at least one of {', '.join(PARAM_NAMES)}")
         for n in names:
             if n not in PARAM_NAMES:
                 raise ValueError(f"unknown parameter {n!r}; allowed: {', '.join(PARAM_NAMES)}")
@@ -309,9 +311,15 @@ class ParamSpace:
             if n not in bounds:
                 raise ValueError(f"ParamSpace: missing bounds for {n!r}")
             lo, hi = (float(v) for v in bounds[n])
-            ok = lo < hi and (lo > _NU_LO and hi < _NU_HI if n == "nu" else lo > 0)
+            t = parameter(n).transform
+            if n == "nu":
+                ok, allowed = lo < hi and lo > _NU_LO and hi < _NU_HI, "-1 < lo < hi < 0.5"
+            elif t == "log":
+                ok, allowed = lo < hi and lo > 0, "0 < lo < hi"
+            else:
+                vlo, vhi = parameter(n).valid
+                ok, allowed = vlo <= lo < hi <= vhi, f"{vlo:g} <= lo < hi <= {vhi:g}"
             if not ok:
-                allowed = "-1 < lo < hi < 0.5" if n == "nu" else "0 < lo < hi"
                 raise ValueError(f"bounds for {n!r} must satisfy {allowed}, got ({lo}, {hi})")
             self.bounds[n] = (lo, hi)
         self.z_lo = np.array([self.to_z1(n, self.bounds[n][0]) for n in names])
@@ -322,21 +330,27 @@ class ParamSpace:
         if name == "nu":
             s = (value - _NU_LO) / (_NU_HI - _NU_LO)
             return float(np.log(s / (1.0 - s)))
-        return float(np.log(value / _SCALE[name]))
+        p = parameter(name)
+        if p.transform == "log":
+            return float(np.log(value / p.scale))
+        return float(value / p.scale)
 
     @staticmethod
     def from_z1(name: str, z):
         """SI value of one coordinate; works for floats, numpy arrays and torch tensors."""
+        p = None if name == "nu" else parameter(name)
         try:
             import torch
 
             if isinstance(z, torch.Tensor):
-                return _NU_LO + (_NU_HI - _NU_LO) * torch.sigmoid(z) if name == "nu" else _SCALE[name] * torch.exp(z)
+                if name == "nu":
+                    return _NU_LO + (_NU_HI - _NU_LO) * torch.sigmoid(z)
+                return p.scale * torch.exp(z) if p.transform == "log" else p.scale * z
         except ImportError:  # pragma: no cover
             pass
         if name == "nu":
             return _NU_LO + (_NU_HI - _NU_LO) / (1.0 + np.exp(-z))
-        return _SCALE[name] * np.exp(z)
+        return p.scale * np.exp(z) if p.transform == "log" else p.scale * z
 
     def to_z(self, values: Dict[str, float]) -> np.ndarray:
         return np.array([self.to_z1(n, values[n]) for n in self.names])
@@ -348,19 +362,23 @@ class ParamSpace:
         return np.clip(z, self.z_lo, self.z_hi)
 
     def material(self, values: Dict[str, float], base: MaterialConfig, base_friction: float):
-        """(MaterialConfig, table friction) with the identified values substituted into ``base``."""
-        kw = dict(E=base.E, nu=base.nu, density=base.density, yield_stress=base.yield_stress)
-        for n in ("E", "nu", "density", "yield_stress"):
-            if n in values:
-                kw[n] = float(values[n])
-        return MaterialConfig(**kw), float(values.get("friction", base_friction))
+        """(MaterialConfig, table friction) with the identified values substituted into ``base`` (a fitted
+        table friction is also set in the material's ``friction``)."""
+        mat = base.replace(**{n: float(v) for n, v in values.items()})
+        return mat, float(values.get("friction", base_friction))
 
 
 def substeps_for(scene: Scene, materials: Sequence[MaterialConfig], max_ee_speed: float,
                  margin: float = 0.9) -> Tuple[int, float]:
-    """(substeps per frame, dt [s]) keeping dt below ``margin`` times the CFL limit of the stiffest material."""
-    c = max(m.wave_speed for m in materials)
+    """(substeps per frame, dt [s]) keeping dt below ``margin`` times the stable limit of the stiffest (and
+    most viscous) material."""
+    # the heterogeneous-stiffness field multiplies E by at most exp(sum |a_i|) (as Model.max_wave_speed)
+    c = max(m.wave_speed * math.exp(0.5 * sum(abs(m.get(f"stiffness_slope_{i}")) for i in (1, 2, 3)))
+            for m in materials)
     dt_max = margin * scene.cfl * scene.dx / (c + max(max_ee_speed, 0.0))
+    nu_k = max(m.viscosity / m.density for m in materials)
+    if nu_k > 0.0:  # explicit viscous diffusion limit (as SolverMPM.max_stable_dt)
+        dt_max = min(dt_max, margin * scene.cfl * scene.dx ** 2 / (3.0 * nu_k))
     n = max(1, int(math.ceil((1.0 / scene.fps) / dt_max)))
     return n, 1.0 / (scene.fps * n)
 

@@ -57,18 +57,24 @@ def test_adam_recovers_dough_yield_stress_within_15_percent():
 
 
 def test_material_json_round_trip(tmp_path, rope_adam):
+    from empm_gym.sim import read_material
+
     p = rope_adam.save(tmp_path / "m" / "material.json")
     d = json.loads(p.read_text())
-    assert set(d) == {"E", "nu", "density", "yield_stress", "friction", "fit"}
-    assert d["yield_stress"] is None and d["friction"] == pytest.approx(0.5)
+    assert set(d) == {"schema", "E", "nu", "density", "effects", "fit"} and d["schema"] == 2
+    assert d["effects"] == {"table_friction": {"friction": pytest.approx(0.5)}}  # elastic: no plasticity
     assert d["fit"]["method"] == "adam" and len(d["fit"]["loss_history"]) == 14
     assert d["fit"]["wall_time_s"] > 0 and d["fit"]["frames_used"] == 24
-    mat, mu = load_material(p)
-    assert mat.E == pytest.approx(rope_adam.params["E"]) and mu == pytest.approx(0.5)
+    assert d == json.loads(json.dumps(rope_adam.to_dict()))
+    mf = read_material(p)
+    assert mf.material.E == pytest.approx(rope_adam.params["E"]) and mf.table_friction == pytest.approx(0.5)
+    assert mf.fit["method"] == "adam"
+    mat, mu = load_material(p)  # the compatibility wrapper
+    assert mat == mf.material and mu == pytest.approx(0.5)
     (tmp_path / "bad.json").write_text('{"E": -3, "nu": 0.3, "density": 1000}')
-    with pytest.raises(ValueError, match="bad.json.*E must be > 0"):
+    with pytest.raises(ValueError, match="bad.json.*E must lie in"):
         load_material(tmp_path / "bad.json")
-    with pytest.raises(FileNotFoundError, match="missing"):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
         load_material(tmp_path / "none.json")
 
 

@@ -50,7 +50,8 @@ def test_cli_identify_and_evaluate_on_synth_recording(synth_rope, tmp_path, caps
                "8", "--quiet"])
     assert rc == 0
     d = json.loads(out.read_text())
-    assert d["yield_stress"] is None and d["fit"]["method"] == "adam" and d["fit"]["frames_used"] == 8
+    assert d["schema"] == 2 and "plasticity" not in d["effects"]
+    assert d["fit"]["method"] == "adam" and d["fit"]["frames_used"] == 8
     assert d["fit"]["dx"] == 0.02 and d["fit"]["particles_per_cell"] == 8
     # the stiffness moves from the default 1e5 Pa towards the true 5e4 Pa and the loss goes down
     assert d["E"] < 1e5 and d["fit"]["loss"] < d["fit"]["loss_history"][0]
