@@ -8,6 +8,10 @@ the rollout's array bytes on CPU).
 
     python benchmarks/bench_mpm.py                      # CPU, small sizes
     python benchmarks/bench_mpm.py --device cuda:0 --sizes 1e3,1e4,1e5,1e6,2e6 --batches 1024x2000,4096x2000
+    python benchmarks/bench_mpm.py --effects --sizes 1e6 --batches 1024x2000 --device cuda:0   # one row per effect
+
+``--effects`` times every case once per effect of the catalogue (``none`` first), each with a closed box
+gripper pressing on the block so that the gripper-slip path runs, and prints the speed relative to ``none``.
 """
 
 from __future__ import annotations
@@ -18,11 +22,28 @@ import time
 import numpy as np
 import warp as wp
 
-from empm_gym.sim import GridConfig, MaterialConfig, ModelBuilder, Rollout, SolverMPM, TableConfig, sample_box
+from empm_gym.sim import (EndEffectorConfig, GridConfig, MaterialConfig, ModelBuilder, Rollout, SolverMPM,
+                          TableConfig, sample_box)
+from empm_gym.sim.effects import EFFECTS
+
+#: Parameter values that switch each effect on in the benchmark (typical magnitudes; the step's cost does
+#: not depend on them, except that fracture's damage update runs only where the effect is on).
+EFFECT_VALUES = {
+    "none": {},
+    "plasticity": {"yield_stress": 5e3},
+    "viscosity": {"viscosity": 1.0},
+    "table_friction": {"friction": 0.2},
+    "gripper_slip": {"grip_friction": 2.0},
+    "heterogeneous_stiffness": {"stiffness_slope_1": 0.5, "stiffness_slope_2": -0.3},
+    "fracture": {"fracture_strain": 0.3, "fracture_softening": 0.05},
+}
+assert set(EFFECT_VALUES) == {"none", *EFFECTS}, "bench_mpm: give every registered effect a benchmark value"
 
 
-def build(worlds: int, particles: int, device: str, requires_grad: bool = False, plastic: bool = False):
-    """`worlds` worlds, each a block of about `particles` particles (8 per cell) resting on a table."""
+def build(worlds: int, particles: int, device: str, requires_grad: bool = False, plastic: bool = False,
+          effect: str = None):
+    """`worlds` worlds, each a block of about `particles` particles (8 per cell) resting on a table; with
+    ``effect`` (a key of EFFECT_VALUES) that effect is on and a closed box gripper presses on the block."""
     ppc = 8
     dx = 0.01
     cells = particles / ppc
@@ -35,9 +56,15 @@ def build(worlds: int, particles: int, device: str, requires_grad: bool = False,
     upper = (size[0] / 2 + margin, size[1] / 2 + margin, size[2] + 2 * margin)
     b = ModelBuilder(GridConfig(lower=lower, upper=upper, dx=dx), table=TableConfig(friction=0.5))
     x, vol = sample_box((-size[0] / 2, -size[1] / 2, 0.0), (size[0] / 2, size[1] / 2, size[2]), dx, ppc, jitter=0.5)
+    mat = MaterialConfig(E=1e5, nu=0.3, density=1000.0, yield_stress=5e3 if plastic else None)
+    if effect is not None:
+        mat = mat.replace(**EFFECT_VALUES[effect])
     for _ in range(worlds):
-        w = b.add_world(MaterialConfig(E=1e5, nu=0.3, density=1000.0, yield_stress=5e3 if plastic else None))
+        w = b.add_world(mat)
         b.add_particles(w, x, vol)
+        if effect is not None:
+            pad = EndEffectorConfig(shape="box", half_extents=(size[0] / 4, size[1] / 4, dx))
+            b.add_end_effector(w, pad, (0.0, 0.0, size[2] + 0.5 * dx))
     return b.finalize(device, requires_grad=requires_grad)
 
 
@@ -46,6 +73,8 @@ def time_forward(model, steps: int, graph: bool):
     dt = 0.5 * solver.max_stable_dt()
     a, b = model.state(), model.state()
     c = model.control()
+    if model.ee_count:
+        c.set(grip=np.ones((model.world_count, model.ee_count)))
 
     def loop(n):
         nonlocal a, b
@@ -82,6 +111,9 @@ def time_grad(model, steps: int, checkpoint_every):
         base = wp.get_mempool_used_mem_current(model.device)
     ro = Rollout(model, solver, steps=steps, dt=dt, record_every=steps, checkpoint_every=checkpoint_every)
     ctrls = ro.make_controls()
+    if model.ee_count:
+        for c in ctrls:
+            c.set(grip=np.ones((model.world_count, model.ee_count)))
     s0 = model.state()
     seed = [None, np.ones((model.particle_count, 3), np.float32)]
     ro.forward(s0, ctrls)  # warm up (compiles adjoint kernels on backward)
@@ -139,6 +171,7 @@ def main(argv=None):
     p.add_argument("--profile", type=int, default=0,
                    help="CUDA only: per-kernel forward/adjoint GPU times for one world of this many particles")
     p.add_argument("--no-graph", action="store_true", help="do not capture the forward loop in a CUDA graph")
+    p.add_argument("--effects", action="store_true", help="one row per effect of the catalogue (none first)")
     args = p.parse_args(argv)
     wp.init()
     dev = wp.get_device(args.device)
@@ -146,6 +179,9 @@ def main(argv=None):
     cases += [tuple(int(v) for v in b.split("x")) for b in args.batches.split(",") if b]
     if args.profile:
         profile(args.profile, args.device, args.grad_steps, args.plastic)
+        return
+    if args.effects:
+        effects_table(cases, args, dev)
         return
     print(f"device: {dev.name} ({dev.alias}), warp {wp.__version__}, material: "
           f"{'elastoplastic (von Mises)' if args.plastic else 'elastic (fixed corotated)'}")
@@ -165,6 +201,29 @@ def main(argv=None):
             _, _, _, peak_ckpt = time_grad(gm, args.grad_steps, max(args.grad_steps // 4, 1))
             row += f" {fb:>18.3e} {ratio:>8.2f} {peak_full:>13.1f} {peak_ckpt:>13.1f}"
         print(row, flush=True)
+
+
+def effects_table(cases, args, dev):
+    """Forward and forward+backward throughput with each effect on, relative to no effect."""
+    print(f"device: {dev.name} ({dev.alias}), warp {wp.__version__}; each case with one closed box gripper")
+    head = (f"{'effect':>24} {'worlds':>7} {'particles':>10} {'fwd p-steps/s':>14} {'vs none':>8} "
+            f"{'fwd+bwd p-steps/s':>18} {'vs none':>8}")
+    print(head)
+    print("-" * len(head))
+    for worlds, per_world in cases:
+        ref = None
+        for effect in EFFECT_VALUES:
+            model = build(worlds, per_world, args.device, effect=effect)
+            total = model.particle_count
+            steps = args.steps or int(np.clip(2e7 / total if dev.is_cuda else 2e6 / total, 4, 2000))
+            fwd = time_forward(model, steps, graph=not args.no_graph)
+            fb = float("nan")
+            if total <= args.grad_max:
+                gm = build(worlds, per_world, args.device, requires_grad=True, effect=effect)
+                _, fb, _, _ = time_grad(gm, args.grad_steps, max(args.grad_steps // 4, 1))
+            ref = ref or (fwd, fb)
+            print(f"{effect:>24} {worlds:>7} {total:>10} {fwd:>14.3e} {fwd / ref[0]:>8.2f} {fb:>18.3e} "
+                  f"{fb / ref[1]:>8.2f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -11,7 +11,7 @@ import importlib
 import sys
 
 # modules that provide ``register(subparsers)``; each adds its sub-commands
-_COMMAND_MODULES = ("empm_gym.perception.synth", "empm_gym.identification.cli")
+_COMMAND_MODULES = ("empm_gym.perception.synth", "empm_gym.identification.cli", "empm_gym.identification.doctor.cli")
 
 
 def build_parser() -> argparse.ArgumentParser:

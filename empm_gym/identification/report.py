@@ -101,11 +101,13 @@ def plot_online(result: dict, path) -> Path:
 def save_rrd(path, sim_positions: np.ndarray, obs_points: Sequence[np.ndarray], fps: float, *,
              ee_positions: Optional[np.ndarray] = None, ee_radius: Optional[Sequence[float]] = None,
              particle_radius: float = 0.003, scalars: Optional[Dict[str, Sequence[float]]] = None,
-             app_id: str = "empm_identification", particle_colors: Optional[np.ndarray] = None) -> Path:
+             app_id: str = "empm_identification", particle_colors: Optional[np.ndarray] = None,
+             second_sim: Optional[np.ndarray] = None, second_name: str = "simulated_2") -> Path:
     """Write a rerun recording: simulated particles ``sim`` [T, N, 3] over measured points per frame.
 
-    Entities: ``world/simulated``, ``world/measured``, ``world/ee`` and scalars ``metrics/<name>``; the
-    timeline ``frame`` (sequence) and ``time`` (seconds).
+    Entities: ``world/simulated``, ``world/measured``, ``world/ee``, ``world/<second_name>`` (a second
+    simulation [T, N, 3] to compare, e.g. the model with an added effect) and scalars ``metrics/<name>``;
+    the timeline ``frame`` (sequence) and ``time`` (seconds).
     """
     import rerun as rr
 
@@ -124,6 +126,9 @@ def save_rrd(path, sim_positions: np.ndarray, obs_points: Sequence[np.ndarray], 
         if np.all(np.isfinite(x)):
             rec.log("world/simulated", rr.Points3D(x, radii=particle_radius,
                                                    colors=cols if cols is not None else [70, 130, 230]))
+        if second_sim is not None and t < len(second_sim) and np.all(np.isfinite(second_sim[t])):
+            rec.log(f"world/{second_name}", rr.Points3D(np.asarray(second_sim[t], np.float32), radii=particle_radius,
+                                                        colors=[200, 70, 200]))
         rec.log("world/measured", rr.Points3D(np.asarray(obs_points[t], np.float32), radii=particle_radius * 0.5,
                                               colors=[235, 120, 40]))
         if ee_positions is not None and t < len(ee_positions) and len(ee_positions[t]):

@@ -1,0 +1,58 @@
+"""``empm doctor REC_DIR --out DIR [--base material.json] [--device cuda:0]``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+__all__ = ["register"]
+
+
+def _doctor(args) -> int:
+    from . import DoctorConfig, DoctorError, diagnose_recording
+
+    cfg = DoctorConfig(train_fraction=args.train_fraction, base_iters=args.iters, candidate_iters=args.iters,
+                       popsize=args.popsize)
+    effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
+    try:
+        res = diagnose_recording(args.rec_dir, out_dir=args.out, base=args.base, config=cfg, dx=args.dx,
+                                 particles_per_cell=args.particles_per_cell, device=args.device,
+                                 progress=not args.quiet, effects=effects)
+    except (DoctorError, ValueError, OSError) as exc:
+        print(f"empm doctor: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"verdict: {res['effect']}  (confidence {res['confidence']:.2f})")
+    print(f"  {res['reason']}")
+    if res.get("decidable", True) and "candidates" in res:
+        b = res["base"]["heldout"]
+        print(f"  base model: E = {res['base']['params']['E']:.4g} Pa, held-out Chamfer {1e3 * b['chamfer_m']:.2f} mm")
+        for c in res["candidates"]:
+            g = c["gain"] or {}
+            print(f"  {c['effect']:24s} held-out Chamfer {1e3 * c['heldout']['chamfer_m']:.2f} mm, loss gain "
+                  f"{100 * g.get('gain', float('nan')):+.1f} % {'(significant)' if g.get('significant') else ''}")
+    for n in res.get("notes", []):
+        print(f"  note: {n}")
+    print(f"wrote {', '.join(res.get('files', {}).values())}")
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add ``empm doctor``."""
+    p = subparsers.add_parser(
+        "doctor", help="find which physical effect a model misses on a recording",
+        description="Fit the base model (elastic, table friction 0.5, rigid grippers) on the first frames, find "
+                    "where it disagrees with the recording, refit with each effect of the catalogue and name the one "
+                    "that predicts the held-out frames better than noise explains (or 'none').",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("rec_dir", help="recording directory")
+    p.add_argument("--out", required=True, help="output directory (doctor.json, material.json, report.md, figures)")
+    p.add_argument("--base", default=None, help="material file of the base model (default: elastic, E fitted)")
+    p.add_argument("--effects", default=None, help="comma-separated candidate effects (default: the whole catalogue)")
+    p.add_argument("--train-fraction", type=float, default=0.7, help="leading fraction of frames fitted (0.7)")
+    p.add_argument("--iters", type=int, default=8, help="CMA-ES generations per fit (default 8)")
+    p.add_argument("--popsize", type=int, default=8, help="CMA-ES population = simulated worlds (default 8)")
+    p.add_argument("--dx", type=float, default=0.01, help="simulation grid cell in m (default 0.01)")
+    p.add_argument("--particles-per-cell", type=float, default=8, help="particles per cell of the body (8)")
+    p.add_argument("--device", default=None, help="Warp device (cpu, cuda:0)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_doctor)

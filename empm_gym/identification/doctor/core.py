@@ -1,0 +1,424 @@
+"""The discrepancy doctor: fit the base model, find where it disagrees with the recording, try every effect of
+the catalogue, name the one that explains the held-out frames better than noise (or ``none``), show the gap.
+
+Pipeline (:func:`diagnose`):
+
+1. **Base fit.** The base model (fixed-corotated elastic body, the table's friction at 0.5, rigid closed
+   grippers; or ``base`` when given) has its Young's modulus fitted by CMA-ES on the fitting frames (the
+   first ``train_fraction``); the rest are held out and never used to fit. Density is not fitted: from
+   motion alone only E / density is determined (the report says so).
+2. **Localisation.** Per-frame and per-point residuals of the base model, split by phases read from the
+   controls and by regions of the object (:mod:`.phases`, :mod:`.features`), and summary features.
+3. **Candidates.** Every effect of :data:`empm_gym.sim.effects.EFFECTS` that the base model lacks is added
+   and refitted together with E (CMA-ES, the same loss), each candidate in its own batched simulation.
+4. **Scores.** Base and candidates are simulated over all frames; the per-frame loss on the held-out
+   frames is compared pairwise with :func:`empm_gym.identification.uncertainty.paired_gain_test` (block
+   bootstrap over frames, a relative-gain penalty per added parameter). The verdict is the candidate
+   with the lowest held-out loss among those whose gain is significant, else ``none``; its confidence is
+   the fraction of bootstrap resamples in which it stays the best and significant.
+5. **Report.** ``doctor.json``, ``material.json`` (with the effect), ``report.md`` with figures, and a
+   rerun recording of the measured points against both simulations.
+
+Nothing here reads ``ground_truth.json``, file names or script timing: only what
+:func:`empm_gym.identification.data.load_recording` extracts from images, depth, masks, tracks and controls.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from empm_gym.sim import MaterialConfig
+from empm_gym.sim.effects import BASE_TABLE_FRICTION, EFFECTS, PARAMETERS
+
+from ..losses import chamfer_numpy
+from ..offline import Objective, identify
+from ..problem import Observations, Scene, Views, _ForwardSim
+from ..uncertainty import block_bootstrap_indices, measurement_noise, paired_gain_test
+
+__all__ = ["DoctorConfig", "DoctorError", "diagnose", "candidate_params", "SIGNATURE_FEATURES"]
+
+
+class DoctorError(ValueError):
+    """The recording cannot be diagnosed (too short, no controls, ...); the message says why."""
+
+
+@dataclass
+class DoctorConfig:
+    """Options of :func:`diagnose` (SI units)."""
+
+    train_fraction: float = 0.7
+    """Leading fraction of frames used to fit; the rest are held out [-]."""
+    base_E: float = 5.0e4
+    """Starting Young's modulus of the base fit [Pa]."""
+    E_bounds: Tuple[float, float] = (2.0e3, 5.0e5)
+    """Search box of E in the base fit [Pa]."""
+    E_refit_factor: float = 3.0
+    """A candidate refits E within this factor of the base fit [-]."""
+    base_iters: int = 8
+    """CMA-ES generations of the base fit."""
+    candidate_iters: int = 8
+    """CMA-ES generations of each candidate's fit."""
+    popsize: int = 8
+    """CMA-ES population = simulated worlds per generation."""
+    sigma0: float = 0.6
+    """CMA-ES initial step in the optimiser's coordinates (log parameters)."""
+    penalty_per_param: float = 0.04
+    """Relative held-out gain each added parameter must pay for [-]."""
+    level: float = 0.95
+    """Level of the bootstrap interval of the gain [-]."""
+    min_heldout_frames: int = 4
+    """Fewer held-out frames than this: the doctor refuses to judge."""
+    l_trk: float = 100.0
+    """Weight of the tracking term in the loss [1/m] (as identification)."""
+    max_points: int = 1500
+    """Observed points per frame used by the loss."""
+    seed: int = 0
+
+
+#: Parameters the doctor refits for each effect (the registry's, less shape parameters that short
+#: recordings do not determine: the fracture's softening width and the stiffness field's third axis).
+_HELD_AT_START = {"fracture_softening", "stiffness_slope_3"}
+
+#: Feature that a real effect should move, and the direction (+1: larger than in the base simulation).
+SIGNATURE_FEATURES = {
+    "plasticity": ("residual_after_release_vs_contact", 1.0),
+    "viscosity": ("oscillation_decay", 1.0),
+    "table_friction": ("table_slide_m", 0.0),
+    "gripper_slip": ("track_slip_m", 1.0),
+    "heterogeneous_stiffness": ("residual_asymmetry", 0.0),
+    "fracture": ("pieces_observed_max", 1.0),
+}
+
+
+def candidate_params(effect: str) -> Tuple[str, ...]:
+    """The parameters the doctor fits for one effect (besides E)."""
+    if effect not in EFFECTS:
+        raise ValueError(f"unknown effect {effect!r}; known: {', '.join(EFFECTS)}")
+    return tuple(p for p in EFFECTS[effect].param_names if p not in _HELD_AT_START)
+
+
+@dataclass
+class _Fit:
+    name: str
+    params: Dict[str, float]
+    material: MaterialConfig
+    friction: float
+    fit_loss: float
+    wall_s: float
+    added: int = 0
+    heldout: Dict[str, float] = field(default_factory=dict)
+    test: Dict[str, float] = field(default_factory=dict)
+
+
+def _check_inputs(scene: Scene, obs: Observations, cfg: DoctorConfig) -> Tuple[int, int]:
+    T = obs.num_frames if scene.num_frames is None else min(obs.num_frames, scene.num_frames)
+    if not scene.ee_configs:
+        raise DoctorError("the recording has no end-effector controls (controls.npz or controller masks): the "
+                          "doctor replays the recorded manipulation and cannot judge a model without it")
+    if not (0.0 < cfg.train_fraction < 1.0):
+        raise DoctorError(f"train_fraction must lie in (0, 1), got {cfg.train_fraction}")
+    F = int(round(cfg.train_fraction * T))
+    if F < 3 or T - F < cfg.min_heldout_frames:
+        raise DoctorError(f"the recording has {T} frames: fitting on {F} and holding out {T - F} leaves too few "
+                          f"(need >= 3 to fit and >= {cfg.min_heldout_frames} held out); record longer")
+    return T, F
+
+
+def _motion_m(obs: Observations) -> float:
+    """Largest displacement [m] of the observed centroid from its frame-0 position."""
+    c = np.array([p.mean(0) for p in obs.points])
+    return float(np.max(np.linalg.norm(c - c[0], axis=1)))
+
+
+def _per_frame_losses(objective: Objective, X: np.ndarray, l_trk: float) -> Dict[str, np.ndarray]:
+    """Per-frame Chamfer [m], tracking mean squared error [m^2] and loss (as the fit's) of X [T, N, 3]."""
+    T = objective.frames
+    out = {"chamfer": np.full(T, np.nan), "track_mse": np.full(T, np.nan), "loss": np.full(T, np.nan)}
+    if not np.all(np.isfinite(X[:T])):
+        return out
+    P = objective.predicted_points(np.asarray(X[:T], np.float64))
+    for t in range(T):
+        out["chamfer"][t] = chamfer_numpy(P[t], objective.points[t])
+    out["loss"][:] = out["chamfer"]
+    if objective.track_index is not None:
+        pred = objective._predicted_tracks(np.asarray(X, np.float64))
+        vis = objective.visible[1:]
+        err = np.sum((pred - objective.tracks[1:]) ** 2, -1)
+        mse = np.array([float(np.mean(err[t][vis[t]])) if vis[t].any() else np.nan for t in range(len(err))])
+        out["track_mse"][1:] = mse
+        out["loss"][1:] = out["chamfer"][1:] + l_trk * np.nan_to_num(mse, nan=0.0)
+    out["loss"][0] = out["chamfer"][0] if np.isfinite(out["chamfer"][0]) else np.nan
+    return out
+
+
+def _fit(name, scene, obs, params, init, bounds, base_mat, frames, cfg, progress, iters) -> _Fit:
+    sc = scene.with_material(base_mat, table_friction=BASE_TABLE_FRICTION if "friction" not in params
+                             else scene.table_friction)
+    res = identify(obs, sc, params=params, method="cmaes", init=init, bounds=bounds, iters=iters, frames=frames,
+                   popsize=cfg.popsize, sigma0=cfg.sigma0, l_trk=cfg.l_trk, max_points=cfg.max_points,
+                   seed=cfg.seed, progress=progress)
+    return _Fit(name=name, params=dict(res.params), material=res.material, friction=float(res.friction),
+                fit_loss=float(res.loss), wall_s=float(res.wall_time_s))
+
+
+def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, base: Optional[MaterialConfig] = None,
+             config: Optional[DoctorConfig] = None, out_dir=None, progress: bool = True,
+             effects: Optional[Sequence[str]] = None) -> dict:
+    """Diagnose a loaded recording (see the module docstring); returns the ``doctor.json`` content.
+
+    ``scene``, ``obs``, ``views`` come from :func:`empm_gym.identification.data.load_recording`; ``base``
+    gives the base model's material (its E is then the start of the base fit; its effects count as part of
+    the base model and are not candidates); ``effects`` restricts the candidates (default: the whole
+    catalogue less those in ``base``). With ``out_dir`` the report files are written there.
+    """
+    from tqdm.auto import tqdm
+
+    cfg = config or DoctorConfig()
+    t_start = time.perf_counter()
+    T, F = _check_inputs(scene, obs, cfg)
+    heldout = list(range(F, T))
+    noise = measurement_noise(obs.points[:T:max(1, T // 10)])
+    motion = _motion_m(obs)
+    base_mat = base or MaterialConfig(E=cfg.base_E, nu=0.3, density=1000.0)
+    base_friction = base_mat.get("friction")
+    base_friction = BASE_TABLE_FRICTION if base_friction is None else float(base_friction)
+    scene = scene.with_material(base_mat, table_friction=base_friction)
+    in_base = set(base_mat.effects())
+    names = [e for e in (effects or EFFECTS) if e not in in_base]
+    unknown = [e for e in names if e not in EFFECTS]
+    if unknown:
+        raise DoctorError(f"unknown effects {unknown}; known: {', '.join(EFFECTS)}")
+    result = {"schema": 1, "frames": T, "fit_frames": [0, F - 1], "heldout_frames": [F, T - 1], "fps": obs.fps,
+              "noise_sigma_m": noise, "observed_motion_m": motion}
+    if motion < max(3.0 * noise, 2e-3):
+        result.update(effect="none", decidable=False, confidence=0.0,
+                      reason=f"the object hardly moves (largest centroid displacement {motion * 1e3:.2f} mm against "
+                             f"depth noise {noise * 1e3:.2f} mm): no model can be judged on it")
+        _write_outputs(result, None, None, scene, obs, out_dir)
+        return result
+
+    # -- 1. base fit ------------------------------------------------------------------------------------------
+    lo, hi = cfg.E_bounds
+    E0 = float(np.clip(base_mat.E, lo * 1.001, hi / 1.001))
+    base_fit = _fit("base", scene, obs, ("E",), {"E": E0}, {"E": (lo, hi)}, base_mat, F, cfg, progress,
+                    cfg.base_iters)
+    E_base = base_fit.params["E"]
+    warnings = []
+    if E_base < lo * 1.05 or E_base > hi / 1.05:
+        warnings.append(f"the base fit's E = {E_base:.4g} Pa lies at its search bound ({lo:g}, {hi:g}) Pa")
+
+    # -- 2. candidates ----------------------------------------------------------------------------------------
+    fits: List[_Fit] = [base_fit]
+    Elo, Ehi = E_base / cfg.E_refit_factor, E_base * cfg.E_refit_factor
+    for name in tqdm(names, desc="doctor: candidates", disable=not progress, leave=False):
+        ps = candidate_params(name)
+        init = {"E": E_base, **{p: PARAMETERS[p].start for p in ps}}
+        bounds = {"E": (Elo, Ehi), **{p: PARAMETERS[p].search for p in ps}}
+        start_mat = base_fit.material
+        for p in EFFECTS[name].param_names:
+            if p in _HELD_AT_START and p != "stiffness_slope_3":
+                start_mat = start_mat.replace(**{p: PARAMETERS[p].start})
+        if name == "fracture":
+            start_mat = start_mat.replace(fracture_strain=PARAMETERS["fracture_strain"].start,
+                                          fracture_softening=PARAMETERS["fracture_softening"].start)
+        f = _fit(name, scene.with_material(start_mat), obs, ("E",) + ps, init, bounds, start_mat, F, cfg, progress,
+                 cfg.candidate_iters)
+        f.added = len(ps)
+        fits.append(f)
+
+    # -- 3. held-out scores -----------------------------------------------------------------------------------
+    objective = Objective(scene, obs, T, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed)
+    sim = _ForwardSim(scene, [f.material for f in fits], [f.friction for f in fits])
+    X, _, _ = sim.run(T)
+    per = [_per_frame_losses(objective, X[:, w], cfg.l_trk) for w in range(len(fits))]
+    base_loss = per[0]["loss"][heldout]
+    for f, pf in zip(fits, per):
+        f.heldout = {"loss": float(np.mean(pf["loss"][heldout])),
+                     "chamfer_m": float(np.mean(pf["chamfer"][heldout])),
+                     "track_rmse_m": float(np.sqrt(np.nanmean(pf["track_mse"][heldout])))
+                     if np.isfinite(pf["track_mse"][heldout]).any() else None}
+        if f is not base_fit:
+            f.test = paired_gain_test(base_loss, pf["loss"][heldout], added_params=f.added,
+                                      penalty_per_param=cfg.penalty_per_param, level=cfg.level, seed=cfg.seed)
+
+    # -- 4. verdict -------------------------------------------------------------------------------------------
+    cands = fits[1:]
+    significant = [f for f in cands if f.test.get("significant")]
+    winner = min(significant, key=lambda f: f.heldout["loss"]) if significant else None
+    confidence = _confidence(base_loss, [per[i + 1]["loss"][heldout] for i in range(len(cands))],
+                             [f.added for f in cands], cfg, None if winner is None else cands.index(winner))
+
+    # -- 5. localisation and features ------------------------------------------------------------------------
+    loc = _localise(scene, obs, objective, X[:, 0], X[:, fits.index(winner)] if winner else None, T)
+    checks = {}
+    if winner is not None and winner.name in SIGNATURE_FEATURES:
+        feat, sign = SIGNATURE_FEATURES[winner.name]
+        val = loc["features"].get(feat)
+        checks = {"feature": feat, "value": val}
+    ranked = sorted(cands, key=lambda f: f.heldout["loss"])
+    result.update({
+        "effect": winner.name if winner else "none",
+        "decidable": True,
+        "confidence": confidence,
+        "reason": (f"{winner.name} lowers the held-out loss by {100 * winner.test['gain']:.1f} % "
+                   f"(95 % interval {100 * winner.test['lower']:.1f} to {100 * winner.test['upper']:.1f} %, "
+                   f"threshold {100 * winner.test['threshold']:.0f} % for {winner.added} added parameter(s))"
+                   if winner else
+                   "no effect of the catalogue lowers the held-out loss by more than frame-to-frame noise and "
+                   "its parameter penalty explain"),
+        "base": _fit_dict(base_fit),
+        "candidates": [_fit_dict(f) for f in ranked],
+        "evidence": {"features": loc["features"], "signature_check": checks, "localisation": loc["where"]},
+        "heldout_per_frame": {"frames": heldout,
+                              "base": {k: _nan_list(v[heldout]) for k, v in per[0].items()},
+                              **({"best": {k: _nan_list(v[heldout]) for k, v in per[fits.index(winner)].items()}}
+                                 if winner else {})},
+        "notes": warnings + ["density is not fitted: from motion alone only E / density is determined "
+                             f"(assumed density {base_mat.density:g} kg/m^3)"],
+        "wall_time_s": None,
+    })
+    result["wall_time_s"] = round(time.perf_counter() - t_start, 2)
+    _write_outputs(result, winner or base_fit, (X, fits, per, loc, F), scene, obs, out_dir, views=views)
+    return result
+
+
+def _nan_list(a) -> list:
+    return [None if not np.isfinite(v) else float(v) for v in np.asarray(a, np.float64)]
+
+
+def _fit_dict(f: _Fit) -> dict:
+    return {"effect": f.name, "params": f.params, "added_params": f.added, "fit_loss": f.fit_loss,
+            "heldout": f.heldout, "gain": f.test or None, "fit_wall_time_s": round(f.wall_s, 2),
+            "material": f.material.to_dict(), "table_friction": f.friction}
+
+
+def _confidence(base, cands: List[np.ndarray], added: List[int], cfg: DoctorConfig, winner: Optional[int],
+                n_boot: int = 1000) -> float:
+    """Fraction of block-bootstrap resamples of the held-out frames in which the verdict stays the same: the
+    winner is best and beats the base by its penalty (or, for ``none``, no candidate does)."""
+    n = len(base)
+    idx = block_bootstrap_indices(n, max(2, round(n ** (1 / 3) * 1.5)), n_boot, np.random.default_rng(cfg.seed + 7))
+    mb = base[idx].mean(1)
+    gains = np.stack([1.0 - np.nan_to_num(c[idx], nan=1e3).mean(1) / np.maximum(mb, 1e-300) for c in cands], 1)
+    ok = gains > cfg.penalty_per_param * np.asarray(added)[None, :]
+    if winner is None:
+        return float(np.mean(~ok.any(1)))
+    score = np.where(ok, gains, -np.inf)
+    return float(np.mean(ok[:, winner] & (np.argmax(score, 1) == winner)))
+
+
+def _localise(scene: Scene, obs: Observations, objective: Objective, X_base: np.ndarray, X_best, T: int) -> dict:
+    from .features import localise, summary_features
+    from .phases import segment_phases
+
+    radius = np.array([c.radius if c.shape != "box" else float(np.min(c.half_extents)) for c in scene.ee_configs])
+    phases = segment_phases(scene.ee_positions[:T], scene.ee_grip[:T], obs.fps, obs.points[:T], radius)
+    P_base = objective.predicted_points(np.asarray(X_base[:T], np.float64))
+    kw = {}
+    if objective.track_index is not None:
+        # the carried tracks start exactly at their frame-0 observation
+        sim_tracks = np.concatenate([objective.tracks[:1], objective._predicted_tracks(np.asarray(X_base, np.float64))])
+        kw = dict(tracks=objective.tracks, visible=objective.visible, sim_tracks=sim_tracks)
+    table_z = float(scene.table.height) if scene.table is not None else 0.0
+    feats = summary_features(phases, objective.points[:T], P_base, scene.ee_positions[:T], scene.ee_grip[:T], radius,
+                             obs.fps, table_z=table_z, **kw)
+    where = localise(phases, objective.points[:T], P_base, scene.ee_positions[:T], radius, table_z=table_z)
+    return {"phases": phases, "features": {k: (None if not np.isfinite(v) else float(v)) for k, v in feats.items()},
+            "where": _jsonable(where), "P_base": P_base,
+            "P_best": None if X_best is None else objective.predicted_points(np.asarray(X_best[:T], np.float64))}
+
+
+def _jsonable(o):
+    if isinstance(o, dict):
+        return {str(k): _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _jsonable(o.tolist())
+    if isinstance(o, (np.floating, float)):
+        return None if not math.isfinite(float(o)) else float(o)
+    if isinstance(o, np.integer):
+        return int(o)
+    return o
+
+
+def _write_outputs(result: dict, chosen: Optional[_Fit], sims, scene: Scene, obs: Observations, out_dir,
+                   views=None):
+    if out_dir is None:
+        return
+    from empm_gym.sim.material_file import write_material
+
+    d = Path(out_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    files = {"doctor": str(d / "doctor.json")}
+    if chosen is not None:
+        fit = {"method": "doctor", "effect": result["effect"], "params": list(chosen.params),
+               "frames_used_range": result["fit_frames"], "fps": obs.fps, "dx": scene.dx,
+               "heldout_loss": chosen.heldout.get("loss"), "notes": result.get("notes", [])}
+        write_material(d / "material.json", chosen.material.replace(friction=chosen.friction), fit=fit)
+        files["material"] = str(d / "material.json")
+    if sims is not None:
+        files.update(_figures_and_report(result, sims, scene, obs, d))
+    result["files"] = files
+    tmp = d / "doctor.json.tmp"
+    tmp.write_text(json.dumps(_jsonable(result), indent=2))
+    tmp.replace(d / "doctor.json")
+
+
+def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: Path) -> dict:
+    from ..report import save_rrd
+    from .features import residuals_per_frame
+    from .report import plot_candidate_gains, plot_residual_heatmap, plot_residual_timeline, write_report_md
+
+    X, fits, per, loc, F = sims
+    T = len(per[0]["chamfer"])
+    effect = result["effect"]
+    best_w = next((i for i, f in enumerate(fits) if f.name == effect), None)
+    figs = {}
+    figs["residual over time"] = plot_residual_timeline(
+        per[0]["chamfer"], per[best_w]["chamfer"] if best_w else None, loc["phases"], F, d / "residual_timeline.png",
+        title=f"Chamfer residual per frame: base model vs {effect}").name
+    # heat maps at the worst held-out frames of the base model
+    held = np.arange(F, T)
+    worst = held[np.argsort(-np.nan_to_num(per[0]["chamfer"][F:], nan=-1.0))[:2]]
+    pts = {}
+    for t in sorted(worst.tolist()):
+        obs_t = obs.points[t]
+        r_base = residuals_per_frame([obs_t], loc["P_base"][t:t + 1])[0]
+        pts[f"frame {t}, base"] = (obs_t, r_base)
+        if loc["P_best"] is not None:
+            pts[f"frame {t}, {effect}"] = (obs_t, residuals_per_frame([obs_t], loc["P_best"][t:t + 1])[0])
+    figs["residual on the object"] = plot_residual_heatmap(pts, d / "residual_heatmap.png",
+                                                           title="distance of each measured point to the model [mm]").name
+    cands = result["candidates"]
+    figs["candidates"] = plot_candidate_gains(
+        [c["effect"] for c in cands], [result["base"]["heldout"]["chamfer_m"]] * len(cands),
+        [c["heldout"]["chamfer_m"] for c in cands], None, d / "candidate_gains.png",
+        title="held-out Chamfer with each candidate effect").name
+    save_rrd(d / "doctor.rrd", X[:, 0], obs.points[:T], obs.fps, ee_positions=scene.ee_positions,
+             ee_radius=[c.radius for c in scene.ee_configs], particle_radius=scene.particle_radius,
+             app_id="empm_doctor", scalars={"chamfer_base": per[0]["chamfer"].tolist(),
+                                            **({f"chamfer_{effect}": per[best_w]["chamfer"].tolist()} if best_w else {})},
+             second_sim=None if best_w is None else X[:, best_w], second_name=f"simulated_{effect}")
+    rows = [{"candidate": c["effect"], "added parameters": c["added_params"],
+             "fitted": ", ".join(f"{k}={v:.4g}" for k, v in c["params"].items()),
+             "held-out Chamfer [mm]": 1e3 * c["heldout"]["chamfer_m"],
+             "held-out loss gain [%]": 100 * (c["gain"] or {}).get("gain", float("nan")),
+             "significant": (c["gain"] or {}).get("significant")} for c in cands]
+    from .features import FEATURE_INFO
+
+    where = result["evidence"]["localisation"]
+    write_report_md(d / "report.md", {k: result[k] for k in ("effect", "confidence", "reason", "decidable")} |
+                    {"base E [Pa]": result["base"]["params"]["E"], "noise sigma [mm]": 1e3 * result["noise_sigma_m"],
+                     "worst phase and region (base model)": where.get("worst_cell")},
+                    figs, {"Candidates (held-out frames)": rows},
+                    features=result["evidence"]["features"], feature_info=FEATURE_INFO, notes=result.get("notes"))
+    return {"report": str(d / "report.md"), "rrd": str(d / "doctor.rrd"),
+            **{k: str(d / v) for k, v in figs.items()}}
