@@ -104,7 +104,7 @@ class BatchedCore:
         task: a task name ("RopeReshape", "DoughFlatten", "DoughShape") or a :class:`Task`.
         num_envs: number of worlds.
         obs_mode: "state", "points" or "depth".
-        material: dict or JSON path merged into the task's default material.
+        material: material file path or dict (see :func:`load_material`; every effect in it is simulated).
         randomize: {key: (low_factor, high_factor)} multiplicative ranges drawn per world at reset.
         task_options: overrides of the task's fields (e.g. ``{"shapes": ("arc",)}``).
         dx: grid cell size [m] (default: the task's).
