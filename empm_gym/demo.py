@@ -269,13 +269,15 @@ def run_loop_demo(out: Path, *, device: str = "cpu", frames: int = 45, iters: in
         if rc:
             raise SystemExit(f"demo step failed ({what}): exit code {rc}")
         print(f"   done in {time.time() - t0:.1f} s", flush=True)
-    fitted = json.loads((out / "material.json").read_text())
-    print(f"   yield stress: true {truth_ys:.0f} Pa, start {3 * truth_ys:.0f} Pa, fitted {fitted['yield_stress']:.0f} Pa")
+    from .sim.material_file import read_material
+
+    fitted = read_material(out / "material.json").material
+    print(f"   yield stress: true {truth_ys:.0f} Pa, start {3 * truth_ys:.0f} Pa, fitted {fitted.yield_stress:.0f} Pa")
     print("== MPC (MPPI) in EMPM/DoughShape-v0 with the fitted material", flush=True)
     summary = run_mpc_demo(out, out / "material.json", device=device)
     print(f"   Chamfer to the target: start {summary['chamfer_start_m']:.4f} m, zero action "
           f"{summary['chamfer_zero_action_m']:.4f} m, MPC {summary['chamfer_mpc_m']:.4f} m")
-    return {"material": fitted, "mpc": summary}
+    return {"material": fitted.to_dict(), "mpc": summary}
 
 
 def main(argv=None) -> int:

@@ -203,7 +203,7 @@ _COMMON_ARGS = """
     | Argument | Default | Meaning |
     |---|---|---|
     | `obs_mode` | `"state"` | `"state"`, `"points"` or `"depth"` (see Observation Space) |
-    | `material` | task default | dict or JSON file (identification's output): `E` [Pa], `nu`, `density` [kg/m^3], `yield_stress` [Pa] (null = elastic), `friction` (table); other keys ignored |
+    | `material` | task default | a material file (identification's or the doctor's output, read by `empm_gym.sim.read_material`) or a flat dict of `E` [Pa], `nu`, `density` [kg/m^3] and any effect parameter of `empm_gym.sim.effects` (`yield_stress` [Pa], `viscosity` [Pa s], `friction` (table), `grip_friction`, `stiffness_slope_1..3`, `fracture_strain`, `fracture_softening`); every effect in it is simulated; unknown keys raise |
     | `randomize` | `None` | `{key: (low, high)}` multiplicative ranges of `E`, `nu`, `density`, `yield_stress`, `friction`, drawn per episode |
     | `task_options` | `None` | overrides of the task's fields (e.g. `{"shapes": ("arc",)}`) |
     | `dx` | task default | grid cell size [m] |
