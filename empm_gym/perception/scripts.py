@@ -78,6 +78,11 @@ class ScriptResult:
     """(lower, upper) corners (m) of the region the object may reach (for sizing the grid)."""
 
 
+#: Half thickness of pushers and plates (m): thick against the grid, so that no grid node inside one sees
+#: its far face as the nearest (a thin plate lets material tunnel into it and then drags it along).
+_THICK = 0.02
+
+
 def _sphere(r):
     return {"shape": "sphere", "radius": float(r)}
 
@@ -88,13 +93,15 @@ def _box(h):
 
 def _press_release(T: int, g: ObjectGeometry) -> ScriptResult:
     sx, sy, sz = g.size
-    hz = 0.006
-    hx = min(0.25 * sx, 0.02) if g.elongated else 0.3 * sx
+    hz = _THICK
+    # a 4 cm punch across the middle of an elongated object, a flat press over all of a compact one (a
+    # narrow punch sunk deep into a block grips it by its sides and lifts it on the way out)
+    hx = min(0.25 * sx, 0.02) if g.elongated else 0.5 * sx + 0.01
     hy = 0.5 * sy + 0.01
     start = np.array([[0.0, 0.0, sz + hz + 0.002]])
     _, a, b, c, d, _ = _phases(T, [0.08, 0.3, 0.12, 0.15, 0.35])
     t = np.arange(T, dtype=np.float64)
-    depth = 0.45 * sz + 0.002
+    depth = (0.45 if g.elongated else 0.35) * sz + 0.002
     z = -depth * _ramp(t, a, b) + (depth + 0.04) * _ramp(t, c, d)
     pos = np.repeat(start[None], T, axis=0)
     pos[:, 0, 2] += z
@@ -104,67 +111,80 @@ def _press_release(T: int, g: ObjectGeometry) -> ScriptResult:
 
 def _push_slide(T: int, g: ObjectGeometry) -> ScriptResult:
     sx, sy, sz = g.size
-    hy = 0.006
+    hy = _THICK
     hx = 0.5 * sx + 0.01
     hz = 0.5 * min(sz, 0.03)
     start = np.array([[0.0, -sy / 2 - hy - 0.002, hz + 0.002]])
-    _, a, b, c, _ = _phases(T, [0.1, 0.22, 0.08, 0.6])
+    _, a, b, _ = _phases(T, [0.1, 0.2, 0.7])
     t = np.arange(T, dtype=np.float64)
     push = 0.04
-    y = push * _ramp(t, a, b)
-    # withdraw quickly backwards and up, so the object slides on freely
-    back = (push + 0.03) * _ramp(t, b, c)
+    s = np.clip((t - a) / max(b - a, 1), 0.0, 1.0)
+    y = push * s**2                                    # constant acceleration to 2 push / duration
+    # then at once back and up, out of the way: the object slides on by itself
+    w = max(2, int(round(0.05 * T)))
+    back = _ramp(t, b, b + w)
     pos = np.repeat(start[None], T, axis=0)
-    pos[:, 0, 1] += y - back
-    pos[:, 0, 2] += 0.03 * _ramp(t, b, c)
+    pos[:, 0, 1] += y - (push + 0.03) * back
+    pos[:, 0, 2] += 0.03 * back
     lo, hi = (-sx / 2, -sy / 2, 0.0), (sx / 2, sy / 2 + 0.2, sz)
     return ScriptResult(pos, np.zeros((T, 1), np.int32), [_box((hx, hy, hz))], (lo, hi))
 
 
-def _end_grippers(g: ObjectGeometry, press: float):
-    """Start centres [2, 3] and shapes of two grippers at the ends of the long axis (x)."""
+def _end_grippers(g: ObjectGeometry):
+    """Start centres [2, 3], shapes and the release direction of two grippers over the ends of the long
+    axis (x): spheres just above the ends of an elongated object (they cover its upper part; released
+    upwards), clamps enclosing the outer quarter of a compact one (from 4 mm above the table to 2 cm
+    above its top, reaching 2.5 cm beyond its end, so that the inner face is the nearest face of every
+    point they hold; released outwards along x)."""
     sx, sy, sz = g.size
     if g.elongated:
-        r = 0.75 * max(sy, sz) + 1e-9
+        r = 0.75 * max(sy, sz)
         x0, zc = sx / 2 - 0.015, sz + 0.002
-        return np.array([[-x0, 0.0, zc], [x0, 0.0, zc]]), [_sphere(r)] * 2, 0.0
-    hx, hy, hz = 0.012, 0.5 * sy + 0.008, 0.4 * sz
-    x0 = sx / 2 + hx + 0.002
-    start = np.array([[-x0, 0.0, hz + 0.003], [x0, 0.0, hz + 0.003]])
-    return start, [_box((hx, hy, hz))] * 2, press + 0.002
+        return np.array([[-x0, 0.0, zc], [x0, 0.0, zc]]), [_sphere(r)] * 2, np.array([0.0, 0.0, 1.0])
+    inner = sx / 2 - 0.25 * sx
+    hx, hy, hz = (sx / 2 + 0.025 - inner) / 2, sy / 2 + 0.01, (sz + 0.016) / 2
+    x0 = inner + hx
+    start = np.array([[-x0, 0.0, 0.004 + hz], [x0, 0.0, 0.004 + hz]])
+    return start, [_box((hx, hy, hz))] * 2, np.array([1.0, 0.0, 0.0])
+
+
+def _release(pos, t, a, b, away):
+    """Move the two end grippers 3 cm away along ``away`` (mirrored in x) between frames a and b."""
+    r = 0.03 * _ramp(t, a, b)[:, None]
+    pos[:, 0] += r * (away * [-1.0, 1.0, 1.0])
+    pos[:, 1] += r * away
 
 
 def _squeeze_lift(T: int, g: ObjectGeometry) -> ScriptResult:
     sx, sy, sz = g.size
-    start, ees, press = _end_grippers(g, 0.006)
-    _, a, b, c, d, e, f, _ = _phases(T, [0.05, 0.1, 0.22, 0.25, 0.15, 0.05, 0.18])
+    start, ees, away = _end_grippers(g)
+    _, a, b, c, d, e, _ = _phases(T, [0.06, 0.25, 0.25, 0.2, 0.08, 0.16])
     t = np.arange(T, dtype=np.float64)
-    inward = press * _ramp(t, a, b) - (press + 0.01) * _ramp(t, e, f)
-    lift = 0.06 * (_ramp(t, b, c) - _ramp(t, d, e)) + 0.03 * _ramp(t, e, f)
+    # put it back down to 4 mm above where it was: a body pressed into the table by rigid grippers
+    # jumps when they let go
+    lift = 0.06 * _ramp(t, a, b) - 0.056 * _ramp(t, c, d)
     pos = np.repeat(start[None], T, axis=0)
-    pos[:, 0, 0] += inward
-    pos[:, 1, 0] -= inward
     pos[:, :, 2] += lift[:, None]
+    _release(pos, t, d, e, away)
     grip = np.zeros((T, 2), np.int32)
-    grip[b:e] = 1
+    grip[:d] = 1
     lo, hi = (-sx / 2, -sy / 2, 0.0), (sx / 2, sy / 2, sz + 0.07)
     return ScriptResult(pos, grip, ees, (lo, hi))
 
 
 def _pull_apart(T: int, g: ObjectGeometry) -> ScriptResult:
     sx, sy, sz = g.size
-    start, ees, press = _end_grippers(g, 0.006)
-    _, a, b, c, d, e, _ = _phases(T, [0.05, 0.1, 0.35, 0.2, 0.08, 0.22])
+    start, ees, away = _end_grippers(g)
+    _, a, b, c, d, _ = _phases(T, [0.06, 0.4, 0.2, 0.08, 0.26])
     t = np.arange(T, dtype=np.float64)
-    pull = 0.4 * sx
-    inward = press * _ramp(t, a, b)
-    out = pull * _ramp(t, b, c)
+    pull = (0.15 if g.elongated else 0.2) * sx
+    out = pull * _ramp(t, a, b)
     pos = np.repeat(start[None], T, axis=0)
-    pos[:, 0, 0] += inward - out
-    pos[:, 1, 0] -= inward - out
-    pos[:, :, 2] += 0.03 * _ramp(t, d, e)[:, None]
+    pos[:, 0, 0] -= out
+    pos[:, 1, 0] += out
+    _release(pos, t, c, d, away)
     grip = np.zeros((T, 2), np.int32)
-    grip[b:d] = 1
+    grip[:c] = 1
     lo, hi = (-sx / 2 - pull - 0.01, -sy / 2, 0.0), (sx / 2 + pull + 0.01, sy / 2, sz)
     return ScriptResult(pos, grip, ees, (lo, hi))
 
@@ -174,7 +194,7 @@ def _squeeze_ring(T: int, g: ObjectGeometry) -> ScriptResult:
     ax = 1 if g.elongated else 0                       # squeeze across the shortest horizontal side
     other = 1 - ax
     w = g.size[ax]
-    th = 0.006
+    th = _THICK
     h = [0.0, 0.0, 0.4 * sz if not g.elongated else 0.45 * sz]
     h[ax] = th
     h[other] = 0.5 * g.size[other] + 0.008
