@@ -18,8 +18,9 @@ Scripts (phases as fractions of the recording; "long axis" = x, the object's lon
   object sags / slides down relative to the grippers).
 * ``pull-apart``: two closed grippers at the ends of the long axis pull them apart by 40 % of the length
   each, hold, open and move away (fracture: it tears; heterogeneous stiffness: one side stretches more).
-* ``squeeze-ring``: two plates squeeze the object across its shortest horizontal side by 30 %, hold, then
-  jump away within one frame interval, so the body springs back and rings (viscosity: damped ringing).
+* ``squeeze-ring``: a flat plate squeezes the whole object against the table by 30 % of its height,
+  holds, then snaps 8 cm up within one frame interval, so the body springs back, hops and rings
+  (viscosity: the rebound loses energy, a lower hop and damped ringing).
 
 ``default`` is the object's historic script (:func:`default_script`: rope lift-and-stretch, dough
 squeeze), used when no script is named.
@@ -191,27 +192,17 @@ def _pull_apart(T: int, g: ObjectGeometry) -> ScriptResult:
 
 def _squeeze_ring(T: int, g: ObjectGeometry) -> ScriptResult:
     sx, sy, sz = g.size
-    ax = 1 if g.elongated else 0                       # squeeze across the shortest horizontal side
-    other = 1 - ax
-    w = g.size[ax]
-    th = _THICK
-    h = [0.0, 0.0, 0.4 * sz if not g.elongated else 0.45 * sz]
-    h[ax] = th
-    h[other] = 0.5 * g.size[other] + 0.008
-    c0 = w / 2 + th + 0.002
-    start = np.zeros((2, 3))
-    start[0, ax], start[1, ax] = -c0, c0
-    start[:, 2] = h[2] + 0.002
+    hz = _THICK
+    hx, hy = 0.5 * sx + 0.01, 0.5 * sy + 0.01          # a flat plate over the whole top
+    start = np.array([[0.0, 0.0, sz + hz + 0.002]])
     _, a, b, c, _ = _phases(T, [0.08, 0.3, 0.1, 0.52])
     t = np.arange(T, dtype=np.float64)
-    sq = (0.15 * w + 0.002) * _ramp(t, a, b)
-    jump = np.where(t >= c + 1, 0.15 * w + 0.002 + 0.04, 0.0)   # away within one frame interval
-    d = sq - jump
+    depth = 0.3 * sz + 0.002
+    z = -depth * _ramp(t, a, b) + np.where(t >= c + 1, depth + 0.08, 0.0)   # snaps up within one frame
     pos = np.repeat(start[None], T, axis=0)
-    pos[:, 0, ax] += d
-    pos[:, 1, ax] -= d
-    lo, hi = (-sx / 2, -sy / 2, 0.0), (sx / 2, sy / 2, sz + 0.02)
-    return ScriptResult(pos, np.zeros((T, 2), np.int32), [_box(h)] * 2, (lo, hi))
+    pos[:, 0, 2] += z
+    lo, hi = (-sx / 2, -sy / 2, 0.0), (sx / 2, sy / 2, sz + 0.06)
+    return ScriptResult(pos, np.zeros((T, 1), np.int32), [_box((hx, hy, hz))], (lo, hi))
 
 
 SCRIPTS: Dict[str, Callable[[int, ObjectGeometry], ScriptResult]] = {

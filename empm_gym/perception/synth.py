@@ -235,6 +235,19 @@ def _effect_param_names(effect: str):
     return EFFECTS[effect].param_names
 
 
+def _effects_of(material) -> List[dict]:
+    """ground_truth.json's effects list of a material (table friction only where it differs from 0.5)."""
+    from empm_gym.sim.effects import BASE_TABLE_FRICTION
+
+    out = []
+    for n in material.effects():
+        params = {p: material.get(p) for p in _effect_param_names(n)}
+        if n == "table_friction" and params.get("friction") == BASE_TABLE_FRICTION:
+            continue
+        out.append({"name": n, "params": {k: float(v) for k, v in params.items() if v is not None}})
+    return out
+
+
 def simulate(object: str, material, *, script: str = "default", frames: int = 60, fps: float = 30.0,
              dx: float = 0.01, particles_per_cell: float = 8, table_friction: float = 0.5,
              gripper_friction: float = 0.8, seed: int = 0, device: str = "cpu", progress: bool = False) -> dict:
@@ -623,16 +636,18 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
         if yield_stress is not None:
             raise ValueError("yield_stress is an effect parameter: use effect='plasticity' with "
                              "effect_params={'yield_stress': ...}")
+        with_file = material is not None
         material, effects = effect_material(object, effect, effect_params, base=material, E=E, nu=nu,
                                             density=density)
+        if with_file:  # the material file's own effects stay
+            effects = _effects_of(material)
     elif material is not None:
         if effect_params:
             raise ValueError("effect_params needs an effect")
         kw = {k: float(v) for k, v in (("E", E), ("nu", nu), ("density", density), ("yield_stress", yield_stress))
               if v is not None}
         material = material.replace(**kw) if kw else material
-        effects = [{"name": n, "params": {p: material.get(p) for p in _effect_param_names(n)}}
-                   for n in material.effects()]
+        effects = _effects_of(material)
     else:
         if effect_params:
             raise ValueError("effect_params needs an effect")
@@ -763,20 +778,46 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
 # ----------------------------------------------------------------------------------------------
 
 
+def _parse_effect_params(items) -> Dict[str, float]:
+    out = {}
+    for it in items or []:
+        key, sep, val = it.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--effect-param expects KEY=VALUE, got {it!r}")
+        try:
+            out[key.strip()] = float(val)
+        except ValueError:
+            raise ValueError(f"--effect-param {key.strip()}: {val!r} is not a number") from None
+    return out
+
+
 def _cli(args) -> int:
     try:
+        material = None
+        if getattr(args, "material", None):
+            from empm_gym.sim.material_file import read_material
+
+            material = read_material(args.material).material
+        effect = args.effect
+        params = _parse_effect_params(args.effect_param)
+        if params and effect is None:
+            raise ValueError("--effect-param needs --effect NAME")
         path = synthesize(args.out_dir, object=args.object, seed=args.seed, E=args.E, nu=args.nu,
                           density=args.density, yield_stress=args.yield_stress, frames=args.frames,
                           cameras=args.cameras, width=args.width, height=args.height, overwrite=args.overwrite,
-                          depth_format=args.depth_format, progress=not args.quiet, device=args.device)
-    except (RecordingError, ValueError) as exc:
+                          depth_format=args.depth_format, progress=not args.quiet, device=args.device,
+                          script=args.script, effect=effect, effect_params=params, material=material,
+                          debug_particles=True if args.debug_particles else None)
+    except (RecordingError, ValueError, OSError) as exc:
         print(f"empm synth: error: {exc}", file=sys.stderr)
         return 2
     gt = json.loads((path / "ground_truth.json").read_text())
     m = gt["material"]
-    print(f"wrote {path}: {args.object}, {args.frames} frames x {args.cameras} cameras; E={m['E']:g} Pa, "
-          f"nu={m['nu']:g}, density={m['density']:g} kg/m^3, yield_stress={m['yield_stress']} Pa "
-          f"({gt['timing_s']['total']:.1f} s)")
+    eff = ", ".join(f"{e['name']} " + " ".join(f"{k}={v:g}" for k, v in e["params"].items())
+                    for e in gt["effects"]) or "none"
+    print(f"wrote {path}: {args.object}, script {gt['script']}, {args.frames} frames x {args.cameras} cameras; "
+          f"E={m['E']:g} Pa, nu={m['nu']:g}, density={m['density']:g} kg/m^3, yield_stress={m['yield_stress']} Pa; "
+          f"effects: {eff} ({gt['timing_s']['total']:.1f} s)")
     return 0
 
 
@@ -784,8 +825,9 @@ def register(subparsers) -> None:
     """Add the ``empm synth`` sub-command."""
     p = subparsers.add_parser(
         "synth", help="write a synthetic multi-view RGB-D recording with known material parameters",
-        description="Simulate a scripted rope stretch or dough squeeze and render it from N RGB-D cameras "
-                    "into the recording layout (see ARCHITECTURE.md, Recordings).")
+        description="Simulate a scripted manipulation of a rope, a dough lump or a block, optionally with one "
+                    "hidden effect, and render it from N RGB-D cameras into the recording layout (see "
+                    "ARCHITECTURE.md, Recordings, and docs/EFFECTS.md).")
     p.add_argument("out_dir", help="output recording directory (must be empty unless --overwrite)")
     p.add_argument("--object", choices=sorted(OBJECT_DEFAULTS), default="rope")
     p.add_argument("--seed", type=int, default=0)
@@ -794,6 +836,21 @@ def register(subparsers) -> None:
     p.add_argument("--density", type=float, default=None, help="kg/m^3 (rope 1100, dough 1200)")
     p.add_argument("--yield-stress", dest="yield_stress", type=float, default=None,
                    help="von Mises yield stress, Pa (dough 2e3; rope elastic unless given)")
+    p.add_argument("--script", choices=["default", *SCRIPTS], default="default",
+                   help="scripted manipulation (default: rope lift-and-stretch, dough squeeze, block "
+                        "press-release); see docs/EFFECTS.md")
+    p.add_argument("--effect", default=None, metavar="NAME",
+                   help="record the base model (elastic body, table friction 0.5, rigid grip) plus effect NAME "
+                        "(none, plasticity, viscosity, table_friction, gripper_slip, heterogeneous_stiffness, "
+                        "fracture); only ground_truth.json names it")
+    p.add_argument("--effect-param", dest="effect_param", action="append", default=[], metavar="KEY=VALUE",
+                   help="a parameter of --effect (SI units; repeatable), e.g. yield_stress=1500")
+    p.add_argument("--material", default=None, metavar="FILE",
+                   help="material file (empm_gym.sim.material_file): the base material and its effects "
+                        "(with --effect: the base that the effect is added to)")
+    p.add_argument("--debug-particles", dest="debug_particles", action="store_true",
+                   help="also write ground_truth_particles.npz (the simulated particles; written anyway "
+                        "without --effect / --material, as before)")
     p.add_argument("--frames", type=int, default=60)
     p.add_argument("--cameras", type=int, default=3)
     p.add_argument("--width", type=int, default=848)

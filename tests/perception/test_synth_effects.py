@@ -1,0 +1,165 @@
+"""Recordings with hidden effects (``empm synth --effect NAME --script SCRIPT``): every effect x script
+synthesises and loads, only ground_truth.json tells the effect, and each effect's default parameters
+change the motion on its natural script (tiny resolutions: CPU seconds)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from empm_gym.perception import synth as S
+from empm_gym.perception.recording import Recording
+from empm_gym.perception.scripts import SCRIPTS
+from empm_gym.sim.effects import EFFECTS
+
+TINY = dict(frames=8, cameras=1, width=64, height=48, dx=0.02, n_tracks=16, progress=False)
+EFFECT_NAMES = ["none", *EFFECTS]
+GT_FILES = {"ground_truth.json", "ground_truth_particles.npz"}
+
+
+def _files(root):
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*") if p.is_file())
+
+
+@pytest.mark.parametrize("script", list(SCRIPTS))
+@pytest.mark.parametrize("effect", EFFECT_NAMES)
+def test_every_effect_and_script_synthesises_and_loads(tmp_path, effect, script):
+    out = S.synthesize(tmp_path / "rec", "block", effect=effect, script=script, **TINY)
+    rec = Recording(out)
+    assert rec.num_frames == 8 and rec.has_controls
+    c = rec.controls()
+    assert c["positions"].shape[0] == 8 and np.all(np.isfinite(c["positions"]))
+    d = rec.depth(0, 7)
+    assert d.shape == (48, 64) and np.any(d > 0)
+    assert rec.mask(0, 0).any()                    # the object is in view
+    gt = rec.ground_truth()
+    assert gt["script"] == script and gt["object"] == "block"
+    if effect == "none":
+        assert gt["effects"] == []
+    else:
+        assert [e["name"] for e in gt["effects"]] == [effect]
+        assert set(gt["effects"][0]["params"]) == set(EFFECTS[effect].param_names)
+    assert gt["material"]["yield_stress"] == (gt["effects"][0]["params"]["yield_stress"]
+                                              if effect == "plasticity" else None)
+    assert not (out / "ground_truth_particles.npz").exists()
+
+
+@pytest.mark.parametrize("obj", ["rope", "dough"])
+@pytest.mark.parametrize("script", list(SCRIPTS))
+def test_every_script_runs_on_rope_and_dough(tmp_path, obj, script):
+    out = S.synthesize(tmp_path / "rec", obj, effect="none", script=script, **TINY)
+    rec = Recording(out)
+    assert rec.num_frames == 8
+    assert rec.ground_truth()["material"]["yield_stress"] is None    # --effect: the dough is elastic
+
+
+def test_recording_without_ground_truth_reveals_nothing(tmp_path):
+    """Same object, script and seed, different effects: the same files, metadata, calibration and controls."""
+    recs = {e: S.synthesize(tmp_path / e, "dough", effect=e, script="squeeze-ring", seed=3, **TINY)
+            for e in ("none", "viscosity", "fracture")}
+    ref = recs["none"]
+    files_ref = [f for f in _files(ref) if f not in GT_FILES]
+    assert "ground_truth_particles.npz" not in _files(ref)
+    for e, path in recs.items():
+        files = [f for f in _files(path) if f not in GT_FILES]
+        assert files == files_ref, e
+        for name in ("metadata.json", "calibrate.json", "calibrate.pkl", "controls.npz"):
+            if (ref / name).exists():
+                assert (path / name).read_bytes() == (ref / name).read_bytes(), (e, name)
+        for f in files:
+            if f.startswith("mask/") and f.endswith(".json"):
+                assert (path / f).read_bytes() == (ref / f).read_bytes(), (e, f)
+        text = "\n".join((path / f).read_text(errors="ignore") for f in files if f.endswith(".json"))
+        for word in (*EFFECTS, "viscosity", "fracture", "yield"):
+            assert word not in text, (e, word)
+    gts = {e: json.loads((p / "ground_truth.json").read_text()) for e, p in recs.items()}
+    assert gts["none"]["effects"] == [] and gts["viscosity"]["effects"][0]["name"] == "viscosity"
+
+
+def test_debug_particles_only_on_request(tmp_path):
+    out = S.synthesize(tmp_path / "a", "block", effect="none", script="push-slide", debug_particles=True, **TINY)
+    assert (out / "ground_truth_particles.npz").exists()
+    legacy = S.synthesize(tmp_path / "b", "dough", frames=2, cameras=1, width=64, height=48, progress=False)
+    assert (legacy / "ground_truth_particles.npz").exists()        # the historic call keeps it
+
+
+def test_load_recording_for_identification(tmp_path):
+    from empm_gym.identification.data import load_recording
+
+    for effect, script in (("gripper_slip", "squeeze-lift"), ("table_friction", "push-slide")):
+        out = S.synthesize(tmp_path / effect, "dough", effect=effect, script=script,
+                           **{**TINY, "cameras": 3, "width": 160, "height": 120})
+        scene, obs, views = load_recording(out, dx=0.02, particles_per_cell=8, progress=False, frames=4)
+        assert len(obs.points) == 4 and all(len(p) > 0 for p in obs.points)
+        assert len(scene.ee_configs) == len(Recording(out).controls()["shape"])
+
+
+def test_effect_material_validation():
+    m, eff = S.effect_material("dough", "none")
+    assert m.yield_stress is None and m.get("friction") == 0.5 and m.get("grip_friction") is None and eff == []
+    m, eff = S.effect_material("rope", "plasticity", {"yield_stress": 1234.0})
+    assert m.yield_stress == 1234.0 and eff == [{"name": "plasticity", "params": {"yield_stress": 1234.0}}]
+    m, eff = S.effect_material("block", "table_friction")
+    assert m.get("friction") == pytest.approx(0.05)
+    with pytest.raises(ValueError, match="no parameter"):
+        S.effect_material("block", "viscosity", {"friction": 0.1})
+    with pytest.raises(ValueError, match="unknown effect"):
+        S.effect_material("block", "magic")
+    with pytest.raises(ValueError, match="must lie in"):
+        S.effect_material("block", "viscosity", {"viscosity": -1.0})
+    with pytest.raises(ValueError, match="unknown script"):
+        S.synthesize("/nonexistent/x", "block", script="juggle", effect="none")
+
+
+def test_cli_effect_flags(tmp_path, capsys):
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    S.register(parser.add_subparsers())
+    base = ["--object", "block", "--frames", "4", "--width", "48", "--height", "32", "--cameras", "1", "--quiet"]
+    args = parser.parse_args(["synth", str(tmp_path / "bad"), "--effect", "fracture", "--effect-param",
+                              "yield_stress=3", *base])
+    assert args.func(args) == 2
+    assert "no parameter 'yield_stress'" in capsys.readouterr().err
+    args = parser.parse_args(["synth", str(tmp_path / "bad2"), "--effect-param", "viscosity=3", *base])
+    assert args.func(args) == 2
+    args = parser.parse_args(["synth", str(tmp_path / "ok"), "--effect", "viscosity", "--effect-param",
+                              "viscosity=20", "--script", "squeeze-ring", *base])
+    assert args.func(args) == 0
+    gt = json.loads((tmp_path / "ok" / "ground_truth.json").read_text())
+    assert gt["effects"] == [{"name": "viscosity", "params": {"viscosity": 20.0}}]
+
+
+# each effect's natural script and the least mean particle displacement (m) its default parameters cause
+# against the base model on the tiny block (dx 2 cm, 12 frames); measured values are about 2-10x these
+NATURAL = {
+    "plasticity": ("press-release", "final", 1e-3),
+    "viscosity": ("squeeze-ring", "max", 3e-3),
+    "table_friction": ("push-slide", "final", 5e-3),
+    "gripper_slip": ("squeeze-lift", "max", 2e-2),
+    "heterogeneous_stiffness": ("pull-apart", "max", 1e-3),
+    "fracture": ("pull-apart", "final", 3e-3),
+}
+
+
+@pytest.fixture(scope="module")
+def base_runs():
+    cache = {}
+
+    def run(script):
+        if script not in cache:
+            m, _ = S.effect_material("block", "none")
+            cache[script] = S.simulate("block", m, script=script, frames=12, dx=0.02)["particles"]
+        return cache[script]
+
+    return run
+
+
+@pytest.mark.parametrize("effect", list(NATURAL))
+def test_default_effect_changes_the_motion(effect, base_runs):
+    script, when, least = NATURAL[effect]
+    m, _ = S.effect_material("block", effect)
+    X = S.simulate("block", m, script=script, frames=12, dx=0.02)["particles"]
+    d = np.linalg.norm(X - base_runs(script), axis=-1).mean(1)
+    value = d[-1] if when == "final" else d.max()
+    assert value > least, f"{effect} on {script}: {value * 1000:.2f} mm"
