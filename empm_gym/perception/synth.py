@@ -225,6 +225,10 @@ def effect_material(object: str, effect: str, effect_params: Optional[Dict[str, 
             raise ValueError(f"effect {effect!r} has no parameter {k!r}; its parameters: "
                              f"{', '.join(eff.param_names)}")
         params[k] = next(p for p in eff.params if p.name == k).check(v, f"effect {effect}: ")
+    for p in eff.params:                               # name every parameter of the effect
+        if p.name not in params and p.off is not None:
+            params[p.name] = float(p.off)
+    params = {p.name: params[p.name] for p in eff.params if p.name in params}
     material = base.replace(**params)
     return material, [{"name": effect, "params": {k: float(v) for k, v in params.items()}}]
 
