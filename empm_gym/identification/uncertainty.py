@@ -22,12 +22,13 @@ import numpy as np
 __all__ = ["measurement_noise", "paired_gain_test", "block_bootstrap_indices"]
 
 
-def measurement_noise(points: Sequence[np.ndarray], *, k: int = 12, max_points: int = 3000, seed: int = 0) -> float:
+def measurement_noise(points: Sequence[np.ndarray], *, k: int = 60, max_points: int = 3000, seed: int = 0) -> float:
     """Robust standard deviation [m] of observed points about their local surface, over all frames given.
 
     For each (subsampled) point, a plane is fitted to its ``k`` nearest neighbours; the distance of the
     point to that plane is its residual. The median absolute residual / 0.6745 estimates the noise's
-    standard deviation (the plane fit absorbs part of it: the estimate is a slight underestimate).
+    standard deviation. The plane fit absorbs part of the noise when it is comparable with the point spacing
+(neighbours are chosen in 3-D): 0.92-1.0x the true sigma for noise up to 0.8x the spacing, 0.82x at 1.5x.
     """
     from scipy.spatial import cKDTree
 

@@ -82,9 +82,17 @@ class DoctorConfig:
     seed: int = 0
 
 
-#: Parameters the doctor refits for each effect (the registry's, less shape parameters that short
-#: recordings do not determine: the fracture's softening width and the stiffness field's third axis).
-_HELD_AT_START = {"fracture_softening", "stiffness_slope_3"}
+#: Parameters the doctor refits for each effect: the registry's, less shape parameters that short recordings
+#: do not determine (the fracture's softening width) and the stiffness field's minor axes (a field along the
+#: body's longest axis is what one manipulation shows; every fitted slope also multiplies the step count).
+_HELD_AT_START = {"fracture_softening", "stiffness_slope_2", "stiffness_slope_3"}
+
+#: Largest stiffness slope the doctor tries [-]: E varies by exp(2 x 1.2) = 11x over the body, and the stable
+#: step shrinks by exp(0.6) = 1.8x.
+_SLOPE_CAP = 1.2
+#: Largest viscosity the doctor tries, as a multiple of rho dx c / 3 (where the explicit viscous step limit
+#: equals the elastic one): 4x keeps a candidate at most 4x the base model's substeps.
+_VISCOSITY_CAP = 4.0
 
 #: Feature that a real effect should move, and the direction (+1: larger than in the base simulation).
 SIGNATURE_FEATURES = {
@@ -102,6 +110,17 @@ def candidate_params(effect: str) -> Tuple[str, ...]:
     if effect not in EFFECTS:
         raise ValueError(f"unknown effect {effect!r}; known: {', '.join(EFFECTS)}")
     return tuple(p for p in EFFECTS[effect].param_names if p not in _HELD_AT_START)
+
+
+def _search_box(name: str, stiffest: MaterialConfig, dx: float) -> Tuple[float, float]:
+    """The registry's search box of a parameter, capped where a candidate would cost far more substeps than
+    the base model (see _SLOPE_CAP, _VISCOSITY_CAP)."""
+    lo, hi = PARAMETERS[name].search
+    if name.startswith("stiffness_slope"):
+        lo, hi = max(lo, -_SLOPE_CAP), min(hi, _SLOPE_CAP)
+    elif name == "viscosity":
+        hi = min(hi, _VISCOSITY_CAP * stiffest.density * dx * stiffest.wave_speed / 3.0)
+    return lo, hi
 
 
 @dataclass
@@ -220,14 +239,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     for name in tqdm(names, desc="doctor: candidates", disable=not progress, leave=False):
         ps = candidate_params(name)
         init = {"E": E_base, **{p: PARAMETERS[p].start for p in ps}}
-        bounds = {"E": (Elo, Ehi), **{p: PARAMETERS[p].search for p in ps}}
-        start_mat = base_fit.material
-        for p in EFFECTS[name].param_names:
-            if p in _HELD_AT_START and p != "stiffness_slope_3":
-                start_mat = start_mat.replace(**{p: PARAMETERS[p].start})
-        if name == "fracture":
-            start_mat = start_mat.replace(fracture_strain=PARAMETERS["fracture_strain"].start,
-                                          fracture_softening=PARAMETERS["fracture_softening"].start)
+        bounds = {"E": (Elo, Ehi), **{p: _search_box(p, base_fit.material.replace(E=Ehi), scene.dx) for p in ps}}
+        start_mat = base_fit.material.replace(**{p: PARAMETERS[p].start for p in EFFECTS[name].param_names})
         f = _fit(name, scene.with_material(start_mat), obs, ("E",) + ps, init, bounds, start_mat, F, cfg, progress,
                  cfg.candidate_iters)
         f.added = len(ps)

@@ -1,0 +1,72 @@
+"""The discrepancy doctor: bad input, the noise test, and hidden-effect recordings named end to end."""
+
+import json
+
+import numpy as np
+import pytest
+
+from empm_gym.identification.doctor import DoctorConfig, DoctorError, candidate_params, diagnose
+from empm_gym.identification.problem import Observations, Scene
+from empm_gym.identification.uncertainty import measurement_noise, paired_gain_test
+from empm_gym.sim import EndEffectorConfig, sample_box
+from empm_gym.sim.effects import EFFECTS
+
+
+def _still_scene(T=20, with_ee=True, motion=0.0, seed=0):
+    rng = np.random.default_rng(seed)
+    x, vol = sample_box((-0.02, -0.02, 0.0), (0.02, 0.02, 0.04), 0.01, 8, seed=1)
+    ee = [EndEffectorConfig(shape="sphere", radius=0.01)] if with_ee else []
+    pos = np.tile([[[0.0, 0.0, 0.06]]], (T, 1, 1)) if with_ee else None
+    scene = Scene(x, vol, fps=30.0, ee_configs=ee, ee_positions=pos, ee_grip=np.zeros((T, 1)) if with_ee else None)
+    pts = [x + rng.normal(0, 5e-4, x.shape) + [motion * t / T, 0, 0] for t in range(T)]
+    return scene, Observations(30.0, pts, surface=True)
+
+
+def test_too_short_recording_is_refused():
+    scene, obs = _still_scene(T=8)
+    with pytest.raises(DoctorError, match="too few"):
+        diagnose(scene, obs, progress=False)
+
+
+def test_recording_without_controls_is_refused():
+    scene, obs = _still_scene(with_ee=False)
+    with pytest.raises(DoctorError, match="no end-effector controls"):
+        diagnose(scene, obs, progress=False)
+
+
+def test_recording_without_motion_gets_no_verdict(tmp_path):
+    scene, obs = _still_scene()
+    res = diagnose(scene, obs, progress=False, out_dir=tmp_path)
+    assert res["effect"] == "none" and res["decidable"] is False
+    assert "hardly moves" in res["reason"]
+    assert json.loads((tmp_path / "doctor.json").read_text())["decidable"] is False
+
+
+def test_measurement_noise_recovers_the_depth_noise():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-0.05, 0.05, (6000, 2))
+    for sigma in (5e-4, 1e-3):  # points 1.3 mm apart
+        pts = np.c_[xy, rng.normal(0.0, sigma, len(xy))]
+        est = measurement_noise([pts])
+        assert 0.85 * sigma < est < 1.15 * sigma, (sigma, est)
+
+
+def test_paired_gain_test_separates_a_real_gain_from_noise():
+    rng = np.random.default_rng(1)
+    base = 1.0 + 0.1 * rng.standard_normal(30)
+    same = base + 0.02 * rng.standard_normal(30)
+    better = 0.6 * base
+    assert not paired_gain_test(base, same)["significant"]
+    t = paired_gain_test(base, better, added_params=1)
+    assert t["significant"] and t["lower"] > 0.3 and abs(t["gain"] - 0.4) < 1e-9
+    # the same 4 % gain pays for one parameter but not for three
+    slight = 0.95 * base
+    assert paired_gain_test(base, slight, added_params=1, penalty_per_param=0.04)["significant"]
+    assert not paired_gain_test(base, slight, added_params=3, penalty_per_param=0.04)["significant"]
+
+
+def test_every_effect_is_a_candidate():
+    for name in EFFECTS:
+        assert candidate_params(name), name
+    with pytest.raises(ValueError, match="unknown effect"):
+        candidate_params("magic")
