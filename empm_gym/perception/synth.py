@@ -9,6 +9,18 @@ N cameras around the table into the recording layout of :mod:`empm_gym.perceptio
   stretching by 1.5 cm per side, hold, put it back down, release (grippers open and move up), settle.
 * ``dough``: an elastoplastic block (5 x 5 x 4.5 cm) between two box plates (pushers, grip open =
   frictional contact); script: hold, squeeze by 1 cm per side, hold, release (plates back out), settle.
+* ``block``: an elastic 4 cm cube (E 60 kPa); default script press-release.
+
+These are the ``default`` scripts; ``script=`` picks one of :data:`empm_gym.perception.scripts.SCRIPTS`
+(press-release, push-slide, squeeze-lift, pull-apart, squeeze-ring), each of which runs on every object.
+
+Hidden effects (``empm synth --effect NAME [--effect-param KEY=VALUE ...] --script SCRIPT``): with an
+effect the object is the base model (elastic, also the dough; table friction 0.5; rigid closed grippers)
+plus that one effect of :data:`empm_gym.sim.effects.EFFECTS` at :func:`default_effect_params` (or the
+given values); ``--effect none`` is the base model alone. Only ``ground_truth.json`` names the effect:
+file names, metadata, calibration, controls and timing are the same for every effect (the debug file
+``ground_truth_particles.npz`` is written only on request). docs/EFFECTS.md lists which script shows
+which effect and by how much.
 
 Rendering does not reuse the simulation particles as the observed surface: a dense set of surface
 sample points (spacing ``surface_spacing_m``, about 1.5 mm, much finer than the particles) is
@@ -52,8 +64,8 @@ from .cameras import Camera, intrinsics_matrix, look_at, pixel_rays
 from .recording import RecordingError, RecordingWriter
 from .scripts import SCRIPTS, ObjectGeometry, _phases, _smooth, run_script
 
-__all__ = ["synthesize", "register", "OBJECT_DEFAULTS", "render_view", "add_depth_noise", "camera_ring",
-           "SurfaceEmbedding"]
+__all__ = ["synthesize", "simulate", "effect_material", "default_effect_params", "register", "OBJECT_DEFAULTS",
+           "DEFAULT_SCRIPT", "render_view", "add_depth_noise", "camera_ring", "SurfaceEmbedding"]
 
 #: Default material parameters per object (SI: Pa, -, kg/m^3, Pa). They are chosen so that the
 #: scripted motion shows them: a soft rubber rope (E / density sets how far the lifted, stretched rope
