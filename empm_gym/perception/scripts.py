@@ -95,9 +95,9 @@ def _box(h):
 def _press_release(T: int, g: ObjectGeometry) -> ScriptResult:
     sx, sy, sz = g.size
     hz = _THICK
-    # a 4 cm punch across the middle of an elongated object, a flat press over all of a compact one (a
+    # an 8 cm punch across the middle of an elongated object, a flat press over all of a compact one (a
     # narrow punch sunk deep into a block grips it by its sides and lifts it on the way out)
-    hx = min(0.25 * sx, 0.02) if g.elongated else 0.5 * sx + 0.01
+    hx = min(0.25 * sx, 0.04) if g.elongated else 0.5 * sx + 0.01
     hy = 0.5 * sy + 0.01
     start = np.array([[0.0, 0.0, sz + hz + 0.002]])
     _, a, b, c, d, _ = _phases(T, [0.08, 0.3, 0.12, 0.15, 0.35])
