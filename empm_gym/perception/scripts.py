@@ -9,17 +9,19 @@ same object, script and frame count are identical whatever the physics.
 
 Scripts (phases as fractions of the recording; "long axis" = x, the object's longest side):
 
-* ``press-release``: a flat pusher above the centre presses down by 45 % of the height, holds, lifts
-  away; the body is left to settle (plasticity: a permanent dent).
-* ``push-slide``: a vertical plate behind the object (-y side) pushes it 4 cm along +y in a quick stroke
-  and withdraws at once; the object slides on by itself (table friction: how far it slides).
-* ``squeeze-lift``: two closed grippers (spheres over the ends of an elongated object, side pads pressed
-  6 mm into a compact one) take it, lift it by 6 cm, hold, put it back down and open (gripper slip: the
-  object sags / slides down relative to the grippers).
-* ``pull-apart``: two closed grippers at the ends of the long axis pull them apart by 40 % of the length
-  each, hold, open and move away (fracture: it tears; heterogeneous stiffness: one side stretches more).
-* ``squeeze-ring``: a flat plate squeezes the whole object against the table by 30 % of its height,
-  holds, then snaps 8 cm up within one frame interval, so the body springs back, hops and rings
+* ``press-release``: a flat pusher (an 8 cm punch across the middle of an elongated object, a plate over
+  the whole top of a compact one) presses down by 35 % of the height (45 % on an elongated object),
+  holds, lifts away; the body is left to settle (plasticity: a permanent dent).
+* ``push-slide``: a vertical plate behind the object (-y side) pushes it 4 cm along +y with constant
+  acceleration and at once withdraws back and up; the object slides on by itself (table friction: how
+  far it slides).
+* ``squeeze-lift``: two closed grippers (spheres over the ends of an elongated object, clamps enclosing
+  the outer quarters of a compact one) lift it by 6 cm, hold, put it back down to 4 mm above its start,
+  open and move away (gripper slip: the object slides down / drops out of the grip).
+* ``pull-apart``: the same grippers pull the ends apart by 20 % of the length each (15 % on an elongated
+  object), hold, open and move away (fracture: it tears; heterogeneous stiffness: one side stretches more).
+* ``squeeze-ring``: a plate over the whole top squeezes the object against the table by 30 % of its
+  height, holds, then snaps 8 cm up within one frame interval, so the body springs back, hops and rings
   (viscosity: the rebound loses energy, a lower hop and damped ringing).
 
 ``default`` is the object's historic script (:func:`default_script`: rope lift-and-stretch, dough
