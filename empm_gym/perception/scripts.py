@@ -24,8 +24,8 @@ Scripts (phases as fractions of the recording; "long axis" = x, the object's lon
   height, holds, then snaps 8 cm up within one frame interval, so the body springs back, hops and rings
   (viscosity: the rebound loses energy, a lower hop and damped ringing).
 
-``default`` is the object's historic script (:func:`default_script`: rope lift-and-stretch, dough
-squeeze), used when no script is named.
+``default`` (resolved in :mod:`empm_gym.perception.synth`) is the object's historic script: rope
+lift-and-stretch, dough squeeze, block press-release.
 """
 
 from __future__ import annotations

@@ -130,6 +130,27 @@ def test_cli_effect_flags(tmp_path, capsys):
     assert gt["effects"] == [{"name": "viscosity", "params": {"viscosity": 20.0}}]
 
 
+def test_cli_material_file(tmp_path):
+    import argparse
+
+    from empm_gym.sim import MaterialConfig
+    from empm_gym.sim.material_file import write_material
+
+    mat = write_material(tmp_path / "m.json", MaterialConfig(E=3e4, nu=0.3, density=900.0, yield_stress=900.0))
+    parser = argparse.ArgumentParser()
+    S.register(parser.add_subparsers())
+    base = ["--object", "block", "--frames", "3", "--width", "48", "--height", "32", "--cameras", "1", "--quiet",
+            "--material", str(mat)]
+    args = parser.parse_args(["synth", str(tmp_path / "a"), *base])
+    assert args.func(args) == 0
+    gt = json.loads((tmp_path / "a" / "ground_truth.json").read_text())
+    assert gt["material"]["E"] == 3e4 and [e["name"] for e in gt["effects"]] == ["plasticity"]
+    args = parser.parse_args(["synth", str(tmp_path / "b"), "--effect", "viscosity", *base])
+    assert args.func(args) == 0
+    gt = json.loads((tmp_path / "b" / "ground_truth.json").read_text())
+    assert sorted(e["name"] for e in gt["effects"]) == ["plasticity", "viscosity"]
+
+
 # each effect's natural script and the least mean particle displacement (m) its default parameters cause
 # against the base model, on the block at dx 1 cm and 12 frames (measured: plasticity 9.4 mm at the end,
 # viscosity 46 mm at most (the hop), table friction 14.6 mm at the end, gripper slip 60 mm at most,
