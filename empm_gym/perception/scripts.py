@@ -85,6 +85,11 @@ class ScriptResult:
 #: its far face as the nearest (a thin plate lets material tunnel into it and then drags it along).
 _THICK = 0.02
 
+#: Gap [m] between a plate over the top and the object at frame 0: the cameras (40 deg elevation) see the
+#: top surface under a plate hovering this high; a plate just above the object hides the top from every
+#: camera and frame 0, from which the body is rebuilt, would lose it.
+_CLEAR = 0.03
+
 
 def _sphere(r):
     return {"shape": "sphere", "radius": float(r)}
@@ -101,10 +106,10 @@ def _press_release(T: int, g: ObjectGeometry) -> ScriptResult:
     # narrow punch sunk deep into a block grips it by its sides and lifts it on the way out)
     hx = min(0.25 * sx, 0.04) if g.elongated else 0.5 * sx + 0.01
     hy = 0.5 * sy + 0.01
-    start = np.array([[0.0, 0.0, sz + hz + 0.002]])
+    start = np.array([[0.0, 0.0, sz + hz + _CLEAR]])
     _, a, b, c, d, _ = _phases(T, [0.08, 0.3, 0.12, 0.15, 0.35])
     t = np.arange(T, dtype=np.float64)
-    depth = (0.45 if g.elongated else 0.35) * sz + 0.002
+    depth = (0.45 if g.elongated else 0.35) * sz + _CLEAR
     z = -depth * _ramp(t, a, b) + (depth + 0.04) * _ramp(t, c, d)
     pos = np.repeat(start[None], T, axis=0)
     pos[:, 0, 2] += z
@@ -196,10 +201,10 @@ def _squeeze_ring(T: int, g: ObjectGeometry) -> ScriptResult:
     sx, sy, sz = g.size
     hz = _THICK
     hx, hy = 0.5 * sx + 0.01, 0.5 * sy + 0.01          # a flat plate over the whole top
-    start = np.array([[0.0, 0.0, sz + hz + 0.002]])
+    start = np.array([[0.0, 0.0, sz + hz + _CLEAR]])
     _, a, b, c, _ = _phases(T, [0.08, 0.3, 0.1, 0.52])
     t = np.arange(T, dtype=np.float64)
-    depth = 0.3 * sz + 0.002
+    depth = 0.3 * sz + _CLEAR
     z = -depth * _ramp(t, a, b) + np.where(t >= c + 1, depth + 0.08, 0.0)   # snaps up within one frame
     pos = np.repeat(start[None], T, axis=0)
     pos[:, 0, 2] += z
