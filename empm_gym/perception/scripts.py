@@ -166,7 +166,9 @@ def _release(pos, t, a, b, away):
 def _squeeze_lift(T: int, g: ObjectGeometry) -> ScriptResult:
     sx, sy, sz = g.size
     start, ees, away = _end_grippers(g)
-    _, a, b, c, d, e, _ = _phases(T, [0.06, 0.25, 0.25, 0.2, 0.08, 0.16])
+    # the lifted hold lasts to 80 % of the recording, so that the last 30 % (what a fit holds out) still
+    # shows whether the object stays in the grip
+    _, a, b, c, d, e, _ = _phases(T, [0.06, 0.22, 0.52, 0.1, 0.05, 0.05])
     t = np.arange(T, dtype=np.float64)
     # put it back down to 4 mm above where it was: a body pressed into the table by rigid grippers
     # jumps when they let go
@@ -183,7 +185,9 @@ def _squeeze_lift(T: int, g: ObjectGeometry) -> ScriptResult:
 def _pull_apart(T: int, g: ObjectGeometry) -> ScriptResult:
     sx, sy, sz = g.size
     start, ees, away = _end_grippers(g)
-    _, a, b, c, d, _ = _phases(T, [0.06, 0.4, 0.2, 0.08, 0.26])
+    # held apart to 88 % of the recording: the last 30 % (what a fit holds out) shows the stretched or torn
+    # body, not only its chaotic spring-back after release
+    _, a, b, c, d, _ = _phases(T, [0.06, 0.4, 0.42, 0.06, 0.06])
     t = np.arange(T, dtype=np.float64)
     pull = (0.15 if g.elongated else 0.2) * sx
     out = pull * _ramp(t, a, b)
