@@ -138,7 +138,8 @@ _register(Effect(
 _register(Effect(
     name="heterogeneous_stiffness",
     summary="E varies smoothly over the body: E(x) = E exp(sum_i a_i u_i) with u_i in [-1, 1] the rest "
-            "position along principal axis i of the body (1 = longest)",
+            "position along principal axis i of the body (1 = longest; axes of similar extent, within 15 %, "
+            "follow the world axes x, y, z, and a lump whose extents all lie within 30 % takes the world axes)",
     signature="uneven deformation: one side of the body stretches or compresses more than the other",
     params=tuple(
         Parameter(f"stiffness_slope_{i + 1}", "-", f"natural-log change of the stiffness from the body's centre "

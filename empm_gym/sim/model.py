@@ -122,7 +122,23 @@ def principal_coords(x: np.ndarray) -> np.ndarray:
     if len(x) < 2:
         return np.zeros_like(x)
     w, V = np.linalg.eigh(r.T @ r / len(x))
-    V = V[:, np.argsort(w)[::-1]]
+    order = np.argsort(w)[::-1]
+    w, V = w[order], V[:, order]
+    # two extents within 15 % of each other (a square slab's) leave their axes to sampling noise: take the
+    # pair's plane and, in it, the world axis (x before y before z) that lies nearest to it
+    close = [w[i] > 0 and (w[i] - w[i + 1]) / w[i] < 0.15 for i in (0, 1)]
+    if all(close) or (w[0] > 0 and w[2] / w[0] > 0.7):  # three similar extents (a cube, a lump): world axes
+        close = [True, True]
+        V = np.eye(3)
+    for i in (0, 1):
+        if close[i] and not all(close):
+            P = V[:, i:i + 2]
+            proj = P @ P.T                                   # projector onto the pair's plane
+            k = int(np.argmax(np.linalg.norm(proj, axis=0) + 1e-6 * np.array([3.0, 2.0, 1.0])))
+            a = proj[:, k] / np.linalg.norm(proj[:, k])
+            c = P[:, 0] if abs(P[:, 0] @ a) < 0.7 else P[:, 1]
+            b = c - (c @ a) * a
+            V[:, i], V[:, i + 1] = a, b / np.linalg.norm(b)
     for i in range(3):
         j = int(np.argmax(np.abs(V[:, i])))
         if V[j, i] < 0:
