@@ -134,7 +134,8 @@ def principal_coords(x: np.ndarray) -> np.ndarray:
         if close[i] and not all(close):
             P = V[:, i:i + 2]
             proj = P @ P.T                                   # projector onto the pair's plane
-            k = int(np.argmax(np.linalg.norm(proj, axis=0) + 1e-6 * np.array([3.0, 2.0, 1.0])))
+            norms = np.linalg.norm(proj, axis=0)
+            k = int(np.argmax(norms >= 0.98 * norms.max()))  # the first of the world axes nearly in the plane
             a = proj[:, k] / np.linalg.norm(proj[:, k])
             c = P[:, 0] if abs(P[:, 0] @ a) < 0.7 else P[:, 1]
             b = c - (c @ a) * a
