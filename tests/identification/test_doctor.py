@@ -70,3 +70,45 @@ def test_every_effect_is_a_candidate():
         assert candidate_params(name), name
     with pytest.raises(ValueError, match="unknown effect"):
         candidate_params("magic")
+
+
+# ------------------------------------------------------------------------------------------ end to end
+# One hidden-effect recording per effect of the catalogue, each on the script where its signature is
+# clearest (docs/EFFECTS.md), plus a recording the base model explains. Reduced resolution for the CPU: 24
+# frames at 30 fps, 3 cameras at 320 x 180, the doctor's body at dx 1.25 cm, short CMA-ES runs.
+HIDDEN = [
+    ("plasticity", "press-release"),
+    ("viscosity", "squeeze-ring"),
+    ("table_friction", "push-slide"),
+    ("gripper_slip", "squeeze-lift"),
+    ("heterogeneous_stiffness", "pull-apart"),
+    ("fracture", "pull-apart"),
+    ("none", "press-release"),
+    ("none", "squeeze-lift"),
+]
+assert {e for e, _ in HIDDEN} >= set(EFFECTS) | {"none"}, "a catalogue effect has no hidden-effect test recording"
+
+_CPU = DoctorConfig(base_iters=5, candidate_iters=4, popsize=6, E_refit_factor=2.0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("effect,script", HIDDEN, ids=[f"{e}-{s}" for e, s in HIDDEN])
+def test_doctor_names_the_hidden_effect(tmp_path, effect, script):
+    from empm_gym.identification.doctor import diagnose_recording
+    from empm_gym.perception.synth import synthesize
+
+    rec = synthesize(tmp_path / "rec", "dough", script=script, effect=effect, frames=24, cameras=3, width=320,
+                     height=180, seed=3, progress=False)
+    (rec / "ground_truth.json").unlink()  # the doctor must not need it (and never reads it)
+    res = diagnose_recording(rec, out_dir=tmp_path / "doctor", config=_CPU, dx=0.0125, particles_per_cell=8,
+                             progress=False)
+    table = {c["effect"]: (round(1e3 * c["heldout"]["chamfer_m"], 2), round(c["gain"]["gain"], 3),
+                           c["gain"]["significant"]) for c in res["candidates"]}
+    print(f"{effect} on {script}: verdict {res['effect']} ({res['confidence']:.2f}); base held-out "
+          f"{1e3 * res['base']['heldout']['chamfer_m']:.2f} mm; {table}")
+    assert res["effect"] == effect, res["reason"]
+    if effect != "none":
+        best = next(c for c in res["candidates"] if c["effect"] == effect)
+        assert best["heldout"]["loss"] < res["base"]["heldout"]["loss"]
+        assert (tmp_path / "doctor" / "material.json").exists()
+    assert (tmp_path / "doctor" / "report.md").exists() and (tmp_path / "doctor" / "doctor.rrd").exists()

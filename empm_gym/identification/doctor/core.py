@@ -331,7 +331,8 @@ def _localise(scene: Scene, obs: Observations, objective: Objective, X_base: np.
     from .features import localise, summary_features
     from .phases import segment_phases
 
-    radius = np.array([c.radius if c.shape != "box" else float(np.min(c.half_extents)) for c in scene.ee_configs])
+    # spheres by their radius, boxes by their half extents (capsules as spheres of their radius)
+    radius = [tuple(c.half_extents) if c.shape == "box" else c.radius for c in scene.ee_configs]
     phases = segment_phases(scene.ee_positions[:T], scene.ee_grip[:T], obs.fps, obs.points[:T], radius)
     P_base = objective.predicted_points(np.asarray(X_base[:T], np.float64))
     kw = {}

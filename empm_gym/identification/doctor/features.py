@@ -18,8 +18,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .phases import (CONTACT_PHASES, FREE_PHASES, Phase, backward_speed, contact_distances, object_speed,
-                     phase_of_frames)
+from .phases import (CONTACT_PHASES, FREE_PHASES, Phase, backward_speed, contact_distances, ee_sizes,
+                     object_speed, phase_of_frames, surface_gap)
 
 __all__ = [
     "FEATURE_INFO",
@@ -134,8 +134,8 @@ def regions(points: np.ndarray, ee_positions: np.ndarray, ee_radius, table_z: fl
     lab = np.full(len(p), "free", dtype=object)
     lab[p[:, 2] - table_z <= table_band_m] = "on_table"
     if len(ee) and len(p):
-        rad = np.broadcast_to(np.asarray(ee_radius, dtype=float), (len(ee),))
-        gap = np.linalg.norm(p[:, None, :] - ee[None, :, :], axis=-1) - rad[None, :]
+        size = ee_sizes(ee_radius, len(ee))
+        gap = np.stack([surface_gap(p, ee[k], size[k]) for k in range(len(ee))], axis=1)
         k = np.argmin(gap, axis=1)
         near = gap[np.arange(len(p)), k] <= near_m
         lab[near] = np.array([f"near_ee_{i}" for i in k[near]], dtype=object)
@@ -370,13 +370,13 @@ def summary_features(
         st = np.asarray(sim_tracks, dtype=float)[:T]
         vis = (np.ones(tr.shape[:2]) if visible is None else np.asarray(visible))[:T] > 0.5
         gap = contact_distances(ee[:T], ee_radius, obs_list[:T])
-        rad = np.broadcast_to(np.asarray(ee_radius, dtype=float), (K,))
+        size = ee_sizes(ee_radius, K)
         so, ss = [], []
         for k in range(K):
             for s, e in _segments(grip[:, k] & (gap[:, k] <= contact_dist_m)):
                 if e - s < 2:
                     continue
-                near = vis[s] & (np.linalg.norm(tr[s] - ee[s, k], axis=-1) - rad[k] <= near_m)
+                near = vis[s] & (surface_gap(tr[s], ee[s, k], size[k]) <= near_m)
                 for m in np.flatnonzero(near):
                     vf = np.flatnonzero(vis[s:e, m])
                     if len(vf) < 2:

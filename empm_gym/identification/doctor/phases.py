@@ -70,22 +70,43 @@ class Phase:
         return self.stop - self.start
 
 
+def ee_sizes(ee_radius, K: int) -> np.ndarray:
+    """``[K, 3]`` end-effector sizes: a radius r (sphere) becomes (r, r, -1); a half-extent triple (an
+    axis-aligned box, m) stays as it is. ``ee_radius`` is a scalar, ``[K]`` radii or a list mixing both."""
+    if np.ndim(ee_radius) == 0:
+        return np.tile([float(ee_radius), float(ee_radius), -1.0], (K, 1))
+    out = np.zeros((K, 3))
+    for k, r in enumerate(list(ee_radius)[:K]):
+        out[k] = (float(r), float(r), -1.0) if np.ndim(r) == 0 else np.asarray(r, float).reshape(3)
+    return out
+
+
+def surface_gap(points: np.ndarray, centre: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """``[n]`` signed distance (m) of points to an end-effector's surface (a sphere of radius size[0] when
+    size[2] < 0, else an axis-aligned box of half extents ``size``)."""
+    d = np.asarray(points, float).reshape(-1, 3) - np.asarray(centre, float)
+    if size[2] < 0:
+        return np.linalg.norm(d, axis=1) - size[0]
+    q = np.abs(d) - size
+    return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+
+
 def contact_distances(ee_positions: np.ndarray, ee_radius, obj_points: Sequence[np.ndarray]) -> np.ndarray:
     """``[T, K]`` gap (m) between each end-effector's surface and the nearest observed object point.
 
-    Gap = distance from the end-effector centre to the nearest point minus ``ee_radius[k]``
-    (negative when points lie inside the sphere). ``inf`` where a frame has no observed points.
+    ``ee_radius``: per end-effector a radius (sphere) or half extents (axis-aligned box), see :func:`ee_sizes`.
+    Negative when points lie inside; ``inf`` where a frame has no observed points.
     """
     ee = np.asarray(ee_positions, dtype=float)
     T, K = ee.shape[:2]
-    rad = np.broadcast_to(np.asarray(ee_radius, dtype=float), (K,))
+    size = ee_sizes(ee_radius, K)
     out = np.full((T, K), np.inf)
     for t in range(min(T, len(obj_points))):
         p = np.asarray(obj_points[t], dtype=float).reshape(-1, 3)
         if len(p) == 0:
             continue
-        d, _ = cKDTree(p).query(ee[t], k=1)
-        out[t] = d - rad
+        for k in range(K):
+            out[t, k] = surface_gap(p, ee[t, k], size[k]).min()
     return out
 
 
