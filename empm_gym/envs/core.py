@@ -29,7 +29,7 @@ import numpy as np
 import warp as wp
 
 from ..sim import (MaterialConfig, ModelBuilder, SimulationDiverged, SolverConfig, SolverMPM, TableConfig,
-                   read_material)
+                   read_material, stable_dt)
 from . import kernels as EK
 from .tasks import TASKS, Task
 
@@ -187,13 +187,9 @@ class BatchedCore:
         self.solver = SolverMPM(model, SolverConfig(cfl=cfl, check_every=0))
 
         # substep: stable for the stiffest / lightest material randomisation can draw, at full speed
-        self.max_wave_speed = self._max_wave_speed()
-        vmax = self.max_speed * math.sqrt(3.0)
-        dt_max = cfl * self.dx / (self.max_wave_speed + vmax)
-        eta = float(self.material.get("viscosity") or 0.0)
-        if eta > 0.0:  # explicit viscous diffusion limit (as SolverMPM.max_stable_dt)
-            rho_min = self.material["density"] * self.randomize.get("density", (1, 1))[0]
-            dt_max = min(dt_max, cfl * self.dx ** 2 / (3.0 * eta / rho_min))
+        extreme = self._extreme_material()
+        self.max_wave_speed = extreme.max_wave_speed
+        dt_max = stable_dt([extreme], self.dx, cfl, self.max_speed * math.sqrt(3.0))
         n = max(2, int(math.ceil(self.control_dt / dt_max - 1e-9)))
         self.substeps = n + (n % 2)  # even, so the result always ends in self.state
         self.dt = self.control_dt / self.substeps
@@ -246,15 +242,14 @@ class BatchedCore:
         self._mask = wp.zeros(W, dtype=int, device=self.device)
 
     # ------------------------------------------------------------------------------------ helpers
-    def _max_wave_speed(self) -> float:
+    def _extreme_material(self) -> MaterialConfig:
+        """The stiffest, lightest material randomisation can draw (it sets the stable substep)."""
         m = dict(self.material)
         r = self.randomize
-        E = m["E"] * r.get("E", (1, 1))[1]
-        rho = m["density"] * r.get("density", (1, 1))[0]
-        nu = m["nu"] * (r.get("nu", (1, 1))[1] if m["nu"] > 0 else r.get("nu", (1, 1))[0])
-        # the heterogeneous-stiffness field multiplies E by at most exp(sum |a_i|) (as Model.max_wave_speed)
-        slopes = sum(abs(float(m.get(f"stiffness_slope_{i}") or 0.0)) for i in (1, 2, 3))
-        return MaterialConfig(E=E, nu=nu, density=rho).wave_speed * math.exp(0.5 * slopes)
+        m["E"] = m["E"] * r.get("E", (1, 1))[1]
+        m["density"] = m["density"] * r.get("density", (1, 1))[0]
+        m["nu"] = m["nu"] * (r.get("nu", (1, 1))[1] if m["nu"] > 0 else r.get("nu", (1, 1))[0])
+        return MaterialConfig.from_dict(m)
 
     def _sample_material(self, rng: np.random.Generator) -> Dict:
         m = dict(self.material)

@@ -17,7 +17,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from empm_gym.sim import (EndEffectorConfig, GridConfig, MaterialConfig, ModelBuilder, SimulationDiverged,
-                          SolverConfig, SolverMPM, TableConfig)
+                          SolverConfig, SolverMPM, TableConfig, stable_dt)
 from empm_gym.sim.effects import BASE_PARAMETERS, PARAMETERS, parameter
 
 __all__ = [
@@ -372,13 +372,7 @@ def substeps_for(scene: Scene, materials: Sequence[MaterialConfig], max_ee_speed
                  margin: float = 0.9) -> Tuple[int, float]:
     """(substeps per frame, dt [s]) keeping dt below ``margin`` times the stable limit of the stiffest (and
     most viscous) material."""
-    # the heterogeneous-stiffness field multiplies E by at most exp(sum |a_i|) (as Model.max_wave_speed)
-    c = max(m.wave_speed * math.exp(0.5 * sum(abs(m.get(f"stiffness_slope_{i}")) for i in (1, 2, 3)))
-            for m in materials)
-    dt_max = margin * scene.cfl * scene.dx / (c + max(max_ee_speed, 0.0))
-    nu_k = max(m.viscosity / m.density for m in materials)
-    if nu_k > 0.0:  # explicit viscous diffusion limit (as SolverMPM.max_stable_dt)
-        dt_max = min(dt_max, margin * scene.cfl * scene.dx ** 2 / (3.0 * nu_k))
+    dt_max = margin * stable_dt(materials, scene.dx, scene.cfl, max_ee_speed)
     n = max(1, int(math.ceil((1.0 / scene.fps) / dt_max)))
     return n, 1.0 / (scene.fps * n)
 

@@ -13,7 +13,7 @@ if getattr(wp.config, "log_level", None) == getattr(wp, "LOG_INFO", None):
     wp.config.log_level = wp.LOG_WARNING
 wp.config.quiet = True
 
-from .config import EndEffectorConfig, GridConfig, MaterialConfig, SolverConfig, TableConfig
+from .config import EndEffectorConfig, GridConfig, MaterialConfig, SolverConfig, TableConfig, stable_dt
 from .material_file import MaterialFile, read_material, write_material
 from .model import Control, Model, ModelBuilder, State
 from .rollout import Rollout
@@ -24,6 +24,6 @@ from .solver import GridScratch, SimulationDiverged, SolverMPM, UnstableTimeStep
 __all__ = [
     "Control", "EndEffectorConfig", "GridConfig", "GridScratch", "MaterialConfig", "MaterialFile", "Model", "ModelBuilder",
     "Rollout", "SimulationDiverged", "SolverConfig", "SolverMPM", "State", "TableConfig", "UnstableTimeStep",
-    "sample_box", "sample_cylinder", "sample_mesh", "sample_points", "sample_sphere",
+    "sample_box", "sample_cylinder", "stable_dt", "sample_mesh", "sample_points", "sample_sphere",
     "read_material", "write_material",
 ]

@@ -18,6 +18,7 @@ __all__ = [
     "EndEffectorConfig",
     "SolverConfig",
     "SHAPE_IDS",
+    "stable_dt",
 ]
 
 #: End-effector shape names and their integer ids in the kernels.
@@ -164,6 +165,12 @@ class MaterialConfig:
         mu, lam = self.lame
         return math.sqrt((lam + 2.0 * mu) / self.density)
 
+    @property
+    def max_wave_speed(self) -> float:
+        """Largest P-wave speed in the body [m/s]: the heterogeneous-stiffness field multiplies E by at most
+        exp(sum_i |a_i|) (|u_i| <= 1), the speed by the square root of that."""
+        return self.wave_speed * math.exp(0.5 * sum(abs(self.get(f"stiffness_slope_{i}")) for i in (1, 2, 3)))
+
     @classmethod
     def from_dict(cls, d: Mapping) -> "MaterialConfig":
         """Build from a flat dict of base fields and effect parameters (other keys are ignored; the
@@ -280,6 +287,19 @@ class SolverConfig:
             raise ValueError(f"SolverConfig.cfl must lie in (0, 1], got {self.cfl!r}")
         if self.check_every < 0:
             raise ValueError(f"SolverConfig.check_every must be >= 0, got {self.check_every!r}")
+
+
+def stable_dt(materials: Sequence[MaterialConfig], dx: float, cfl: float, max_speed: float = 0.0,
+              stiffness_max: float = 1.0) -> float:
+    """Largest stable explicit MPM substep [s] for every material given: C dx / (c + |v|max) with c the largest
+    elastic wave speed (times sqrt of the largest per-particle stiffness multiplier), and, with viscosity,
+    C dx^2 / (3 eta / rho) (explicit diffusion of momentum). The one formula of the package."""
+    c = max(m.max_wave_speed for m in materials) * math.sqrt(max(stiffness_max, 1e-12))
+    dt = cfl * dx / (c + max(0.0, float(max_speed)))
+    nu_k = max(m.viscosity / m.density for m in materials)
+    if nu_k > 0.0:
+        dt = min(dt, cfl * dx ** 2 / (3.0 * nu_k))
+    return dt
 
 
 def as_vec3(name: str, value: Sequence[float]) -> Tuple[float, float, float]:

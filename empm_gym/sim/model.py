@@ -459,11 +459,14 @@ class Model:
         return max(m.viscosity / m.density for m in self.materials)
 
     def max_wave_speed(self) -> float:
-        """Largest elastic P-wave speed over worlds [m/s], including the per-particle stiffness multiplier."""
+        """Largest elastic P-wave speed over worlds [m/s], including the stiffness field and the per-particle
+        stiffness multiplier."""
         smax = float(np.max(self.particle_stiffness.numpy())) if self.particle_count else 1.0
-        # the heterogeneous-stiffness field multiplies E by at most exp(sum |a_i|) (|u_i| <= 1)
-        return max(m.wave_speed * math.exp(0.5 * sum(abs(m.get(f"stiffness_slope_{i}")) for i in (1, 2, 3)))
-                   for m in self.materials) * np.sqrt(max(smax, 1e-12))
+        return max(m.max_wave_speed for m in self.materials) * np.sqrt(max(smax, 1e-12))
+
+    def stiffness_max(self) -> float:
+        """Largest per-particle stiffness multiplier [-] (host copy)."""
+        return float(np.max(self.particle_stiffness.numpy())) if self.particle_count else 1.0
 
     def particle_mass(self) -> np.ndarray:
         """Particle masses [kg] (host copy)."""

@@ -9,7 +9,7 @@ import warp as wp
 import warp._src.context as _wp_context
 
 from . import kernels as K
-from .config import SolverConfig
+from .config import SolverConfig, stable_dt
 from .model import Control, Model, State
 
 __all__ = ["SolverMPM", "GridScratch", "SimulationDiverged", "UnstableTimeStep"]
@@ -85,12 +85,7 @@ class SolverMPM:
     def max_stable_dt(self, max_speed: float = 0.0) -> float:
         """Largest stable substep [s]: C * dx / (c + |v|max) with c the elastic P-wave speed, and, with
         viscosity, C * dx^2 / (3 eta / rho) (explicit diffusion of momentum)."""
-        c = self.model.max_wave_speed()
-        dt = self.config.cfl * self.model.dx / (c + max(0.0, float(max_speed)))
-        nu_k = self.model.max_viscous_rate()
-        if nu_k > 0.0:
-            dt = min(dt, self.config.cfl * self.model.dx**2 / (3.0 * nu_k))
-        return dt
+        return stable_dt(self.model.materials, self.model.dx, self.config.cfl, max_speed, self.model.stiffness_max())
 
     def check_dt(self, dt: float, max_speed: float = 0.0):
         """Raise :class:`UnstableTimeStep` if dt [s] exceeds the stable limit."""

@@ -75,7 +75,8 @@ def test_every_effect_is_a_candidate():
 # ------------------------------------------------------------------------------------------ end to end
 # One hidden-effect recording per effect of the catalogue, each on the script where its signature is
 # clearest (docs/EFFECTS.md), plus a recording the base model explains. Reduced resolution for the CPU: 24
-# frames at 30 fps, 3 cameras at 320 x 180, the doctor's body at dx 1.25 cm, short CMA-ES runs.
+# frames at 30 fps, 3 cameras at 320 x 180, the doctor's body at dx 1.25 cm with 4 particles per cell,
+# short CMA-ES runs.
 HIDDEN = [
     ("plasticity", "press-release"),
     ("viscosity", "squeeze-ring"),
@@ -88,7 +89,7 @@ HIDDEN = [
 ]
 assert {e for e, _ in HIDDEN} >= set(EFFECTS) | {"none"}, "a catalogue effect has no hidden-effect test recording"
 
-_CPU = DoctorConfig(base_iters=5, candidate_iters=4, popsize=6, E_refit_factor=2.0)
+_CPU = DoctorConfig(base_iters=4, candidate_iters=4, popsize=5, E_refit_factor=2.0, motion_margin=0.015)
 
 
 @pytest.mark.slow
@@ -100,7 +101,7 @@ def test_doctor_names_the_hidden_effect(tmp_path, effect, script):
     rec = synthesize(tmp_path / "rec", "dough", script=script, effect=effect, frames=24, cameras=3, width=320,
                      height=180, seed=3, progress=False)
     (rec / "ground_truth.json").unlink()  # the doctor must not need it (and never reads it)
-    res = diagnose_recording(rec, out_dir=tmp_path / "doctor", config=_CPU, dx=0.0125, particles_per_cell=8,
+    res = diagnose_recording(rec, out_dir=tmp_path / "doctor", config=_CPU, dx=0.0125, particles_per_cell=4,
                              progress=False)
     table = {c["effect"]: (round(1e3 * c["heldout"]["chamfer_m"], 2), round(c["gain"]["gain"], 3),
                            c["gain"]["significant"]) for c in res["candidates"]}
