@@ -7,7 +7,9 @@
 3. ``empm identify``: the dough's yield stress fitted from the recording, starting 3x off
    (``material.json`` and its report: loss / parameter plot, ``.rrd`` of the simulation over the points);
 4. ``empm evaluate``: held-out Chamfer, tracking, mask IoU, PSNR / SSIM with plots;
-5. MPC (MPPI) in ``EMPM/DoughShape-v0`` with the fitted material (``mpc_strip.png``, ``mpc_summary.json``).
+5. ``empm doctor`` on a second recording whose effect is hidden: it names the effect the base model
+   misses and shows the held-out gap before and after (``doctor/report.md``, ``doctor/residual_timeline.png``);
+6. MPC (MPPI) in ``EMPM/DoughShape-v0`` with the fitted material (``mpc_strip.png``, ``mpc_summary.json``).
 
 Everything lands in ``demo_out/`` (open ``.rrd`` files with ``rerun FILE``).
 """
@@ -236,7 +238,8 @@ def run_mpc_demo(out: Path, material: Path, *, steps: int = 8, samples: int = 12
 
 
 def run_loop_demo(out: Path, *, device: str = "cpu", frames: int = 45, iters: int = 5) -> dict:
-    """Synthesise a dough recording, identify its yield stress, evaluate, and plan with the result.
+    """Synthesise a dough recording, identify its yield stress, evaluate, diagnose a second recording with a
+    hidden effect, and plan with the fitted material.
 
     The recording is the synthesiser's default dough (E 2e4 Pa, density 1200 kg/m^3, yield stress 2000
     Pa); identification knows E and the density (``--init`` fixes the parameters it does not fit) and
@@ -273,11 +276,50 @@ def run_loop_demo(out: Path, *, device: str = "cpu", frames: int = 45, iters: in
 
     fitted = read_material(out / "material.json").material
     print(f"   yield stress: true {truth_ys:.0f} Pa, start {3 * truth_ys:.0f} Pa, fitted {fitted.yield_stress:.0f} Pa")
+    doctor = run_doctor_demo(out, device=device)
     print("== MPC (MPPI) in EMPM/DoughShape-v0 with the fitted material", flush=True)
     summary = run_mpc_demo(out, out / "material.json", device=device)
     print(f"   Chamfer to the target: start {summary['chamfer_start_m']:.4f} m, zero action "
           f"{summary['chamfer_zero_action_m']:.4f} m, MPC {summary['chamfer_mpc_m']:.4f} m")
-    return {"material": fitted.to_dict(), "mpc": summary}
+    return {"material": fitted.to_dict(), "mpc": summary, "doctor": doctor}
+
+
+def run_doctor_demo(out: Path, *, device: str = "cpu", effect: str = "viscosity", script: str = "squeeze-ring") -> dict:
+    """A recording with a hidden effect goes through ``empm doctor``, which names it.
+
+    The recording hides ``effect`` (the synthesiser writes it only into ``ground_truth.json``, which the
+    demo moves aside before the doctor runs); the doctor fits the base model, tries every effect of the
+    catalogue and writes its report, whose first figure shows the held-out gap before and after.
+    Reduced settings for one CPU core: 24 frames at 320 x 180, a 1.25 cm grid, short CMA-ES runs.
+    """
+    import json
+
+    from .cli import main as empm
+
+    rec = out / "hidden_effect_recording"
+    steps = [
+        (f"synthesise a dough recording with a hidden effect (script {script})",
+         ["synth", str(rec), "--object", "dough", "--script", script, "--effect", effect, "--frames", "24",
+          "--width", "320", "--height", "180", "--seed", "3", "--device", device, "--overwrite", "--quiet"]),
+        ("diagnose it: empm doctor",
+         ["doctor", str(rec), "--out", str(out / "doctor"), "--iters", "4", "--popsize", "5", "--dx", "0.0125",
+          "--particles-per-cell", "4", "--device", device]),
+    ]
+    for what, argv in steps:
+        t0 = time.time()
+        print(f"== {what}: empm {' '.join(argv)}", flush=True)
+        if argv[0] == "doctor":  # the doctor must not see the answer
+            (rec / "ground_truth.json").replace(out / "hidden_effect_ground_truth.json")
+        rc = empm(argv)
+        if rc:
+            raise SystemExit(f"demo step failed ({what}): exit code {rc}")
+        print(f"   done in {time.time() - t0:.1f} s", flush=True)
+    res = json.loads((out / "doctor" / "doctor.json").read_text())
+    hidden = json.loads((out / "hidden_effect_ground_truth.json").read_text())["effects"]
+    print(f"   hidden effect: {hidden[0]['name'] if hidden else 'none'}; the doctor says: {res['effect']} "
+          f"(confidence {res['confidence']:.2f}); report in {out / 'doctor' / 'report.md'}, the held-out gap "
+          f"before and after in {out / 'doctor' / 'residual_timeline.png'}")
+    return {"hidden": hidden, "verdict": res["effect"], "confidence": res["confidence"]}
 
 
 def main(argv=None) -> int:

@@ -113,3 +113,13 @@ def test_doctor_names_the_hidden_effect(tmp_path, effect, script):
         assert best["heldout"]["loss"] < res["base"]["heldout"]["loss"]
         assert (tmp_path / "doctor" / "material.json").exists()
     assert (tmp_path / "doctor" / "report.md").exists() and (tmp_path / "doctor" / "doctor.rrd").exists()
+
+
+def test_doctor_cli_reports_bad_input(tmp_path, capsys):
+    from empm_gym.cli import main
+
+    assert main(["doctor", str(tmp_path / "missing"), "--out", str(tmp_path / "out")]) == 2
+    assert "empm doctor: error" in capsys.readouterr().err
+    assert main(["effects"]) == 0
+    out = capsys.readouterr().out
+    assert all(name in out for name in EFFECTS)

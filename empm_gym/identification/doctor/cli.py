@@ -36,8 +36,17 @@ def _doctor(args) -> int:
     return 0
 
 
+def _effects(args) -> int:
+    from empm_gym.sim.effects import describe
+
+    print(describe())
+    return 0
+
+
 def register(subparsers) -> None:
-    """Add ``empm doctor``."""
+    """Add ``empm doctor`` and ``empm effects``."""
+    e = subparsers.add_parser("effects", help="list the catalogue of effects the doctor can name")
+    e.set_defaults(func=_effects)
     p = subparsers.add_parser(
         "doctor", help="find which physical effect a model misses on a recording",
         description="Fit the base model (elastic, table friction 0.5, rigid grippers) on the first frames, find "
