@@ -185,18 +185,16 @@ def _squeeze_lift(T: int, g: ObjectGeometry) -> ScriptResult:
 def _pull_apart(T: int, g: ObjectGeometry) -> ScriptResult:
     sx, sy, sz = g.size
     start, ees, away = _end_grippers(g)
-    # held apart to 88 % of the recording: the last 30 % (what a fit holds out) shows the stretched or torn
-    # body, not only its chaotic spring-back after release
-    _, a, b, c, d, _ = _phases(T, [0.06, 0.4, 0.42, 0.06, 0.06])
+    # held apart to the end of the recording: the last 30 % (what a fit holds out) shows the stretched or
+    # torn body, not its chaotic spring-back after a release
+    _, a, b, _ = _phases(T, [0.06, 0.4, 0.54])
     t = np.arange(T, dtype=np.float64)
     pull = (0.15 if g.elongated else 0.2) * sx
     out = pull * _ramp(t, a, b)
     pos = np.repeat(start[None], T, axis=0)
     pos[:, 0, 0] -= out
     pos[:, 1, 0] += out
-    _release(pos, t, c, d, away)
-    grip = np.zeros((T, 2), np.int32)
-    grip[:c] = 1
+    grip = np.ones((T, 2), np.int32)
     lo, hi = (-sx / 2 - pull - 0.01, -sy / 2, 0.0), (sx / 2 + pull + 0.01, sy / 2, sz)
     return ScriptResult(pos, grip, ees, (lo, hi))
 
