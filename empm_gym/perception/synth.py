@@ -264,6 +264,15 @@ def _effects_of(material) -> List[dict]:
     return out
 
 
+def _check_scene_args(object: str, script: str, frames) -> None:
+    if object not in OBJECT_DEFAULTS:
+        raise ValueError(f"object must be one of {sorted(OBJECT_DEFAULTS)}, got {object!r}")
+    if script != "default" and script not in SCRIPTS:
+        raise ValueError(f"unknown script {script!r}; known: default, {', '.join(SCRIPTS)}")
+    if int(frames) < 2:
+        raise ValueError(f"frames must be >= 2, got {frames!r}")
+
+
 def simulate(object: str, material, *, script: str = "default", frames: int = 60, fps: float = 30.0,
              dx: float = 0.01, particles_per_cell: float = 8, table_friction: float = 0.5,
              gripper_friction: float = 0.8, seed: int = 0, device: str = "cpu", progress: bool = False) -> dict:
@@ -275,12 +284,7 @@ def simulate(object: str, material, *, script: str = "default", frames: int = 60
 
     from empm_gym.sim import SolverMPM
 
-    if object not in OBJECT_DEFAULTS:
-        raise ValueError(f"object must be one of {sorted(OBJECT_DEFAULTS)}, got {object!r}")
-    if script != "default" and script not in SCRIPTS:
-        raise ValueError(f"unknown script {script!r}; known: default, {', '.join(SCRIPTS)}")
-    if int(frames) < 2:
-        raise ValueError(f"frames must be >= 2, got {frames!r}")
+    _check_scene_args(object, script, frames)
     T = int(frames)
     pos, grip, ee_kw, grid_box = _script(object, script, T, dx)
     model, ee_cfgs, grid = _build(object, material, dx=dx, ppc=particles_per_cell, table_friction=table_friction,
@@ -634,12 +638,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
 
     from empm_gym.sim import MaterialConfig
 
-    if object not in OBJECT_DEFAULTS:
-        raise ValueError(f"object must be one of {sorted(OBJECT_DEFAULTS)}, got {object!r}")
-    if script != "default" and script not in SCRIPTS:
-        raise ValueError(f"unknown script {script!r}; known: default, {', '.join(SCRIPTS)}")
-    if int(frames) < 2:
-        raise ValueError(f"frames must be >= 2, got {frames!r}")
+    _check_scene_args(object, script, frames)
     if int(cameras) < 1:
         raise ValueError(f"cameras must be >= 1, got {cameras!r}")
     T, C = int(frames), int(cameras)

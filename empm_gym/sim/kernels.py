@@ -24,18 +24,6 @@ def lame_parameters(E: float, nu: float):
 
 
 @wp.func
-def fixed_corotated_kirchhoff(F: wp.mat33, mu: float, lam: float):
-    """Kirchhoff stress tau = P F^T of the fixed-corotated model [Pa]."""
-    U = wp.mat33()
-    s = wp.vec3()
-    V = wp.mat33()
-    wp.svd3(F, U, s, V)
-    R = U * wp.transpose(V)
-    J = wp.determinant(F)
-    return 2.0 * mu * (F - R) * wp.transpose(F) + wp.identity(n=3, dtype=float) * (lam * J * (J - 1.0))
-
-
-@wp.func
 def von_mises_return(F: wp.mat33, mu: float, yield_stress: float, min_singular: float):
     """Project a trial elastic F onto the von Mises yield surface (Hencky strain, volume preserving).
 
@@ -77,6 +65,12 @@ def damaged_kirchhoff(F: wp.mat33, mu: float, lam: float, damage: float):
     if J > 1.0:
         vol = vol * keep
     return (2.0 * mu * keep) * (F - R) * wp.transpose(F) + wp.identity(n=3, dtype=float) * vol
+
+
+@wp.func
+def fixed_corotated_kirchhoff(F: wp.mat33, mu: float, lam: float):
+    """Kirchhoff stress tau = P F^T of the fixed-corotated model [Pa] (an undamaged particle)."""
+    return damaged_kirchhoff(F, mu, lam, 0.0)
 
 
 @wp.func
