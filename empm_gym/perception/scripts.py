@@ -204,9 +204,10 @@ def _squeeze_ring(T: int, g: ObjectGeometry) -> ScriptResult:
     hz = _THICK
     hx, hy = 0.5 * sx + 0.01, 0.5 * sy + 0.01          # a flat plate over the whole top
     start = np.array([[0.0, 0.0, sz + hz + _CLEAR]])
-    # the snap comes at 60 % of the recording, so that the last 30 % (what a fit holds out) shows the hop
-    # and the ringing decaying, not a body already at rest
-    _, a, b, c, _ = _phases(T, [0.08, 0.3, 0.22, 0.4])
+    # the snap comes at half the recording: the first 70 % (what a fit uses) hold the whole hop, which pins
+    # down E, and the last 30 % the ringing decaying (a later snap lets a softer elastic body mimic the
+    # damped hop)
+    _, a, b, c, _ = _phases(T, [0.08, 0.3, 0.12, 0.5])
     t = np.arange(T, dtype=np.float64)
     depth = 0.3 * sz + _CLEAR
     z = -depth * _ramp(t, a, b) + np.where(t >= c + 1, depth + 0.08, 0.0)   # snaps up within one frame
