@@ -70,11 +70,11 @@ def diagnose_all(problems: Path, args):
     from empm_gym.identification.doctor import DoctorConfig, diagnose
     from empm_gym.sim.effects import EFFECTS
 
-    names = ["none", *EFFECTS]
     cfg = DoctorConfig(base_iters=args.iters, candidate_iters=args.iters, popsize=args.popsize)
-    conf = {t: {p: 0 for p in names} for t in names}
-    rows, reductions, walls = [], [], []
-    for path in sorted(Path(problems).glob("*.pkl")):
+    rows = []
+    k, n = (int(v) for v in args.shard.split("/"))
+    paths = sorted(Path(problems).glob("*.pkl"))[k::n]
+    for path in paths:
         with open(path, "rb") as f:
             prob = pickle.load(f)
         scene = dataclasses.replace(prob["scene"], device=args.device)
@@ -82,16 +82,33 @@ def diagnose_all(problems: Path, args):
         res = diagnose(scene, prob["obs"], None, config=cfg, progress=False)
         wall = time.perf_counter() - t0
         truth, verdict = prob["truth"], res["effect"]
-        conf[truth][verdict] += 1
-        walls.append(wall)
         red = float("nan")
         if truth != "none" and res.get("candidates"):
             c = next(c for c in res["candidates"] if c["effect"] == truth)
             red = 1.0 - c["heldout"]["chamfer_m"] / res["base"]["heldout"]["chamfer_m"]
-            reductions.append(red)
-        rows.append((path.stem, truth, verdict, res.get("confidence", 0.0), red, wall))
-        print(f"{path.stem:48s} truth {truth:24s} verdict {verdict:24s} conf {res.get('confidence', 0):.2f} "
+        row = {"recording": path.stem, "script": prob["script"], "truth": truth, "verdict": verdict, "confidence": res.get("confidence", 0.0),
+               "reduction": red, "wall_s": wall}
+        rows.append(row)
+        if args.jsonl:
+            with open(args.jsonl, "a") as f:
+                f.write(json.dumps(row) + "\n")
+        print(f"{path.stem:48s} truth {truth:24s} verdict {verdict:24s} conf {row['confidence']:.2f} "
               f"held-out Chamfer reduction (true effect) {100 * red:6.1f} %  {wall:6.1f} s", flush=True)
+    summarise(rows)
+
+
+def summarise(rows):
+    """Confusion matrix, accuracy, false effects on none, median reduction and wall time of result rows."""
+    from empm_gym.sim.effects import EFFECTS
+
+    names = ["none", *EFFECTS]
+    conf = {t: {p: 0 for p in names} for t in names}
+    for r in rows:
+        conf[r["truth"]][r["verdict"]] += 1
+    walls = [r["wall_s"] for r in rows]
+    reductions = [r["reduction"] for r in rows if r["truth"] != "none"]
+    natural = [r["truth"] == r["verdict"] for r in rows if r.get("script") == NATURAL[r["truth"]]]
+    rows = [(r["recording"], r["truth"], r["verdict"]) for r in rows]
     n = len(rows)
     acc = np.mean([r[1] == r[2] for r in rows]) if n else float("nan")
     none_rows = [r for r in rows if r[1] == "none"]
@@ -104,6 +121,7 @@ def diagnose_all(problems: Path, args):
     print(f"\nrecordings {n}; naming accuracy {100 * acc:.1f} %; false effects on none {100 * false_rate:.1f} %; "
           f"median held-out Chamfer reduction with the true effect {100 * np.median(reductions):.1f} %; "
           f"wall time per recording median {np.median(walls):.1f} s, max {np.max(walls):.1f} s")
+    print(f"on each effect's natural script only: accuracy {100 * np.mean(natural):.1f} % of {len(natural)}")
 
 
 def main(argv=None):
@@ -125,7 +143,13 @@ def main(argv=None):
     p.add_argument("--popsize", type=int, default=8)
     p.add_argument("--device", default="cpu")
     p.add_argument("--only-make", action="store_true", help="stop after --make")
+    p.add_argument("--shard", default="0/1", help="K/N: diagnose every N-th recording from the K-th (split runs)")
+    p.add_argument("--jsonl", default=None, help="append one JSON line per recording to this file")
+    p.add_argument("--summarise", nargs="*", default=None, help="print the tables of these --jsonl files and stop")
     args = p.parse_args(argv)
+    if args.summarise is not None:
+        summarise([json.loads(line) for f in args.summarise for line in Path(f).read_text().splitlines() if line])
+        return 0
     problems = Path(args.problems) if args.problems else None
     if args.make:
         problems = make(args)
