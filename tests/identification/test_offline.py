@@ -111,8 +111,8 @@ def test_param_space_maps_and_bounds():
 def test_identify_rejects_bad_arguments(rope):
     with pytest.raises(ValueError, match="method must be one of"):
         identify(rope.obs, rope.scene, method="sgd")
-    with pytest.raises(ValueError, match="no starting value for 'yield_stress'"):
-        identify(rope.obs, rope.scene, params=("yield_stress",))
+    with pytest.raises(ValueError, match="unknown parameter 'yeild_stress'"):
+        identify(rope.obs, rope.scene, params=("yeild_stress",))
     with pytest.raises(ValueError, match="outside its bounds"):
         identify(rope.obs, rope.scene, init={"E": 1e4}, bounds={"E": (2e4, 1e5)})
     obs2 = Observations(15.0, rope.obs.points)
