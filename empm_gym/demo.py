@@ -284,7 +284,8 @@ def run_loop_demo(out: Path, *, device: str = "cpu", frames: int = 45, iters: in
     return {"material": fitted.to_dict(), "mpc": summary, "doctor": doctor}
 
 
-def run_doctor_demo(out: Path, *, device: str = "cpu", effect: str = "viscosity", script: str = "squeeze-ring") -> dict:
+def run_doctor_demo(out: Path, *, device: str = "cpu", effect: str = "gripper_slip",
+                    script: str = "squeeze-lift") -> dict:
     """A recording with a hidden effect goes through ``empm doctor``, which names it.
 
     The recording hides ``effect`` (the synthesiser writes it only into ``ground_truth.json``, which the
