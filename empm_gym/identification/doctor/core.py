@@ -19,7 +19,7 @@ Pipeline (:func:`diagnose`):
 5. **Report.** ``doctor.json``, ``material.json`` (with the effect), ``report.md`` with figures, and a
    rerun recording of the measured points against both simulations.
 
-Nothing here reads ``ground_truth.json``, file names or script timing: only what
+Nothing here reads a synthesiser's answer file, file names or script timing: only what
 :func:`empm_gym.identification.data.load_recording` extracts from images, depth, masks, tracks and controls.
 """
 
