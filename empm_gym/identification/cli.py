@@ -1,6 +1,7 @@
 """``empm identify`` and ``empm evaluate``.
 
-    empm identify REC_DIR --out material.json [--method adam|cmaes] [--params E,nu,...] [--iters N] [--online]
+    empm identify REC_DIR --out material.json [--method adam|cmaes] [--params E,nu,...] [--iters N] [--resume]
+    empm identify REC_DIR --out material.json --online
     empm evaluate REC_DIR --material material.json [--out-dir DIR]
 
 ``identify`` fits the first ``--train-fraction`` of the frames (default 0.7) and writes ``material.json``,
@@ -8,6 +9,14 @@
 next to it; with ``--online`` it replays the recording through the streaming identifier instead and also
 writes ``<stem>_online.json`` / ``<stem>_online.png`` with the losses with and without updates.
 ``evaluate`` reports Chamfer, tracking error, mask IoU, PSNR and SSIM on the held-out frames.
+
+Interrupting ``identify`` (Ctrl-C or SIGTERM) stops the fit after its current iteration, writes the best
+parameters so far to ``--out`` with ``fit.complete: false`` and the state to continue from, and exits with
+130 (SIGINT) or 143 (SIGTERM); a second Ctrl-C stops at once without writing. The file is replaced
+atomically, never truncated; interrupted before the first iteration finished, it is left as it was. Run the
+same command with ``--resume`` to continue up to ``--iters`` iterations in all (default: the interrupted
+run's) with the same result as an uninterrupted fit; ``--resume`` refuses (exit 2) a file that holds no
+interrupted fit or one made with other options or data.
 """
 
 from __future__ import annotations
@@ -69,15 +78,22 @@ def _identify(args) -> int:
     from empm_gym.sim import MaterialConfig  # noqa: F401  (import errors surface early)
 
     from .data import load_recording
-    from .offline import identify
+    from .interrupt import stop_on_signals
+    from .offline import ResumeError, identify, read_resume_state
     from .report import plot_fit, plot_online, save_rrd
     from empm_gym.sim import write_material
 
+    out = Path(args.out)
+    resume = None
     try:
         params = _parse_params(args.params)
         init = _parse_init(args.init)
         if not (0.0 < args.train_fraction <= 1.0):
             raise ValueError(f"--train-fraction must lie in (0, 1], got {args.train_fraction}")
+        if args.resume:
+            if args.online:
+                raise ValueError("--resume continues an interrupted offline fit; it does not apply to --online")
+            resume = read_resume_state(out)
         scene, obs, views = load_recording(args.rec_dir, dx=args.dx, particles_per_cell=args.particles_per_cell,
                                            material=_base_material(init, params),
                                            table_friction=init.get("friction", 0.5), frames=args.frames,
@@ -85,7 +101,9 @@ def _identify(args) -> int:
     except (ValueError, OSError) as exc:
         print(f"empm identify: error: {exc}", file=sys.stderr)
         return 2
-    out = Path(args.out)
+    except KeyboardInterrupt:
+        print(f"empm identify: interrupted while loading the recording; {out} not written", file=sys.stderr)
+        return 130
     stem = out.with_suffix("")
     T = obs.num_frames
     if args.online:
@@ -111,18 +129,34 @@ def _identify(args) -> int:
         print(f"wrote {out}")
         return 0
     F = max(2, int(round(args.train_fraction * T)))
-    kw = dict(params=params, method=args.method, init=init or None, iters=args.iters, frames=F,
+    iters = args.iters if args.iters is not None else int(resume["iterations_requested"]) if resume else 30
+    kw = dict(params=params, method=args.method, init=init or None, iters=iters, frames=F,
               progress=not args.quiet, popsize=args.popsize)
     if args.lr:
         kw["lr"] = args.lr
-    try:
-        res = identify(obs, scene, **kw)
-    except ValueError as exc:
-        print(f"empm identify: error: {exc}", file=sys.stderr)
-        return 2
-    res.extra["dx"] = scene.dx
-    res.extra["particles_per_cell"] = args.particles_per_cell
-    res.extra["recording"] = str(Path(args.rec_dir).resolve())
+    done0 = int(resume["iterations_done"]) if resume else 0
+    what = f"iterations {done0 + 1}-{iters} of {iters}, resuming {out}" if resume else f"{iters} iterations"
+    if not resume:
+        _note_interrupted_fit(out)
+    print(f"empm identify: fitting {','.join(params)} ({args.method}) on frames 0-{F - 1} of {T} ({what}); "
+          f"Ctrl-C stops after the current iteration and saves", file=sys.stderr)
+    with stop_on_signals() as stop:
+        try:
+            res = identify(obs, scene, stop=stop, resume=resume, **kw)
+        except ResumeError as exc:
+            print(f"empm identify: error: cannot resume from {out}: {exc}", file=sys.stderr)
+            return 2
+        except ValueError as exc:
+            print(f"empm identify: error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print(f"empm identify: stopped at once by a second signal; {out} not written", file=sys.stderr)
+            return stop.exit_code
+        res.extra["dx"] = scene.dx
+        res.extra["particles_per_cell"] = args.particles_per_cell
+        res.extra["recording"] = str(Path(args.rec_dir).resolve())
+        if stop.is_set():  # save what there is, skip the plots
+            return _save_interrupted(res, out, stop, done0)
     res.save(out)
     plot_fit(res, f"{stem}_fit.png")
     if not args.no_rrd:
@@ -135,6 +169,39 @@ def _identify(args) -> int:
           f"({res.wall_time_s:.1f} s, {len(res.loss_history)} iterations, frames 0-{F - 1} of {T})")
     print(f"wrote {out}, {stem}_fit.png" + ("" if args.no_rrd else f", {stem}.rrd"))
     return 0
+
+
+def _note_interrupted_fit(out: Path) -> None:
+    """Say so on stderr when a fresh fit is about to replace the interrupted fit held in ``out``."""
+    from empm_gym.sim import read_material
+
+    try:
+        fit = read_material(out).fit if out.is_file() else None
+    except (ValueError, OSError):
+        return
+    if isinstance(fit, dict) and fit.get("complete") is False and fit.get("resume"):
+        print(f"empm identify: note: {out} holds an interrupted fit ({fit.get('iterations_done')} of "
+              f"{fit.get('iterations_requested')} iterations); fitting anew replaces it (--resume continues it)",
+              file=sys.stderr)
+
+
+def _save_interrupted(res, out: Path, stop, done0: int) -> int:
+    """Write an interrupted fit (if it did an iteration), say so in one line; the exit code of the signal."""
+    if res.iterations_done <= done0:
+        print(f"empm identify: interrupted before an iteration finished; {out} left as it was", file=sys.stderr)
+        return stop.exit_code
+    try:
+        res.save(out)
+    except KeyboardInterrupt:  # a second signal during the (atomic) write: the previous file stays
+        print(f"empm identify: stopped at once by a second signal; {out} left as it was", file=sys.stderr)
+        return stop.exit_code
+    if res.complete:
+        print(f"empm identify: interrupted in the last iteration; wrote {out} (fit.complete: true, "
+              f"{res.iterations_done} iterations); skipped the plots", file=sys.stderr)
+    else:
+        print(f"empm identify: interrupted after {res.iterations_done} of {res.iterations_requested} iterations; "
+              f"wrote {out} (fit.complete: false); continue with --resume", file=sys.stderr)
+    return stop.exit_code
 
 
 def _material_from(scene, values):
@@ -184,7 +251,10 @@ def register(subparsers) -> None:
                    f"parameters and every effect parameter of empm_gym.sim.effects)")
     p.add_argument("--init", default="", help="starting values, e.g. E=1e5,yield_stress=2000,viscosity=5 (SI units; "
                    "default: E=1e5, nu=0.3, density=1000, friction=0.5, an effect's registry start value)")
-    p.add_argument("--iters", type=int, default=30, help="Adam steps or CMA-ES generations (default 30)")
+    p.add_argument("--iters", type=int, default=None, help="Adam steps or CMA-ES generations in all (default 30; "
+                   "with --resume the interrupted run's)")
+    p.add_argument("--resume", action="store_true", help="continue the interrupted fit saved in --out (run with "
+                   "the same recording and options)")
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate in log-parameter space (default 0.15)")
     p.add_argument("--popsize", type=int, default=6, help="CMA-ES population = simulated worlds (default 6)")
     p.add_argument("--train-fraction", type=float, default=0.7, help="leading fraction of frames fitted (0.7)")

@@ -16,15 +16,26 @@ tracked point j (tracks not visible at frame 0 are not used). Two methods:
   population is simulated as batched worlds in one simulation.
 
 The result is the evaluated parameter vector with the lowest loss.
+
+Interruption and resumption: ``identify(..., stop=...)`` checks the stop request (a
+:class:`~empm_gym.identification.interrupt.StopRequest`, ``threading.Event`` or callable) before every
+iteration and returns early with ``FitResult.complete`` False; its ``extra["resume"]`` (saved in the
+material file's ``fit`` section) holds what ``identify(..., resume=fit_section)`` needs to continue to the
+same answer as an uninterrupted fit: Adam's point, moments, step scale and best iterate; for CMA-ES every
+generation's population losses, from which the strategy (and numpy's global random state that pycma
+draws from) is rebuilt by replaying ask/tell without simulating. The settings and a digest of the
+observations and scene are stored beside it, and resuming with others raises :class:`ResumeError`.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
@@ -36,10 +47,16 @@ from empm_gym.sim.material_file import material_dict
 from .losses import chamfer_distance, chamfer_numpy, tracking_loss
 from .problem import PARAM_NAMES, Observations, ParamSpace, Scene, _ForwardSim, substeps_for
 
-__all__ = ["identify", "FitResult", "Objective", "default_bounds", "surface_embedding", "METHODS", "OBSERVATION_MODELS"]
+__all__ = ["identify", "FitResult", "Objective", "ResumeError", "read_resume_state", "default_bounds",
+           "surface_embedding", "METHODS", "OBSERVATION_MODELS"]
 
 METHODS = ("adam", "cmaes")
 _DIVERGED_LOSS = 1.0e3
+_RESUME_FORMAT = 1
+
+
+class ResumeError(ValueError):
+    """A fit cannot be resumed from the given state; the message says why."""
 
 
 def default_bounds(init: Dict[str, float]) -> Dict[str, Tuple[float, float]]:
@@ -213,6 +230,18 @@ class FitResult:
     fps: float
     init: Dict[str, float]
     extra: Dict = field(default_factory=dict)
+    complete: bool = True
+    """False when the fit was stopped early; ``extra["resume"]`` then holds its resumable state."""
+    iterations_done: Optional[int] = None
+    """Iterations (Adam steps or CMA-ES generations) done, those of a resumed fit included."""
+    iterations_requested: Optional[int] = None
+    """The ``iters`` the fit was asked for."""
+
+    def __post_init__(self):
+        if self.iterations_done is None:
+            self.iterations_done = len(self.loss_history)
+        if self.iterations_requested is None:
+            self.iterations_requested = self.iterations_done
 
     def fit_section(self) -> dict:
         """The ``fit`` section of the material file."""
@@ -220,7 +249,10 @@ class FitResult:
             "method": self.method,
             "params": list(self.params),
             "init": self.init,
-            "loss": self.loss,
+            "complete": bool(self.complete),
+            "iterations_done": int(self.iterations_done),
+            "iterations_requested": int(self.iterations_requested),
+            "loss": self.loss if math.isfinite(self.loss) else None,
             "loss_history": self.loss_history,
             "param_history": self.param_history,
             "wall_time_s": self.wall_time_s,
@@ -284,7 +316,8 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
              chamfer: str = "both", max_points: int = 2000, observation: str = "auto",
              bounds: Optional[Dict[str, Tuple[float, float]]] = None, seed: int = 0, progress: bool = True,
              checkpoint_every: Union[str, int, None] = "auto", memory_budget_bytes: float = 1.0e9,
-             callback: Optional[Callable[[int, float, Dict[str, float]], None]] = None) -> FitResult:
+             callback: Optional[Callable[[int, float, Dict[str, float]], None]] = None,
+             stop: Any = None, resume: Union[Mapping, "FitResult", None] = None) -> FitResult:
     """Identify ``params`` (any of :data:`~.problem.PARAM_NAMES`: E, nu, density and every effect parameter) of
     ``scene`` from ``observations``.
 
@@ -296,6 +329,13 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
     (default :func:`default_bounds`), ``observation`` the observation model of :class:`Objective`
     ("surface": the frame-0 observed surface carried by the body; "particles": particle centres; "auto":
     "surface" when ``observations.surface`` says the points are a measured surface, as from a recording). ``callback(iteration, loss, params)`` is called every iteration.
+
+    ``stop`` (an object with ``is_set()``, such as :class:`~.interrupt.StopRequest` or ``threading.Event``,
+    or a callable returning a bool) is checked before every iteration: once set, the fit returns what it
+    has with ``complete=False`` and its resumable state in ``extra["resume"]`` (no iteration done: the
+    starting values with loss NaN). ``resume`` (the ``fit`` section of such a result's material file, or
+    the result) continues that fit up to ``iters`` iterations in all; the other arguments, the observations
+    and the scene must be those it was started with (else :class:`ResumeError`).
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -319,20 +359,148 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
                           max_points=max_points, seed=seed, observation=observation)
     # the fitted effects are simulated from the start (their flags and arrays on), at the starting values
     base_mat = _base_material(scene.material, init_vals)
+    settings = _fit_settings(method, params, init_vals, space, F, observation, l_dist, l_trk, chamfer, max_points,
+                             seed, lr, betas, popsize, sigma0)
+    digest = _problem_digest(scene, objective, base_mat)
+    prior = None if resume is None else _check_resume(resume, settings, digest, iters)
     t0 = time.perf_counter()
     if method == "adam":
-        hist_l, hist_p, extra = _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, tuple(betas),
-                                          progress, checkpoint_every, memory_budget_bytes, callback)
+        hist_l, hist_p, extra, state = _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, tuple(betas),
+                                                 progress, checkpoint_every, memory_budget_bytes, callback, stop, prior)
     else:
-        hist_l, hist_p, extra = _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sigma0,
-                                           seed, progress, callback)
-    wall = time.perf_counter() - t0
-    best = int(np.argmin(hist_l))
-    best_p = hist_p[best]
+        hist_l, hist_p, extra, state = _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize,
+                                                  sigma0, seed, progress, callback, stop, prior)
+    wall = time.perf_counter() - t0 + (float(prior["wall_time_s"]) if prior else 0.0)
+    done = len(hist_l)
+    complete = done >= iters
+    if not complete:
+        extra["resume"] = {"format": _RESUME_FORMAT, "settings": settings, "data_sha256": digest, "state": state}
+    if done:
+        best = int(np.argmin(hist_l))
+        best_p, best_l = hist_p[best], float(hist_l[best])
+    else:  # stopped before the first iteration
+        best_p, best_l = dict(init_vals), float("nan")
     mat, mu = space.material(best_p, base_mat, scene.table_friction)
-    return FitResult(method=method, params=dict(best_p), material=mat, friction=mu, loss=float(hist_l[best]),
+    return FitResult(method=method, params=dict(best_p), material=mat, friction=mu, loss=best_l,
                      loss_history=[float(v) for v in hist_l], param_history=hist_p, wall_time_s=wall,
-                     frames_used=F, fps=scene.fps, init=init_vals, extra=extra)
+                     frames_used=F, fps=scene.fps, init=init_vals, extra=extra, complete=complete,
+                     iterations_done=done, iterations_requested=iters)
+
+
+def _fit_settings(method, params, init_vals, space, F, observation, l_dist, l_trk, chamfer, max_points, seed, lr,
+                  betas, popsize, sigma0) -> dict:
+    """Everything besides the data that decides a fit's course (``iters`` excepted), as JSON would hold it."""
+    s = {"method": method, "params": list(params), "frames": int(F), "init": dict(init_vals),
+         "bounds": {n: list(space.bounds[n]) for n in params}, "observation": observation, "l_dist": l_dist,
+         "l_trk": l_trk, "chamfer": chamfer, "max_points": max_points, "seed": seed}
+    if method == "adam":
+        s.update(lr=lr, betas=list(betas))
+    else:
+        s.update(popsize=popsize, sigma0=sigma0)
+    return json.loads(json.dumps(s, default=float))
+
+
+def _problem_digest(scene: Scene, objective: Objective, base_mat: MaterialConfig) -> str:
+    """SHA-256 of what the fit sees: the observations it compares with, the frame-0 body, the controls of the
+    fitted frames and the scene's settings (another recording, --frames, --dx ... change it)."""
+    h = hashlib.sha256()
+
+    def arr(a):
+        if a is None:
+            h.update(b"None;")
+            return
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype}{a.shape};".encode())
+        h.update(a.tobytes())
+
+    F = objective.frames
+    for p in objective.points:
+        arr(p)
+    if objective.track_index is not None:
+        for a in (objective.tracks, objective.visible, objective.track_index):
+            arr(a)
+    arr(scene.particles)
+    arr(scene.volumes)
+    for a in (scene.ee_positions, scene.ee_grip, scene.ee_orientations):
+        arr(None if a is None else a[:F])
+    h.update(repr((scene.fps, scene.ee_configs, scene.table, scene.table_friction, scene.dx, scene.grid,
+                   scene.gravity, scene.cfl, scene.motion_bounds, scene.motion_margin)).encode())
+    h.update(json.dumps(material_dict(base_mat), sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def read_resume_state(path) -> dict:
+    """The ``fit`` section of the material file ``path`` if it holds an interrupted fit that
+    ``identify(..., resume=...)`` can continue; :class:`ResumeError` naming the file and the reason if not."""
+    try:
+        mf = read_material(path)
+    except (ValueError, OSError) as exc:
+        raise ResumeError(f"cannot resume from {path}: {exc}") from None
+    try:
+        _resumable(mf.fit)
+    except ResumeError as exc:
+        raise ResumeError(f"cannot resume from {path}: {exc}") from None
+    return mf.fit
+
+
+def _resumable(fit) -> dict:
+    """``fit``'s resume section, or ResumeError saying why there is none."""
+    if not isinstance(fit, Mapping):
+        raise ResumeError("it holds no fit section (it was not written by an interrupted fit)")
+    if fit.get("complete") is True:
+        raise ResumeError(f"it holds a complete fit ({fit.get('iterations_done')} iterations); there is nothing "
+                          f"to resume (fit again without resuming to overwrite it)")
+    res = fit.get("resume")
+    if not isinstance(res, Mapping) or not isinstance(res.get("state"), Mapping):
+        raise ResumeError(f"its fit section (method {fit.get('method')!r}) holds no resumable state (only an "
+                          f"interrupted offline fit of this version writes one)")
+    if res.get("format") != _RESUME_FORMAT:
+        raise ResumeError(f"its resumable state has format {res.get('format')!r}; this version reads "
+                          f"format {_RESUME_FORMAT}")
+    return res
+
+
+def _check_resume(resume, settings: dict, digest: str, iters: int) -> dict:
+    """What the fit loops need to continue ``resume`` (a fit section or FitResult), after checking that it was
+    made by the same fit: {"state", "loss_history", "param_history", "iterations_done", "wall_time_s"}."""
+    fit = resume.fit_section() if isinstance(resume, FitResult) else resume
+    if not isinstance(fit, Mapping):
+        raise TypeError(f"resume must be a material file's fit section (a dict) or a FitResult, "
+                        f"got {type(resume).__name__}")
+    res = _resumable(fit)
+    old = res.get("settings") or {}
+    diff = [f"{k}: {old.get(k)!r} then, {settings.get(k)!r} now" for k in sorted(set(old) | set(settings))
+            if old.get(k) != settings.get(k)]
+    if diff:
+        raise ResumeError("it was fitted with other settings (" + "; ".join(diff) + ")")
+    if res.get("data_sha256") != digest:
+        raise ResumeError("it was fitted to other data: the observations or the simulated scene differ (another "
+                          "recording, or another frame count, grid cell or particle fill)")
+    done = int(fit.get("iterations_done", -1))
+    hist_l, hist_p = list(fit.get("loss_history") or []), list(fit.get("param_history") or [])
+    if done < 0 or len(hist_l) != done or len(hist_p) != done:
+        raise ResumeError(f"its iteration count ({fit.get('iterations_done')!r}) does not match its histories "
+                          f"({len(hist_l)} losses, {len(hist_p)} parameter sets)")
+    if iters <= done:
+        raise ResumeError(f"it already holds {done} iterations; ask for more than {done} in all to continue")
+    return {"state": res["state"], "loss_history": [float(v) for v in hist_l],
+            "param_history": [{k: float(v) for k, v in p.items()} for p in hist_p], "iterations_done": done,
+            "wall_time_s": float(fit.get("wall_time_s") or 0.0)}
+
+
+def _stop_requested(stop) -> bool:
+    if stop is None:
+        return False
+    is_set = getattr(stop, "is_set", None)
+    return bool(is_set() if is_set is not None else stop())
+
+
+def _iterations(start: int, iters: int, stop) -> Iterator[int]:
+    """Iteration indices ``start .. iters-1``, ending early once ``stop`` is set (checked before each)."""
+    for it in range(start, iters):
+        if _stop_requested(stop):
+            return
+        yield it
 
 
 def _base_material(material: MaterialConfig, init_vals: Dict[str, float]) -> MaterialConfig:
@@ -344,10 +512,10 @@ def _base_material(material: MaterialConfig, init_vals: Dict[str, float]) -> Mat
         raise ValueError(f"cannot fit {', '.join(init_vals)} on this material: {exc}") from None
 
 
-def _bar(iters, desc, progress):
+def _bar(iters, desc, progress, initial=0):
     from tqdm.auto import tqdm
 
-    return tqdm(total=iters, desc=desc, disable=not progress, leave=False, dynamic_ncols=True)
+    return tqdm(total=iters, initial=initial, desc=desc, disable=not progress, leave=False, dynamic_ncols=True)
 
 
 def _sim_kwargs(space: ParamSpace, z: torch.Tensor) -> Dict[str, torch.Tensor]:
@@ -358,8 +526,20 @@ def _sim_kwargs(space: ParamSpace, z: torch.Tensor) -> Dict[str, torch.Tensor]:
     return out
 
 
+def _tensor_to_json(v):
+    if torch.is_tensor(v):
+        return {"dtype": str(v.dtype).replace("torch.", ""), "data": v.detach().cpu().tolist()}
+    return v
+
+
+def _tensor_from_json(v):
+    if isinstance(v, Mapping) and set(v) == {"dtype", "data"}:
+        return torch.tensor(v["data"], dtype=getattr(torch, v["dtype"]))
+    return v
+
+
 def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, progress, checkpoint_every, budget,
-              callback):
+              callback, stop=None, prior=None):
     from empm_gym.autograd import simulate
 
     F = objective.frames
@@ -377,8 +557,23 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
     per_particle = 2 * 4 * 24 * model.particle_count
     hist_l, hist_p = [], []
     skipped = 0
-    bar = _bar(iters, "identify (adam)", progress)
-    for it in range(iters):
+    if prior is not None:  # continue an interrupted fit where it stopped
+        st = prior["state"]
+        try:
+            with torch.no_grad():
+                z.copy_(torch.tensor(st["z"], dtype=torch.float64))
+            if st["optimizer"]:
+                opt.state[z] = {k: _tensor_from_json(v) for k, v in st["optimizer"].items()}
+            scale = float(st["scale"])
+            if st["best"] is not None:
+                bl, bz, bg = st["best"]
+                best = (float(bl), torch.tensor(bz, dtype=torch.float64), torch.tensor(bg, dtype=torch.float64))
+            skipped = int(st["skipped_steps"])
+        except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+            raise ResumeError(f"its Adam state is incomplete or malformed ({type(exc).__name__}: {exc})") from None
+        hist_l, hist_p = list(prior["loss_history"]), list(prior["param_history"])
+    bar = _bar(iters, "identify (adam)", progress, initial=len(hist_l))
+    for it in _iterations(len(hist_l), iters, stop):
         vals = space.from_z(z.detach().numpy())
         mat, mu = space.material(vals, base_mat, scene.table_friction)
         sub, dt = substeps_for(scene, [mat], vmax)
@@ -439,10 +634,14 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
         bar.set_postfix(loss=f"{L:.5f}", **{k: f"{v:.4g}" for k, v in vals.items()})
         bar.update(1)
     bar.close()
-    return hist_l, hist_p, {"lr": lr, "betas": list(betas), "skipped_steps": skipped}
+    state = {"z": z.detach().tolist(), "optimizer": {k: _tensor_to_json(v) for k, v in opt.state.get(z, {}).items()},
+             "scale": scale, "best": None if best is None else [best[0], best[1].tolist(), best[2].tolist()],
+             "skipped_steps": skipped}
+    return hist_l, hist_p, {"lr": lr, "betas": list(betas), "skipped_steps": skipped}, state
 
 
-def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sigma0, seed, progress, callback):
+def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sigma0, seed, progress, callback,
+               stop=None, prior=None):
     import warnings
 
     import cma
@@ -460,32 +659,59 @@ def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sig
             "maxstd": float("inf"), "tolfun": 0.0, "tolx": 1e-6}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        es = cma.CMAEvolutionStrategy(list(z0), float(sigma0), opts)
+        es = cma.CMAEvolutionStrategy(list(z0), float(sigma0), opts)  # seeds numpy's global generator
     n = len(space.names)
-    sim = _ForwardSim(scene, [base_mat] * popsize, [scene.table_friction] * popsize)
-    hist_l, hist_p, gen_mean = [], [], []
-    evals = 0
-    bar = _bar(iters, "identify (cmaes)", progress)
-    for gen in range(iters):
+    hist_l, hist_p, gen_mean, pop_losses = [], [], [], []
+
+    def generation(losses_of):
+        """ask, evaluate (``losses_of(candidates) -> losses``), tell; record; the candidates' values."""
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             Z = es.ask()
         cand = [space.from_z(z[:n]) for z in Z]
-        mats = [space.material(v, base_mat, scene.table_friction) for v in cand]
-        sim.set([m for m, _ in mats], [mu for _, mu in mats])
-        X, _, _ = sim.run(F)
-        losses = [objective.numpy(X[:, w]) for w in range(popsize)]
-        evals += popsize
+        losses = [float(v) for v in losses_of(cand)]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             es.tell(Z, losses)
         i = int(np.argmin(losses))
-        hist_l.append(float(losses[i]))
+        hist_l.append(losses[i])
         hist_p.append(cand[i])
         gen_mean.append(space.from_z(es.mean[:n]))
+        pop_losses.append(losses)
+        return cand, i
+
+    if prior is not None:
+        # rebuild the strategy (and numpy's global random state, which pycma draws from) by replaying the
+        # recorded generations: the same seed and the same losses give the same candidates, without simulating
+        try:
+            recorded = [[float(v) for v in gen] for gen in prior["state"]["population_losses"]]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ResumeError(f"its CMA-ES state is incomplete or malformed ({type(exc).__name__}: {exc})") from None
+        if len(recorded) != prior["iterations_done"] or any(len(g) != popsize for g in recorded):
+            raise ResumeError(f"its CMA-ES state holds {len(recorded)} generations of "
+                              f"{sorted(set(len(g) for g in recorded))} losses, not {prior['iterations_done']} of "
+                              f"{popsize}")
+        for g, want in zip(recorded, prior["param_history"]):
+            generation(lambda cand: g)
+            got = hist_p[-1]
+            if any(not math.isclose(got[k], want.get(k, math.nan), rel_tol=1e-9, abs_tol=1e-12) for k in got):
+                raise ResumeError(f"replaying its CMA-ES generations gave candidate {got} at generation "
+                                  f"{len(hist_p) - 1} where the fit had {want} (another cma or numpy version?)")
+    sim = _ForwardSim(scene, [base_mat] * popsize, [scene.table_friction] * popsize)
+
+    def simulated(cand):
+        mats = [space.material(v, base_mat, scene.table_friction) for v in cand]
+        sim.set([m for m, _ in mats], [mu for _, mu in mats])
+        X, _, _ = sim.run(F)
+        return [objective.numpy(X[:, w]) for w in range(popsize)]
+
+    bar = _bar(iters, "identify (cmaes)", progress, initial=len(hist_l))
+    for gen in _iterations(len(hist_l), iters, stop):
+        cand, i = generation(simulated)
         if callback is not None:
-            callback(gen, float(losses[i]), cand[i])
-        bar.set_postfix(loss=f"{losses[i]:.5f}", **{k: f"{v:.4g}" for k, v in cand[i].items()})
+            callback(gen, hist_l[-1], cand[i])
+        bar.set_postfix(loss=f"{hist_l[-1]:.5f}", **{k: f"{v:.4g}" for k, v in cand[i].items()})
         bar.update(1)
     bar.close()
-    return hist_l, hist_p, {"popsize": popsize, "sigma0": sigma0, "evaluations": evals, "mean_history": gen_mean}
+    extra = {"popsize": popsize, "sigma0": sigma0, "evaluations": popsize * len(hist_l), "mean_history": gen_mean}
+    return hist_l, hist_p, extra, {"population_losses": pop_losses}
