@@ -482,7 +482,8 @@ def _check_resume(resume, settings: dict, digest: str, iters: int) -> dict:
         raise ResumeError(f"its iteration count ({fit.get('iterations_done')!r}) does not match its histories "
                           f"({len(hist_l)} losses, {len(hist_p)} parameter sets)")
     if iters <= done:
-        raise ResumeError(f"it already holds {done} iterations; ask for more than {done} in all to continue")
+        raise ResumeError(f"it already holds {done} iterations; ask for more than {done} in all (--iters) to "
+                          f"continue")
     return {"state": res["state"], "loss_history": [float(v) for v in hist_l],
             "param_history": [{k: float(v) for k, v in p.items()} for p in hist_p], "iterations_done": done,
             "wall_time_s": float(fit.get("wall_time_s") or 0.0)}
