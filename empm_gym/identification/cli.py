@@ -10,6 +10,12 @@ next to it; with ``--online`` it replays the recording through the streaming ide
 writes ``<stem>_online.json`` / ``<stem>_online.png`` with the losses with and without updates.
 ``evaluate`` reports Chamfer, tracking error, mask IoU, PSNR and SSIM on the held-out frames.
 
+After an offline fit, ``identify`` says how far to trust it (:func:`.uncertainty.assess_fit`): a 95 %
+interval per parameter in ``fit.uncertainty.<param>`` (``interval``, ``level``, ``determined``), the
+combinations that motion alone determines (E / density when the density is assumed), and warnings in
+``fit.identifiability`` for a parameter at its search bound, flat within noise, strongly correlated with
+another, or a grid too coarse for the body; ``--strict`` then exits with 3.
+
 Interrupting ``identify`` (Ctrl-C or SIGTERM) stops the fit after its current iteration, writes the best
 parameters so far to ``--out`` with ``fit.complete: false`` and the state to continue from, and exits with
 130 (SIGINT) or 143 (SIGTERM); a second Ctrl-C stops at once without writing. The file is replaced
@@ -157,6 +163,16 @@ def _identify(args) -> int:
         res.extra["recording"] = str(Path(args.rec_dir).resolve())
         if stop.is_set():  # save what there is, skip the plots
             return _save_interrupted(res, out, stop, done0)
+    undetermined = []
+    if not args.no_uncertainty:
+        from .uncertainty import assess_fit
+
+        if not args.quiet:
+            print("empm identify: intervals and identifiability (probe simulations around the fit) ...",
+                  file=sys.stderr)
+        a = assess_fit(res, scene, obs)
+        res.extra.update(a)
+        undetermined = [k for k, u in a["uncertainty"].items() if not u["determined"]]
     res.save(out)
     plot_fit(res, f"{stem}_fit.png")
     if not args.no_rrd:
@@ -167,8 +183,29 @@ def _identify(args) -> int:
                  ee_radius=[c.radius for c in scene.ee_configs], particle_radius=scene.particle_radius)
     print(f"{args.method}: {', '.join(f'{k}={v:.5g}' for k, v in res.params.items())}  loss {res.loss:.5g}  "
           f"({res.wall_time_s:.1f} s, {len(res.loss_history)} iterations, frames 0-{F - 1} of {T})")
+    if "uncertainty" in res.extra:
+        _print_uncertainty(res.extra)
     print(f"wrote {out}, {stem}_fit.png" + ("" if args.no_rrd else f", {stem}.rrd"))
+    if undetermined and args.strict:
+        print(f"empm identify: --strict: {', '.join(undetermined)} not determined by this recording (exit 3)",
+              file=sys.stderr)
+        return 3
     return 0
+
+
+def _print_uncertainty(extra: dict) -> None:
+    """Intervals, combinations and identifiability warnings of a fit (see :func:`.uncertainty.assess_fit`)."""
+    idf = extra["identifiability"]
+    for k, u in extra["uncertainty"].items():
+        lo, hi = u["interval"]
+        state = "" if u["determined"] else "   NOT DETERMINED (see warnings)"
+        print(f"  {k:14s} {100 * u['level']:.0f} % interval [{lo:.4g}, {hi:.4g}]{state}")
+    for name, c in idf["combinations"].items():
+        iv = c.get("interval")
+        iv = f" [{iv[0]:.4g}, {iv[1]:.4g}]" if iv else ""
+        print(f"  {name:14s} {c['value']:.4g}{iv} {c['unit']}: {c['note']}")
+    for w in idf["warnings"]:
+        print(f"  warning: {w}")
 
 
 def _note_interrupted_fit(out: Path) -> None:
@@ -267,6 +304,10 @@ def register(subparsers) -> None:
     p.add_argument("--every", type=int, default=5, help="online: at most one update every k frames (default 5)")
     p.add_argument("--device", default=None, help="Warp device (cpu, cuda:0)")
     p.add_argument("--no-rrd", action="store_true", help="do not write the rerun recording")
+    p.add_argument("--no-uncertainty", action="store_true",
+                   help="skip the intervals and identifiability checks (probe simulations after the fit)")
+    p.add_argument("--strict", action="store_true",
+                   help="exit with status 3 when a fitted parameter is not determined by the recording")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_identify)
 

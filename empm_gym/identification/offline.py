@@ -201,17 +201,28 @@ class Objective:
 
     def numpy(self, X: np.ndarray) -> float:
         """Loss of simulated positions X [frames, N, 3] (numpy); non-finite input gives a large finite value."""
+        return float(np.mean(self.per_frame(X)))
+
+    def per_frame(self, X: np.ndarray) -> np.ndarray:
+        """Per-frame terms [frames - 1] of the loss (frames 1 .. F-1) whose mean is :meth:`numpy`.
+
+        Frame t's term is l_dist * Chamfer_t + l_trk * (squared tracking error summed over the tracks
+        visible at t) / (mean number of visible tracks per frame), so that the mean over frames weighs every
+        visible track entry equally, as :meth:`torch` does. Non-finite input gives large finite terms.
+        """
+        n = self.frames - 1
         if not np.all(np.isfinite(X[: self.frames])):
-            return _DIVERGED_LOSS
+            return np.full(n, _DIVERGED_LOSS)
         P = self.predicted_points(np.asarray(X[: self.frames], np.float64))
-        d = np.mean([chamfer_numpy(P[t], self.points[t], direction=self.direction) for t in range(1, self.frames)])
-        loss = self.l_dist * d
+        out = self.l_dist * np.array([chamfer_numpy(P[t], self.points[t], direction=self.direction)
+                                      for t in range(1, self.frames)])
         if self.track_index is not None:
-            pred = self._predicted_tracks(np.asarray(X, np.float64))
             vis = self.visible[1:]
             if vis.any():
-                loss += self.l_trk * float(np.mean(np.sum((pred - self.tracks[1:]) ** 2, -1)[vis]))
-        return float(loss)
+                pred = self._predicted_tracks(np.asarray(X, np.float64))
+                sq = np.where(vis, np.sum((pred - self.tracks[1:]) ** 2, -1), 0.0)
+                out = out + self.l_trk * sq.sum(1) / (vis.sum() / n)
+        return out
 
 
 @dataclass
@@ -373,6 +384,9 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
     wall = time.perf_counter() - t0 + (float(prior["wall_time_s"]) if prior else 0.0)
     done = len(hist_l)
     complete = done >= iters
+    # what assess_fit needs to rebuild the objective and the search box
+    extra["bounds"], extra["observation"] = settings["bounds"], observation
+    extra["objective"] = {"l_dist": l_dist, "l_trk": l_trk, "chamfer": chamfer, "max_points": max_points, "seed": seed}
     if not complete:
         extra["resume"] = {"format": _RESUME_FORMAT, "settings": settings, "data_sha256": digest, "state": state}
     if done:

@@ -48,9 +48,19 @@ def plot_fit(result, path) -> Path:
         if result.method == "cmaes" and "mean_history" in result.extra:
             a.plot(it, [p[n] for p in result.extra["mean_history"]], "--", label="CMA-ES mean")
         a.axhline(result.params[n], color="k", lw=0.8, ls=":", label=f"fit {result.params[n]:.4g}")
+        u = (result.extra.get("uncertainty") or {}).get(n)
+        title = n
+        if u is not None:
+            lo, hi = u["interval"]
+            ylo, yhi = a.get_ylim()
+            a.axhspan(max(lo, min(ylo, result.params[n]) * 0.5 if n != "nu" else -1.0),
+                      min(hi, max(yhi, result.params[n]) * 2.0 if n != "nu" else 0.5), color="tab:green",
+                      alpha=0.2, label=f"{100 * u['level']:.0f} % interval [{lo:.3g}, {hi:.3g}]")
+            if not u["determined"]:
+                title += " (NOT DETERMINED: see fit.identifiability)"
         if n in ("E", "yield_stress", "density"):
             a.set_yscale("log")
-        a.set_title(n)
+        a.set_title(title, fontsize=9)
         a.set_xlabel("iteration")
         a.grid(alpha=0.3)
         a.legend(fontsize=7)

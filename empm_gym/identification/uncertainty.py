@@ -19,7 +19,8 @@ from typing import Dict, Optional, Sequence
 
 import numpy as np
 
-__all__ = ["measurement_noise", "paired_gain_test", "block_bootstrap_indices"]
+__all__ = ["measurement_noise", "paired_gain_test", "block_bootstrap_indices", "assess_fit", "newton_bootstrap",
+           "body_thickness", "grid_resolution", "DENSITY_SCALED", "MIN_CELLS_ACROSS"]
 
 
 def measurement_noise(points: Sequence[np.ndarray], *, k: int = 60, max_points: int = 3000, seed: int = 0) -> float:
@@ -87,3 +88,347 @@ def paired_gain_test(base: Sequence[float], candidate: Sequence[float], *, added
     thr = float(penalty_per_param * added_params)
     return {"gain": gain, "gain_abs": float(a.mean() - b.mean()), "lower": float(lo), "upper": float(hi),
             "threshold": thr, "significant": bool(lo > 0.0 and gain > thr)}
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Uncertainty and identifiability of a fitted material
+# ---------------------------------------------------------------------------------------------------------
+
+#: Parameters that enter the equations of motion only divided by the density: scaling E, density,
+#: yield_stress and viscosity together leaves every trajectory unchanged (the momentum equation divided by
+#: the density; Coulomb friction and the grippers act on velocities). From motion alone, without a force
+#: measurement, only their ratios to the density are determined.
+DENSITY_SCALED = ("E", "yield_stress", "viscosity")
+_UNITS = {"E": "Pa", "yield_stress": "Pa", "viscosity": "Pa s"}
+_RATIO_UNITS = {"E": "m^2/s^2", "yield_stress": "m^2/s^2", "viscosity": "m^2/s"}
+
+#: Below this many grid cells across its thinnest part (as :func:`body_thickness` measures it) a body's
+#: stiffness is not resolved: a 2.4 cm rope at dx = 2 cm (1.2 cells) fitted E 6.9x too stiff, at dx = 1 cm
+#: (2.4 cells) within 5 % (issue 14); a 4 cm rope at dx = 2 cm (2 cells) within 15 % (tests/identification).
+MIN_CELLS_ACROSS = 1.5
+#: Below this many cells the fit is flagged as marginal (a warning, the parameter stays determined).
+MARGINAL_CELLS_ACROSS = 3.0
+
+
+def body_thickness(particles: np.ndarray, volumes: Optional[np.ndarray] = None, *, quantile: float = 0.2) -> float:
+    """Thickness [m] of a body's thin parts: the ``quantile`` (default the 20th percentile) over the body of
+    its local thickness, the diameter of the largest ball inside the body that holds the point.
+
+    Every particle fills a cube of its own volume (side from ``volumes``, else the nearest-neighbour
+    distance), voxelised at a third of that side; for every distance level k of its Euclidean distance transform, the balls of
+    radius k around the voxels at least k deep cover the points of local thickness >= 2k voxels. For a rope this is its diameter
+    everywhere, for a lump its smallest extent.
+    """
+    from scipy import ndimage
+
+    x = np.asarray(particles, np.float64).reshape(-1, 3)
+    if len(x) < 2:
+        raise ValueError("body_thickness: need at least 2 particles")
+    if volumes is not None:
+        h = float(np.cbrt(np.median(np.asarray(volumes, np.float64))))
+    else:
+        from scipy.spatial import cKDTree
+
+        d, _ = cKDTree(x).query(x, k=2)
+        h = float(np.median(d[:, 1]))
+    # every particle fills the cube of its own volume, rasterised at a third of its side (coarser for large
+    # bodies: at most about a million voxels)
+    v = max(h / 3.0, float(np.cbrt(np.prod(np.ptp(x, 0) + h) / 1.0e6)))
+    h = max(h, 3.0 * v)
+    lo = x.min(0) - 3 * v
+    idx = np.rint((x - lo) / v).astype(int)
+    occ = np.zeros(idx.max(0) + 4, bool)
+    for o in np.array(np.meshgrid(*([[-1, 0, 1]] * 3), indexing="ij")).reshape(3, -1).T:
+        occ[idx[:, 0] + o[0], idx[:, 1] + o[1], idx[:, 2] + o[2]] = True
+    # round off the staircase of the cubes (half a particle spacing), which no inscribed ball reaches
+    occ = ndimage.gaussian_filter(occ.astype(np.float32), 1.5) > 0.5
+    dist = ndimage.distance_transform_edt(occ)
+    local = np.zeros_like(dist)
+    for k in np.unique(np.floor(dist[occ] * 2.0) / 2.0):
+        # the union of balls of radius k around the voxels at least k deep (a dilation, by distance)
+        cover = (ndimage.distance_transform_edt(dist < k) <= k + 1e-9) & occ
+        local[cover] = np.maximum(local[cover], 2.0 * k)
+    return float(np.quantile(local[occ], quantile) * v)
+
+
+def grid_resolution(scene):
+    """``(resolution, problem, note)`` of a scene's grid for its frame-0 body (:func:`body_thickness`).
+
+    ``resolution``: ``thickness_m``, ``dx_m``, ``cells_across``. ``problem`` (a sentence, or None) when fewer
+    than :data:`MIN_CELLS_ACROSS` cells cross the body's thin parts: a fitted stiffness is then not a
+    measurement. ``note`` (or None) below :data:`MARGINAL_CELLS_ACROSS` cells: expect a bias of some per cent.
+    """
+    thick = body_thickness(scene.particles, scene.volumes)
+    dx = float(scene.grid_config().dx)
+    cells = thick / dx
+    res = {"thickness_m": thick, "dx_m": dx, "cells_across": cells}
+    where = f"{cells:.1f} cells of dx = {dx:g} m across the body's thin parts ({thick * 100:.1f} cm)"
+    advice = f"--dx {thick / MARGINAL_CELLS_ACROSS:.2g} or finer resolves it"
+    if cells < MIN_CELLS_ACROSS:
+        return res, (f"the grid is too coarse for the body: {where}, fewer than {MIN_CELLS_ACROSS:g} (a 2.4 cm rope "
+                     f"at 1.2 cells fitted E 6.9x too stiff); {advice}"), None
+    if cells < MARGINAL_CELLS_ACROSS:
+        return res, None, (f"grid: {where}; the stiffness may be biased by some per cent (measured: -5 % at "
+                           f"2.4 cells); {advice}")
+    return res, None, None
+
+
+def _quadratic_features(dz: np.ndarray) -> np.ndarray:
+    """[K, 1 + n + n (n + 1) / 2] features of a quadratic in dz [K, n]: 1, dz_i, dz_i dz_j (i <= j)."""
+    K, n = dz.shape
+    cols = [np.ones(K)] + [dz[:, i] for i in range(n)]
+    cols += [dz[:, i] * dz[:, j] * (0.5 if i == j else 1.0) for i in range(n) for j in range(i, n)]
+    return np.stack(cols, 1)
+
+
+def _gradient_hessian(coef: np.ndarray, n: int):
+    """(g [..., n], H [..., n, n]) from quadratic coefficients [..., P] of :func:`_quadratic_features`."""
+    g = coef[..., 1:1 + n]
+    H = np.zeros(coef.shape[:-1] + (n, n))
+    k = 1 + n
+    for i in range(n):
+        for j in range(i, n):
+            H[..., i, j] = H[..., j, i] = coef[..., k]
+            k += 1
+    return g, H
+
+
+def _design(n: int, step: float) -> np.ndarray:
+    """Offsets [K, n] (units of z) around the optimum: the centre, +-step and +-2 step along every axis, and
+    +step along every pair of axes (so every second derivative is measured)."""
+    rows = [np.zeros(n)]
+    for i in range(n):
+        for s in (-2, -1, 1, 2):
+            e = np.zeros(n)
+            e[i] = s * step
+            rows.append(e)
+    for i in range(n):
+        for j in range(i + 1, n):
+            e = np.zeros(n)
+            e[i] = e[j] = step
+            rows.append(e)
+    return np.array(rows)
+
+
+def newton_bootstrap(per_frame: np.ndarray, dz: np.ndarray, *, n_boot: int = 2000, block: Optional[int] = None,
+                     seed: int = 0) -> Dict[str, np.ndarray]:
+    """Where the loss's minimum lies, and how much that depends on which frames were recorded.
+
+    ``per_frame`` [K, T]: the per-frame loss at K points ``dz`` [K, n] around a fitted optimum (offsets in
+    the optimiser's coordinates). A quadratic in dz is fitted to every frame's losses by least squares;
+    the mean over frames gives the loss's gradient g and curvature H at the optimum, and the Newton step
+    -H^-1 g the minimum of the local model. A moving-block bootstrap over frames (as in
+    :func:`paired_gain_test`) repeats this on resampled frames. Where a resample's curvature is not positive
+    along a direction, the minimum is unbounded along it: the parameters that direction moves (by more
+    than 0.3 of its unit vector) get +-inf.
+
+    Returns ``step`` [n] (the Newton step of all frames), ``H`` [n, n], ``g`` [n], ``draws`` [n_boot, n]
+    (Newton steps of the resamples), ``residual`` (rms misfit of the quadratic relative to the spread of
+    the mean loss over the design).
+    """
+    L = np.asarray(per_frame, np.float64)
+    dz = np.asarray(dz, np.float64)
+    K, T = L.shape
+    n = dz.shape[1]
+    Phi = _quadratic_features(dz)
+    if K < Phi.shape[1]:
+        raise ValueError(f"newton_bootstrap: {K} design points cannot determine a quadratic in {n} parameters")
+    coef, *_ = np.linalg.lstsq(Phi, L, rcond=None)  # [P, T]
+    mean_L = L.mean(1)
+    fit = Phi @ coef.mean(1)
+    spread = float(np.ptp(mean_L)) or 1e-300
+    residual = float(np.sqrt(np.mean((fit - mean_L) ** 2)) / spread)
+    rng = np.random.default_rng(seed)
+    block = int(block or max(2, round(T ** (1.0 / 3.0) * 1.5)))
+    idx = block_bootstrap_indices(T, block, n_boot, rng)
+    c_all = coef.mean(1)[None]
+    c_b = coef.T[idx].mean(1)  # [n_boot, P]
+    g, H = _gradient_hessian(np.concatenate([c_all, c_b]), n)
+    steps = np.empty((len(g), n))
+    for b in range(len(g)):
+        w, V = np.linalg.eigh(H[b])
+        proj = V.T @ g[b]
+        s = np.zeros(n)
+        unbounded = np.zeros(n)
+        for k in range(n):
+            if w[k] > 1e-12 * max(1.0, np.abs(w).max()):
+                s -= proj[k] / w[k] * V[:, k]
+            else:  # no minimum along V[:, k]: downhill without end
+                direction = -np.sign(proj[k]) or 1.0
+                unbounded += direction * V[:, k] * (np.abs(V[:, k]) > 0.3)
+        s[unbounded != 0] = np.sign(unbounded[unbounded != 0]) * np.inf
+        steps[b] = s
+    return {"step": steps[0], "g": g[0], "H": H[0], "draws": steps[1:], "residual": residual}
+
+
+def assess_fit(result, scene, observations, *, level: float = 0.95, step: float = 0.1, n_boot: int = 2000,
+               resample_bodies: int = 2, seed: int = 0, objective=None) -> Dict:
+    """Uncertainty intervals and identifiability of a :class:`~.offline.FitResult`, from the data alone.
+
+    Method (stated): the fitted scene is simulated once more with the fitted parameters moved by
+    +-``step`` and +-2 ``step`` along each optimiser coordinate (log of E, density, yield stress, ...; the
+    logit of nu) and along each pair, as worlds of one batched simulation over the fitted frames. The
+    per-frame losses give, through :func:`newton_bootstrap`, the distribution of the loss's minimum over
+    resamples of the recorded frames. The same is repeated with the frame-0 body sampled by
+    ``resample_bodies`` other particle lattices (each particle moved by up to half a spacing), and the
+    ``level`` interval of every parameter is the quantile range of all these minima together: noise in the
+    recording plus the discretisation of the body. It assumes the model is right up to noise that is
+    stationary and weakly dependent over frames (blocks of frames are resampled); the shape of the
+    reconstructed frame-0 body is taken as given, and the grid's resolution is checked separately.
+
+    A parameter is ``determined: false`` (with the reasons in ``identifiability.warnings``) when it lies at
+    its search bound, when its interval reaches past the search box (the loss is flat within noise along
+    it), when it is correlated with another fitted parameter by more than 0.95 (only a combination is
+    determined), when it is E / yield_stress / viscosity fitted together with the density (only their
+    ratio to the density enters the motion), or when the grid has fewer than :data:`MIN_CELLS_ACROSS` cells
+    across the body's thinnest part.
+
+    Returns ``{"uncertainty": {param: {"interval", "level", "determined"}}, "identifiability": {...}}``,
+    both for the material file's ``fit`` section.
+    """
+    from .offline import Objective, default_bounds
+    from .problem import ParamSpace, _ForwardSim
+
+    names = list(result.params)
+    n = len(names)
+    bounds = {k: tuple(v) for k, v in (result.extra.get("bounds") or default_bounds(result.init)).items()}
+    space = ParamSpace(names, bounds)
+    F = int(result.frames_used)
+    if objective is None:
+        obs_model = result.extra.get("observation") or ("surface" if observations.surface else "particles")
+        objective = Objective(scene, observations, F, observation=obs_model, **result.extra.get("objective", {}))
+    z0 = space.to_z(result.params)
+    dz = _design(n, step)
+    cand = [space.from_z(z0 + d) for d in dz]
+    base = result.material
+    mu0 = result.friction if result.friction is not None else scene.table_friction
+    mats = [space.material(c, base, mu0) for c in cand]
+    rng = np.random.default_rng(seed)
+    draws_all, diverged, nbs = [], [], []
+    for b in range(1 + int(resample_bodies)):
+        sc, obj = scene, objective
+        if b > 0:  # the same body sampled by another particle lattice: the discretisation's share
+            sc = _resampled_body(scene, rng)
+            obj = Objective(sc, observations, F, observation=objective.observation, l_dist=objective.l_dist,
+                            l_trk=objective.l_trk, chamfer=objective.direction,
+                            **{k: v for k, v in result.extra.get("objective", {}).items() if k in ("max_points", "seed")})
+        sim = _ForwardSim(sc, [m for m, _ in mats], [mu for _, mu in mats])
+        X, div, _ = sim.run(F)
+        diverged += div
+        L = np.stack([obj.per_frame(X[:, w]) for w in range(len(cand))])
+        nb = newton_bootstrap(L, dz, n_boot=n_boot, seed=seed + b)
+        nbs.append(nb)
+        draws_all.append(nb["draws"])
+    nb = nbs[0]
+    pooled = np.concatenate(draws_all)
+    q = [(1.0 - level) / 2.0, 1.0 - (1.0 - level) / 2.0]
+    warnings, reasons = [], {k: [] for k in names}
+    unc = {}
+    draws = z0[None] + pooled
+    # one z-step as a fraction of the box: "at the bound" means within 2 % of the box's z-width of an end
+    for i, k in enumerate(names):
+        lo_z, hi_z = np.quantile(draws[:, i], q) if np.all(np.isfinite(draws[:, i])) else _inf_quantiles(draws[:, i], q)
+        interval = [_from_z(space, k, lo_z), _from_z(space, k, hi_z)]
+        zl, zh = space.z_lo[i], space.z_hi[i]
+        tol = 0.02 * (zh - zl)
+        if z0[i] <= zl + tol or z0[i] >= zh - tol:
+            side = "lower" if z0[i] <= zl + tol else "upper"
+            reasons[k].append(f"at its {side} search bound {bounds[k][0 if side == 'lower' else 1]:.4g}: the data "
+                              f"ask for a value outside the box searched")
+        zm = z0[i] + nb["step"][i]
+        if not reasons[k] and (zm < zl - tol or zm > zh + tol):
+            side = "below" if zm < zl else "above"
+            near = f" (near {_from_z(space, k, zm):.4g})" if np.isfinite(zm) else ""
+            reasons[k].append(f"the loss's minimum lies {side} the search box {list(bounds[k])}{near}: the data "
+                              f"ask for a value outside the box searched")
+        elif not reasons[k] and (lo_z < zl - tol or hi_z > zh + tol):
+            reasons[k].append("the loss is flat within the frame-to-frame noise along it: its "
+                              f"{100 * level:.0f} % interval reaches past the search box {list(bounds[k])}")
+        unc[k] = {"interval": interval, "level": level, "determined": True}
+    # correlations between fitted parameters (finite draws only)
+    corr = {}
+    fin = np.all(np.isfinite(pooled), 1)
+    if n > 1 and fin.sum() > 10:
+        C = np.corrcoef(pooled[fin].T)
+        for i in range(n):
+            for j in range(i + 1, n):
+                r = float(C[i, j]) if np.isfinite(C[i, j]) else 0.0
+                corr[f"{names[i]},{names[j]}"] = r
+                if abs(r) > 0.95:
+                    for a, b in ((i, j), (j, i)):
+                        reasons[names[a]].append(f"correlated with {names[b]} (r = {r:+.2f}): only a combination of "
+                                                 f"the two is determined")
+    combos = {}
+    rho_fitted = "density" in names
+    for k in DENSITY_SCALED:
+        if k not in names:
+            continue
+        rho = result.params["density"] if rho_fitted else float(base.density)
+        val = result.params[k] / rho
+        entry = {"value": val, "unit": _RATIO_UNITS[k], "density_assumed": None if rho_fitted else rho}
+        if not rho_fitted:
+            entry["interval"] = [v / rho for v in unc[k]["interval"]]
+            entry["note"] = (f"density was not fitted (assumed {rho:g} kg/m^3): from motion alone only {k}/density "
+                             f"is determined; {k} scales with the assumed density")
+        else:
+            reasons[k].append(f"fitted together with the density: the motion depends only on {k}/density")
+            reasons["density"].append(f"fitted together with {k}: the motion depends only on {k}/density")
+            entry["note"] = f"only {k}/density is determined from motion without a force measurement"
+        combos[f"{k}/density"] = entry
+    resolution, problem, note = grid_resolution(scene)
+    if problem:
+        for k in names:
+            reasons[k].append(problem)
+    elif note:
+        warnings.append(note)
+    if diverged:
+        warnings.append(f"{len(diverged)} of {len(cand)} probe simulations diverged: the interval is approximate")
+    if nb["residual"] > 0.2:
+        warnings.append(f"the loss is far from quadratic within +-{2 * step:g} of the optimum (misfit "
+                        f"{nb['residual']:.0%}): the intervals are approximate")
+    z_min = z0 + np.where(np.isfinite(nb["step"]), nb["step"], 0.0)
+    for i, k in enumerate(names):
+        lo, hi = unc[k]["interval"]
+        if np.all(np.isfinite(nb["step"])) and not (lo <= result.params[k] <= hi) and not reasons[k]:
+            warnings.append(f"{k}: the fit stopped at {result.params[k]:.4g}, outside its interval; the loss's "
+                            f"local model puts the minimum at {_from_z(space, k, z_min[i]):.4g} (more iterations "
+                            f"may help)")
+        if reasons[k]:
+            unc[k]["determined"] = False
+            warnings += [f"{k}: {r}" for r in reasons[k]]
+    return {"uncertainty": unc,
+            "identifiability": {
+                "method": (f"moving-block bootstrap over the fitted frames ({n_boot} resamples) of the minimum of a "
+                           f"quadratic fitted per frame to the loss at +-{step:g} and +-{2 * step:g} around the "
+                           f"optimum (optimiser coordinates: log scale, logit for nu), pooled over the body "
+                           f"sampled by {1 + int(resample_bodies)} particle lattices; assumes the model is right "
+                           f"up to stationary, weakly dependent noise and the frame-0 body's shape"),
+                "body_minima": [_from_z(space, names[0], z0[0] + (m["step"][0] if np.isfinite(m["step"][0]) else 0.0))
+                                for m in nbs] if n == 1 else None,
+                "warnings": warnings, "combinations": combos, "correlation": corr, "resolution": resolution,
+                "curvature": nb["H"].tolist(), "quadratic_misfit": nb["residual"]}}
+
+
+def _resampled_body(scene, rng):
+    """``scene`` with its particles moved by independent uniform offsets of up to half their spacing (the
+    same body on another lattice), kept above the table."""
+    from dataclasses import replace
+
+    h = float(np.cbrt(np.median(scene.volumes)))
+    x = scene.particles + rng.uniform(-0.5, 0.5, scene.particles.shape) * h
+    if scene.table is not None:
+        x[:, 2] = np.maximum(x[:, 2], scene.table.height + 0.25 * h)
+    return replace(scene, particles=x, grid=scene.grid_config())
+
+
+def _inf_quantiles(v: np.ndarray, q) -> tuple:
+    """Quantiles of draws that may hold +-inf (numpy's quantile interpolates inf into nan)."""
+    s = np.sort(v)
+    idx = [min(len(s) - 1, max(0, int(np.floor(p * (len(s) - 1) + 0.5)))) for p in q]
+    return float(s[idx[0]]), float(s[idx[1]])
+
+
+def _from_z(space, name: str, z: float) -> float:
+    """SI value of optimiser coordinate z (+-inf map to the ends of the parameter's range)."""
+    with np.errstate(over="ignore"):
+        return float(space.from_z1(name, np.float64(z)))

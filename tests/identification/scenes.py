@@ -86,10 +86,14 @@ def observe(x: np.ndarray, cams, radius: float, *, rng, noise_per_m2=0.002, max_
     return obs, Views(cams, masks, images if colors is not None else None)
 
 
-def rope_lift(E=5e4, *, frames=24, lift_frames=12, speed=0.3, seed=0, dx=0.02, colors=False) -> Problem:
+def rope_lift(E=5e4, *, frames=24, lift_frames=12, speed=0.3, seed=0, dx=0.02, colors=False,
+              fit_jitter=0.0, same_body=False) -> Problem:
     """A rope (0.24 m long, 2 cm radius) lying on the table, gripped at its middle and lifted 12 cm.
 
-    Its two halves bend under gravity by an amount and with an oscillation that depend on E / density."""
+    Its two halves bend under gravity by an amount and with an oscillation that depend on E / density.
+    Identification gets a regular lattice of particles, or with ``fit_jitter`` > 0 another jittered sample
+    of the same cylinder (then it and the truth are two draws of the same sampling); with ``same_body`` the
+    truth's own particles (the model is then exact up to the observation noise)."""
     mat = MaterialConfig(E=E, nu=0.3, density=1000.0)
     grid = GridConfig(lower=(-0.2, -0.1, -0.06), upper=(0.2, 0.1, 0.3), dx=dx)
     ee = [EndEffectorConfig(shape="sphere", radius=0.03, friction=0.8)]
@@ -99,7 +103,9 @@ def rope_lift(E=5e4, *, frames=24, lift_frames=12, speed=0.3, seed=0, dx=0.02, c
     xt, vt = sample_cylinder((-0.12, 0, 0.02), (0.12, 0, 0.02), 0.02, dx, 8, seed=seed + 1, jitter=0.5)
     common = dict(fps=FPS, ee_configs=ee, ee_positions=pos, ee_grip=grip, table=TableConfig(friction=0.5), grid=grid)
     truth = Scene(xt, vt, material=mat, **common)
-    xi, vi = sample_cylinder((-0.12, 0, 0.02), (0.12, 0, 0.02), 0.02, dx, 8, jitter=0.0)
+    xi, vi = sample_cylinder((-0.12, 0, 0.02), (0.12, 0, 0.02), 0.02, dx, 8, seed=seed + 2, jitter=fit_jitter)
+    if same_body:
+        xi, vi = xt, vt
     scene = Scene(xi, vi, material=mat, **common)
     return _finish(truth, scene, frames, seed, colors)
 

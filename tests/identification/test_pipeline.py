@@ -57,6 +57,16 @@ def test_cli_identify_and_evaluate_on_synth_recording(synth_rope, tmp_path, caps
     assert d["E"] < 1e5 and d["fit"]["loss"] < d["fit"]["loss_history"][0]
     assert (tmp_path / "fit" / "material_fit.png").stat().st_size > 10_000
     assert (tmp_path / "fit" / "material.rrd").stat().st_size > 1000
+    # the 2.4 cm rope is about one 2 cm cell thick: the fit says E is not a measurement (issue 14)
+    u = d["fit"]["uncertainty"]["E"]
+    assert u["level"] == 0.95 and len(u["interval"]) == 2 and u["determined"] is False
+    assert any("too coarse" in w for w in d["fit"]["identifiability"]["warnings"])
+    assert "E/density" in d["fit"]["identifiability"]["combinations"]
+    printed = capsys.readouterr().out
+    assert "95 % interval" in printed and "NOT DETERMINED" in printed and "too coarse" in printed
+    rc = main(["identify", str(synth_rope), "--out", str(tmp_path / "strict.json"), "--iters", "1", "--dx", "0.02",
+               "--particles-per-cell", "8", "--quiet", "--no-rrd", "--strict"])
+    assert rc == 3 and (tmp_path / "strict.json").is_file()
     rc = main(["evaluate", str(synth_rope), "--material", str(out), "--quiet"])
     assert rc == 0
     ev = json.loads((tmp_path / "fit" / "evaluation.json").read_text())
