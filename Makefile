@@ -36,8 +36,10 @@ $(STAMP): pyproject.toml | $(VPY)
 
 install: $(STAMP)
 
+# two workers (Warp's CPU backend runs a launch on one core); a file's tests stay on one worker, so its
+# module fixtures are made once
 test: install
-	$(VPY) -m pytest -q -x --durations=15 tests
+	$(VPY) -m pytest -q -x -n 2 --dist loadfile --durations=15 tests
 
 demo: install
 	$(VPY) -m empm_gym.demo --out demo_out

