@@ -9,6 +9,7 @@ and lazy per-frame masks and colour images. ``ground_truth.json`` is never read.
 
 from __future__ import annotations
 
+import logging
 from typing import Optional, Tuple
 
 import numpy as np
@@ -18,6 +19,8 @@ from empm_gym.sim import MaterialConfig, TableConfig
 from .problem import Observations, Scene, Views
 
 __all__ = ["load_recording", "lift_tracks", "attach_grippers"]
+
+_log = logging.getLogger("empm_gym.identification")
 
 
 class _LazyFrames:
@@ -104,6 +107,7 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
                    material: Optional[MaterialConfig] = None, table_friction: float = 0.5,
                    ee_friction: float = 0.8, use_tracks: bool = True, frames: Optional[int] = None,
                    grow_grippers: bool = True, complete_hidden: bool = True,
+                   single_view: Optional[bool] = None, info: Optional[dict] = None,
                    device: Optional[str] = None, progress: bool = True):
     """(Scene, Observations, Views) of the recording in ``rec_dir`` (see the module docstring).
 
@@ -115,11 +119,24 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     ``frames`` limits the number of leading frames read; ``complete_hidden`` adds to the frame-0 body the parts
     that the end-effectors hide from every camera (:func:`empm_gym.perception.fusion.complete_occluded`);
     ``grow_grippers`` then applies :func:`attach_grippers` to closed grippers that still miss the body.
+
+    Views from one side (one camera, or cameras that all lie on one side of the object: a gap of more
+    than 180 degrees in azimuth around it, :func:`empm_gym.perception.fusion.view_gap_deg`) see no far side,
+    and no fill of the visible surface closes it. ``single_view`` (None: decided by that gap) then
+    completes the frame-0 body under a stated prior: the far side is the visible side turned by 180 degrees
+    about a vertical axis (:func:`empm_gym.perception.fusion.complete_by_symmetry`); only what an
+    end-effector hides is added by ``complete_hidden``, and no particle is left inside an open end-effector.
+    The prior is reported: as a logged warning (logger ``empm_gym.identification``) and, when ``info`` (a
+    dict) is given, in ``info["body_completion"]`` (one line, for the material file's fit section), with
+    ``info["view_gap_deg"]`` and ``info["symmetry"]`` (the axis and how much of the turned surface the
+    depth images contradict).
     """
     from tqdm.auto import tqdm
 
-    from empm_gym.perception.fusion import (carve_with_depth, complete_occluded, estimate_table_plane, fuse_frame,
-                                            initial_particles, load_controls)
+    from empm_gym.perception.fusion import (carve_with_depth, complete_by_symmetry, complete_occluded,
+                                            estimate_table_plane, fuse_frame, initial_particles,
+                                            inside_end_effectors, inside_open_end_effectors, load_controls,
+                                            view_gap_deg)
     from empm_gym.perception.recording import Recording, controls_to_end_effectors
 
     rec = Recording(rec_dir)
@@ -142,14 +159,43 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     cfgs, pos, grip = controls_to_end_effectors(controls, friction=ee_friction)
     orient = controls.get("orientations")
     body = pts[0]
+    orient0 = None if orient is None else orient[0]
+    gap = view_gap_deg(rec.cameras, body.mean(0))
+    one_side = gap > 180.0 if single_view is None else bool(single_view)
+    report = {"view_gap_deg": gap, "single_view": one_side}
+    if one_side:
+        turned, sym = complete_by_symmetry(body, rec, 0, ee_configs=cfgs, ee_positions=pos[0], grip=grip[0],
+                                           ee_orientations=orient0)
+        body = np.concatenate([body, turned])
+        report["symmetry"] = sym
+        report["body_completion"] = (f"single-view ({rec.num_cameras} camera(s), {gap:.0f} deg of azimuth unseen): "
+                                     + sym["note"])
+    else:
+        report["body_completion"] = f"multi-view ({rec.num_cameras} cameras, widest unseen azimuth {gap:.0f} deg)"
     if complete_hidden and len(cfgs):
         # the parts of the object that the end-effectors hide from every camera (a rope's held ends)
-        hidden = complete_occluded(pts[0], rec, 0, cfgs, pos[0], grip=grip[0],
-                                   ee_orientations=None if orient is None else orient[0], table_plane=plane,
-                                   spacing_m=dx / 4.0, margin_m=dx)
+        hidden = complete_occluded(body, rec, 0, cfgs, pos[0], grip=grip[0], ee_orientations=orient0,
+                                   table_plane=plane, spacing_m=dx / 4.0, margin_m=dx, end_effectors_only=one_side)
+        if one_side and report["symmetry"]["used"] and len(hidden):
+            # the same prior bounds what the end-effectors hide: kept where its turned copy is not seen
+            # through, or inside a closed gripper (which holds it: a rope's end, whatever the axis)
+            turned_h, sym_h = complete_by_symmetry(hidden, rec, 0, ee_configs=cfgs, ee_positions=pos[0],
+                                                   grip=grip[0], ee_orientations=orient0,
+                                                   axis=report["symmetry"]["axis_m"])
+            held = inside_end_effectors(hidden, cfgs, pos[0], orient0, select=grip[0] == 1)
+            hidden = np.concatenate([hidden[sym_h["kept"] | held], turned_h])
         body = np.concatenate([body, hidden])
     x0, vol = initial_particles(body, dx=dx, particles_per_cell=particles_per_cell, table_plane=plane)
     x0, vol = carve_with_depth(x0, vol, rec, 0)  # free space under overhangs that the column fill took
+    if one_side and len(cfgs):
+        keep = ~inside_open_end_effectors(x0, cfgs, pos[0], grip[0], orient0)
+        if not keep.any():
+            raise ValueError(f"{rec.path}: every frame-0 particle lies inside an open end-effector")
+        x0, vol = x0[keep], vol[keep]
+    if one_side:
+        _log.warning("%s: %s", rec.path, report["body_completion"])
+    if info is not None:
+        info.update(report)
     if grow_grippers:
         cfgs, _ = attach_grippers(cfgs, pos, grip, x0, dx)
     tracks = vis = None

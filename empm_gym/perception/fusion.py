@@ -34,6 +34,11 @@ __all__ = [
     "initial_particles",
     "carve_with_depth",
     "complete_occluded",
+    "view_gap_deg",
+    "complete_by_symmetry",
+    "hidden_by_end_effectors",
+    "inside_end_effectors",
+    "inside_open_end_effectors",
     "end_effector_sdf",
     "controls_from_masks",
     "load_controls",
@@ -371,7 +376,8 @@ def end_effector_sdf(points: np.ndarray, cfg, centre, quat=None) -> np.ndarray:
 
 def complete_occluded(points: np.ndarray, rec: Recording, t: int, ee_configs, ee_positions, *,
                       grip=None, ee_orientations=None, table_plane: Tuple[np.ndarray, float],
-                      spacing_m: float = 0.0025, margin_m: float = 0.01, reach_m: float = 0.02) -> np.ndarray:
+                      spacing_m: float = 0.0025, margin_m: float = 0.01, reach_m: float = 0.02,
+                      end_effectors_only: bool = False) -> np.ndarray:
     """Solid samples [M, 3] (m) of the object's parts that the end-effectors hide from every camera.
 
     A gripper or pusher in front of the object hides the part it holds or touches, so a fill of the
@@ -382,6 +388,9 @@ def complete_occluded(points: np.ndarray, rec: Recording, t: int, ee_configs, ee
     surface in front of them (the end-effector or the object: hidden), they lie outside the end-effector unless it is closed
     (a closed gripper carries the material inside it) and they connect to the visible object. With
     ``grip`` [K] (1 = closed) and ``ee_orientations`` [K, 4] (x, y, z, w) for the same frame.
+    With ``end_effectors_only`` a point must moreover be hidden by an end-effector
+    (:func:`hidden_by_end_effectors`), not by the object itself: for views from one side, whose object-hidden
+    far side is left to :func:`complete_by_symmetry`.
     """
     from scipy import ndimage
     from scipy.spatial import cKDTree
@@ -427,6 +436,8 @@ def complete_occluded(points: np.ndarray, rec: Recording, t: int, ee_configs, ee
         if len(cand) == 0:
             continue
         cand = cand[_hidden(cand, rec, t, front_m=0.5 * spacing_m)]
+        if end_effectors_only and len(cand):
+            cand = cand[hidden_by_end_effectors(cand, rec.cameras, ee_configs, pos, ee_orientations)]
         if len(cand) == 0:
             continue
         # keep the components of the kept lattice that touch the visible object
@@ -438,6 +449,255 @@ def complete_occluded(points: np.ndarray, rec: Recording, t: int, ee_configs, ee
         touching = np.unique(lab_pts[tree.query(cand)[0] <= 1.5 * spacing_m])
         out.append(cand[np.isin(lab_pts, touching[touching > 0])])
     return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def view_gap_deg(cameras: Sequence[Camera], centre, up: Sequence[float] = (0.0, 0.0, 1.0)) -> float:
+    """The widest range of azimuths (degrees) about the vertical line through ``centre`` (m) that holds no camera.
+
+    Each camera is placed by the direction from ``centre`` to its optical centre, projected on the plane
+    normal to ``up`` (the table normal); cameras within 1 mm of the vertical line (straight above) have no
+    azimuth and are skipped. One camera gives 360 and three spaced evenly around the object 120; above
+    180 every camera lies on one side of a vertical plane through the object, and the far side of the
+    object is seen by none (:func:`complete_by_symmetry` then completes it).
+    """
+    u = np.asarray(up, float)
+    u = u / np.linalg.norm(u)
+    e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    az = []
+    for cam in cameras:
+        d = cam.position - np.asarray(centre, float)
+        a, b = d @ e1, d @ e2
+        if np.hypot(a, b) > 1e-3:
+            az.append(np.degrees(np.arctan2(b, a)) % 360.0)
+    if not az:
+        return 360.0
+    az = np.sort(az)
+    return float(np.max(np.diff(np.concatenate([az, az[:1] + 360.0]))))
+
+
+def _ee_frames(ee_configs, ee_positions, ee_orientations):
+    pos = np.asarray(ee_positions, float).reshape(-1, 3)
+    quats = [None] * len(ee_configs) if ee_orientations is None else list(np.asarray(ee_orientations).reshape(-1, 4))
+    return pos, quats
+
+
+def _bounding_radius(cfg) -> float:
+    if cfg.shape == "sphere":
+        return float(cfg.radius)
+    if cfg.shape == "capsule":
+        return float(cfg.half_height + cfg.radius)
+    return float(np.linalg.norm(np.asarray(cfg.half_extents, float)))
+
+
+def inside_end_effectors(x: np.ndarray, ee_configs, ee_positions, ee_orientations=None, *,
+                         select=None) -> np.ndarray:
+    """True for world points [N, 3] (m) inside one of the end-effectors (all, or those where the bool [K]
+    ``select`` is True) at ``ee_positions`` [K, 3] (m) with orientations [K, 4] (x, y, z, w)."""
+    x = np.asarray(x, float).reshape(-1, 3)
+    out = np.zeros(len(x), bool)
+    if len(ee_configs) == 0:
+        return out
+    pos, quats = _ee_frames(ee_configs, ee_positions, ee_orientations)
+    select = np.ones(len(ee_configs), bool) if select is None else np.asarray(select, bool).reshape(-1)
+    for k, cfg in enumerate(ee_configs):
+        if select[k]:
+            out |= end_effector_sdf(x, cfg, pos[k], quats[k]) < 0.0
+    return out
+
+
+def inside_open_end_effectors(x: np.ndarray, ee_configs, ee_positions, grip=None, ee_orientations=None) -> np.ndarray:
+    """True for world points [N, 3] (m) inside an open end-effector (grip 0: a pusher, an open gripper), where
+    no material can be; a closed gripper (grip 1) carries the material inside it, so its inside is allowed."""
+    grip = np.zeros(len(ee_configs), int) if grip is None else np.asarray(grip).reshape(-1)
+    return inside_end_effectors(x, ee_configs, ee_positions, ee_orientations, select=grip == 0)
+
+
+def hidden_by_end_effectors(x: np.ndarray, cameras: Sequence[Camera], ee_configs, ee_positions,
+                            ee_orientations=None, *, samples: int = 24) -> np.ndarray:
+    """True for world points [N, 3] (m) that an end-effector hides from every camera whose image they fall in:
+    the segment from the point to that camera's optical centre passes through an end-effector (tested at
+    ``samples`` points along the part of the segment within the end-effector's bounding sphere).
+    Points that no camera images are False."""
+    x = np.asarray(x, float).reshape(-1, 3)
+    if len(ee_configs) == 0 or len(x) == 0:
+        return np.zeros(len(x), bool)
+    pos, quats = _ee_frames(ee_configs, ee_positions, ee_orientations)
+    out = np.ones(len(x), bool)
+    imaged = np.zeros(len(x), bool)
+    s = (np.arange(samples) + 0.5) / samples
+    for cam in cameras:
+        rc, z = cam.project(x)
+        inside = (z > 0) & (rc[:, 0] >= -0.5) & (rc[:, 0] < cam.height - 0.5) & (rc[:, 1] >= -0.5) & \
+            (rc[:, 1] < cam.width - 0.5)
+        imaged |= inside
+        seg = cam.position - x
+        length = np.linalg.norm(seg, axis=1)
+        u = seg / np.maximum(length, 1e-12)[:, None]
+        hid = np.zeros(len(x), bool)
+        for k, cfg in enumerate(ee_configs):
+            rb = _bounding_radius(cfg)
+            tc = np.clip(np.einsum("ij,ij->i", pos[k] - x, u), 0.0, length)
+            dist = np.linalg.norm(x + tc[:, None] * u - pos[k], axis=1)
+            near = np.nonzero(dist < rb)[0]
+            if len(near) == 0:
+                continue
+            half = np.sqrt(rb**2 - dist[near] ** 2)
+            t0 = np.maximum(tc[near] - half, 0.0)
+            t1 = np.minimum(tc[near] + half, length[near])
+            t = t0[:, None] + (t1 - t0)[:, None] * s[None]                      # [n, samples]
+            q = x[near, None, :] + t[..., None] * u[near, None, :]
+            sd = end_effector_sdf(q.reshape(-1, 3), cfg, pos[k], quats[k]).reshape(len(near), samples)
+            hid[near] |= (sd < 0.0).any(1)
+        out &= hid | ~inside
+    return out & imaged
+
+
+class _DepthViews:
+    """Depth images (and silhouettes) of one frame of every camera, for repeated free-space tests of many points.
+
+    With masks, the silhouette of a camera is its object and controller masks grown by the pixels that
+    ``tol_m`` spans at the object's depth, and a missing depth is unknown; without masks, a missing depth
+    takes the largest valid depth within 2 pixels (depth drops out mostly at silhouettes, where a nearer
+    and a farther surface meet: assume the farther).
+    """
+
+    def __init__(self, rec: Recording, t: int, tol_m: float):
+        from scipy import ndimage
+
+        self.cameras = rec.cameras
+        self.tol_m = float(tol_m)
+        self.depths, self.silhouettes = [], []
+        for c, cam in enumerate(self.cameras):
+            depth = np.asarray(rec.depth(c, t), float)
+            sil = None
+            if not rec.has_masks:
+                depth = np.where(depth > 0, depth, ndimage.maximum_filter(depth, size=5))
+            else:
+                obj = rec.mask(c, t)
+                sil = obj.copy()
+                ctl = rec.controller_mask(c, t)
+                if ctl is not None:
+                    sil |= ctl
+                z = depth[obj & (depth > 0)]
+                px = 1 if len(z) == 0 else int(np.ceil(self.tol_m * cam.K[0, 0] / np.median(z)))
+                sil = ndimage.binary_dilation(sil, iterations=max(px, 1))
+            self.depths.append(depth)
+            self.silhouettes.append(sil)
+
+    def contradicted(self, x: np.ndarray) -> np.ndarray:
+        """True where no camera images the point, or one sees through it: its measured depth lies more than
+        ``tol_m`` beyond the point, or the point falls outside its silhouette (on the background)."""
+        free = np.zeros(len(x), bool)
+        imaged = np.zeros(len(x), bool)
+        for cam, depth, sil in zip(self.cameras, self.depths, self.silhouettes):
+            rc, z = cam.project(x)
+            r = np.rint(rc[:, 0]).astype(np.int64)
+            col = np.rint(rc[:, 1]).astype(np.int64)
+            ok = (z > 0) & (r >= 0) & (r < depth.shape[0]) & (col >= 0) & (col < depth.shape[1])
+            imaged |= ok
+            d = np.zeros(len(x))
+            d[ok] = depth[r[ok], col[ok]]
+            free |= (d > 0) & (d > z + self.tol_m)
+            if sil is not None:
+                free[ok] |= ~sil[r[ok], col[ok]]
+        return free | ~imaged
+
+
+def complete_by_symmetry(points: np.ndarray, rec: Recording, t: int = 0, *, ee_configs=(), ee_positions=None,
+                         grip=None, ee_orientations=None, axis: Optional[Sequence[float]] = None,
+                         tol_m: float = 0.004, max_contradicted: float = 0.2, near_min: float = 0.01,
+                         max_points: int = 2000, seed: int = 0) -> Tuple[np.ndarray, dict]:
+    """The far side of a body that the cameras see from one side only, by a stated symmetry prior.
+
+    **Prior**: the body is unchanged when turned by half a turn (180 degrees) about a vertical axis (two-fold
+    rotational symmetry): a box resting on a face, a cylinder or rope lying in any direction, an ellipsoid
+    or a lump of two-fold symmetry. Its unseen far side is then its seen near side turned about that axis.
+    No orientation is assumed: unlike a mirror plane, a half turn maps a rope lying at any angle onto
+    itself.
+
+    **Axis**: every candidate axis on a grid over the visible footprint (grown by half its size) turns the
+    visible ``points`` [N, 3] (m, world, object only); a turned point is contradicted where a camera
+    measured a depth more than ``tol_m`` (m) beyond it (it would lie in free space, e.g. above the table
+    that the camera sees behind the object's far edge), where it falls outside a camera's silhouette
+    (object and controller masks, grown by ``tol_m``: a solid point there would have been seen), inside
+    an open end-effector, or where no camera images it (a body seen well inside the image does not reach
+    out of every view). The
+    axis is the mean of the candidates within ``near_min`` (a fraction of the points) of the fewest
+    contradicted points, taken in the connected set of candidates around the best one: where the cameras
+    leave the axis free along a direction (a rope's length, a side hidden by an end-effector) this takes
+    the middle of what they allow. Coarse grid, then a grid four times finer around the best. With
+    ``axis`` (x, y in m, e.g. that of an earlier call) there is no search and no refutation test (used to
+    turn further points, such as what the end-effectors hide, about the axis found from the visible ones).
+
+    Returns ``(turned points [M, 3] that are not contradicted, info)`` with ``info``: ``axis_m`` (x, y of
+    the axis), ``contradicted`` (the fraction of turned points that the views contradict at that axis),
+    ``kept`` (bool [N]: the points whose turned copy is not contradicted), ``used`` (False, and no points,
+    when more than ``max_contradicted`` of them are: the views refute the prior, and the body is left to
+    the column fill) and ``note`` (one line saying what was assumed).
+    """
+    from scipy import ndimage
+
+    pts = np.asarray(points, float).reshape(-1, 3)
+    if len(pts) < 10:
+        raise ValueError(f"complete_by_symmetry: need at least 10 visible points, got {len(pts)}")
+    rng = np.random.default_rng(seed)
+    sub = pts if len(pts) <= max_points else pts[rng.choice(len(pts), max_points, replace=False)]
+    coarse_pts = sub if len(sub) <= 600 else sub[rng.choice(len(sub), 600, replace=False)]
+    views = _DepthViews(rec, t, tol_m)
+
+    def contradicted(x):
+        bad = views.contradicted(x)
+        if len(ee_configs):
+            bad |= inside_open_end_effectors(x, ee_configs, ee_positions, grip, ee_orientations)
+        return bad
+
+    def costs(P, centres):
+        out = np.empty(len(centres))
+        chunk = max(1, 400000 // len(P))
+        for i in range(0, len(centres), chunk):
+            c = centres[i:i + chunk]
+            X = np.repeat(P[None], len(c), axis=0)
+            X[..., :2] = 2.0 * c[:, None, :] - X[..., :2]
+            out[i:i + chunk] = contradicted(X.reshape(-1, 3)).reshape(len(c), len(P)).mean(1)
+        return out
+
+    def best(P, xs, ys):
+        cx, cy = np.meshgrid(xs, ys, indexing="ij")
+        C = costs(P, np.stack([cx.ravel(), cy.ravel()], 1)).reshape(cx.shape)
+        C = ndimage.uniform_filter(C, size=3, mode="nearest")
+        i = np.unravel_index(np.argmin(C), C.shape)
+        region, _ = ndimage.label(C <= C[i] + near_min)
+        sel = region == region[i]
+        return np.array([cx[sel].mean(), cy[sel].mean()]), float(C[i]), (np.ptp(cx[sel]), np.ptp(cy[sel]))
+
+    if axis is None:
+        lo, hi = pts[:, :2].min(0), pts[:, :2].max(0)
+        size = hi - lo
+        grow = 0.5 * size.max() + 0.01
+        step = max(size.max() / 60.0, 0.002)
+        axes = [np.arange(lo[i] - grow, hi[i] + grow + 0.5 * step, step) for i in range(2)]
+        c, _, _ = best(coarse_pts, *axes)
+        fine = step / 4.0
+        axes = [c[i] + np.arange(-3 * step, 3 * step + 0.5 * fine, fine) for i in range(2)]
+        c, _, spread = best(sub, *axes)
+    else:
+        c, spread = np.asarray(axis, float).reshape(2), (0.0, 0.0)
+    turned = pts.copy()
+    turned[:, :2] = 2.0 * c - turned[:, :2]
+    bad = contradicted(turned)
+    frac = float(bad.mean())
+    info = {"axis_m": [float(c[0]), float(c[1])], "contradicted": frac, "axis_spread_m": [float(v) for v in spread],
+            "used": axis is not None or frac <= max_contradicted, "kept": ~bad}
+    if not info["used"]:
+        info["note"] = (f"half-turn symmetry about a vertical axis refuted by the depth images ({100 * frac:.0f} % of "
+                        f"the turned surface lies in seen free space); the hidden side is only the column fill "
+                        f"down to the table")
+        return np.zeros((0, 3)), info
+    info["note"] = (f"hidden side = visible side turned 180 deg about the vertical axis at "
+                    f"({c[0]:.3f}, {c[1]:.3f}) m ({100 * frac:.0f} % of the turned surface contradicted by depth)")
+    return turned[~bad], info
 
 
 def _measured_depths(x: np.ndarray, rec: Recording, t: int, *, fill_silhouettes: bool = False):
