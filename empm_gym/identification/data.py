@@ -134,6 +134,7 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     from tqdm.auto import tqdm
 
     from empm_gym.perception.fusion import (carve_with_depth, complete_by_symmetry, complete_occluded,
+                                            end_effector_sdf,
                                             estimate_table_plane, fuse_frame, initial_particles,
                                             inside_end_effectors, inside_open_end_effectors, load_controls,
                                             view_gap_deg)
@@ -163,9 +164,27 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     gap = view_gap_deg(rec.cameras, body.mean(0))
     one_side = gap > 180.0 if single_view is None else bool(single_view)
     report = {"view_gap_deg": gap, "single_view": one_side}
+    ee0 = dict(ee_configs=cfgs, ee_positions=pos[0], grip=grip[0], ee_orientations=orient0)
+
+    def hidden_by_ees(points, connected=True):
+        return complete_occluded(points, rec, 0, cfgs, pos[0], grip=grip[0], ee_orientations=orient0,
+                                 table_plane=plane, spacing_m=dx / 4.0, margin_m=dx, end_effectors_only=one_side,
+                                 connected=connected)
+
     if one_side:
-        turned, sym = complete_by_symmetry(body, rec, 0, ee_configs=cfgs, ee_positions=pos[0], grip=grip[0],
-                                           ee_orientations=orient0)
+        touch = None
+        if complete_hidden and (grip[0] == 0).any():
+            # what an open end-effector (a pusher) hides next to its faces is taken as material it touches;
+            # turned about the axis, it must not enter an end-effector either, which places the axis along
+            # directions that the end-effectors hide from the camera
+            near = hidden_by_ees(body, connected=False)
+            sd = np.full(len(near), np.inf)
+            for k, cfg in enumerate(cfgs):
+                if not grip[0][k]:
+                    sd = np.minimum(sd, end_effector_sdf(near, cfg, pos[0][k],
+                                                         None if orient0 is None else orient0[k]))
+            touch = near[sd < 0.75 * dx]
+        turned, sym = complete_by_symmetry(body, rec, 0, contact=touch, **ee0)
         body = np.concatenate([body, turned])
         report["symmetry"] = sym
         report["body_completion"] = (f"single-view ({rec.num_cameras} camera(s), {gap:.0f} deg of azimuth unseen): "
@@ -174,18 +193,16 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
         report["body_completion"] = f"multi-view ({rec.num_cameras} cameras, widest unseen azimuth {gap:.0f} deg)"
     if complete_hidden and len(cfgs):
         # the parts of the object that the end-effectors hide from every camera (a rope's held ends)
-        hidden = complete_occluded(body, rec, 0, cfgs, pos[0], grip=grip[0], ee_orientations=orient0,
-                                   table_plane=plane, spacing_m=dx / 4.0, margin_m=dx, end_effectors_only=one_side)
+        hidden = hidden_by_ees(body)
         if one_side and report["symmetry"]["used"] and len(hidden):
             # the same prior bounds what the end-effectors hide: kept where its turned copy is not seen
             # through, or inside a closed gripper (which holds it: a rope's end, whatever the axis)
-            turned_h, sym_h = complete_by_symmetry(hidden, rec, 0, ee_configs=cfgs, ee_positions=pos[0],
-                                                   grip=grip[0], ee_orientations=orient0,
-                                                   axis=report["symmetry"]["axis_m"])
+            turned_h, sym_h = complete_by_symmetry(hidden, rec, 0, axis=report["symmetry"]["axis_m"], **ee0)
             held = inside_end_effectors(hidden, cfgs, pos[0], orient0, select=grip[0] == 1)
             hidden = np.concatenate([hidden[sym_h["kept"] | held], turned_h])
         body = np.concatenate([body, hidden])
-    x0, vol = initial_particles(body, dx=dx, particles_per_cell=particles_per_cell, table_plane=plane)
+    x0, vol = initial_particles(body, dx=dx, particles_per_cell=particles_per_cell, table_plane=plane,
+                                fill_layers=one_side)
     x0, vol = carve_with_depth(x0, vol, rec, 0)  # free space under overhangs that the column fill took
     if one_side and len(cfgs):
         keep = ~inside_open_end_effectors(x0, cfgs, pos[0], grip[0], orient0)

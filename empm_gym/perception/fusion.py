@@ -232,15 +232,16 @@ def smooth_points(points: np.ndarray, radius_m: float) -> np.ndarray:
 
 def initial_particles(points: np.ndarray, *, dx: float, particles_per_cell: float = 8,
                       table_plane: Optional[Tuple[np.ndarray, float]] = None, voxel_m: Optional[float] = None,
-                      smooth_radius_m: Optional[float] = None, seed: int = 0,
-                      jitter: float = 0.0) -> Tuple[np.ndarray, np.ndarray]:
+                      smooth_radius_m: Optional[float] = None, seed: int = 0, jitter: float = 0.0,
+                      fill_layers: bool = False) -> Tuple[np.ndarray, np.ndarray]:
     """Frame-0 simulation particles filling the object's interior (not only its visible surface).
 
     ``points`` [N, 3] (m) is the fused object surface. It is first smoothed over ``smooth_radius_m`` (m,
     default dx / 2; 0 disables), since depth noise would otherwise thicken the voxelised shell. With
     ``table_plane`` the surface is closed against the table (:func:`close_against_table`); then
     :func:`empm_gym.sim.sample_points` voxelises it at ``voxel_m`` (m, default dx / 4), fills enclosed
-    cavities and samples ``particles_per_cell``
+    cavities (with ``fill_layers`` also the holes of every horizontal layer: for a body completed around its
+    sides from one view, :func:`complete_by_symmetry`) and samples ``particles_per_cell``
     particles per grid cell of ``dx`` (m). Returns ``(positions [n, 3] m, volumes [n] m^3)``; with a
     table, no particle lies below it.
     """
@@ -250,7 +251,8 @@ def initial_particles(points: np.ndarray, *, dx: float, particles_per_cell: floa
     h = voxel_m or dx / 4.0
     if table_plane is not None:
         pts = close_against_table(pts, table_plane, spacing_m=h / 2.0)
-    x, vol = sample_points(pts, dx, particles_per_cell, voxel=h, fill_interior=True, seed=seed, jitter=jitter)
+    x, vol = sample_points(pts, dx, particles_per_cell, voxel=h, fill_interior=True, fill_layers=fill_layers,
+                           seed=seed, jitter=jitter)
     if table_plane is not None:
         n, off = table_plane
         keep = x @ (np.asarray(n, float) / np.linalg.norm(n)) + off >= 0.0
@@ -377,7 +379,7 @@ def end_effector_sdf(points: np.ndarray, cfg, centre, quat=None) -> np.ndarray:
 def complete_occluded(points: np.ndarray, rec: Recording, t: int, ee_configs, ee_positions, *,
                       grip=None, ee_orientations=None, table_plane: Tuple[np.ndarray, float],
                       spacing_m: float = 0.0025, margin_m: float = 0.01, reach_m: float = 0.02,
-                      end_effectors_only: bool = False) -> np.ndarray:
+                      end_effectors_only: bool = False, connected: bool = True) -> np.ndarray:
     """Solid samples [M, 3] (m) of the object's parts that the end-effectors hide from every camera.
 
     A gripper or pusher in front of the object hides the part it holds or touches, so a fill of the
@@ -390,7 +392,8 @@ def complete_occluded(points: np.ndarray, rec: Recording, t: int, ee_configs, ee
     ``grip`` [K] (1 = closed) and ``ee_orientations`` [K, 4] (x, y, z, w) for the same frame.
     With ``end_effectors_only`` a point must moreover be hidden by an end-effector
     (:func:`hidden_by_end_effectors`), not by the object itself: for views from one side, whose object-hidden
-    far side is left to :func:`complete_by_symmetry`.
+    far side is left to :func:`complete_by_symmetry`. ``connected=False`` keeps the hidden points that do not
+    connect to the visible object too.
     """
     from scipy import ndimage
     from scipy.spatial import cKDTree
@@ -439,6 +442,9 @@ def complete_occluded(points: np.ndarray, rec: Recording, t: int, ee_configs, ee
         if end_effectors_only and len(cand):
             cand = cand[hidden_by_end_effectors(cand, rec.cameras, ee_configs, pos, ee_orientations)]
         if len(cand) == 0:
+            continue
+        if not connected:
+            out.append(cand)
             continue
         # keep the components of the kept lattice that touch the visible object
         idx = np.rint((cand - cand.min(0)) / spacing_m).astype(int)
@@ -569,6 +575,7 @@ class _DepthViews:
         self.cameras = rec.cameras
         self.tol_m = float(tol_m)
         self.depths, self.silhouettes = [], []
+        pix = []
         for c, cam in enumerate(self.cameras):
             depth = np.asarray(rec.depth(c, t), float)
             sil = None
@@ -581,15 +588,20 @@ class _DepthViews:
                 if ctl is not None:
                     sil |= ctl
                 z = depth[obj & (depth > 0)]
+                if len(z):
+                    pix.append(np.median(z) / cam.K[0, 0])
                 px = 1 if len(z) == 0 else int(np.ceil(self.tol_m * cam.K[0, 0] / np.median(z)))
                 sil = ndimage.binary_dilation(sil, iterations=max(px, 1))
             self.depths.append(depth)
             self.silhouettes.append(sil)
+        #: the size (m) of a pixel at the object's depth (median over cameras; 2 mm without masks)
+        self.pixel_m = float(np.median(pix)) if pix else 0.002
 
-    def contradicted(self, x: np.ndarray) -> np.ndarray:
-        """True where no camera images the point, or one sees through it: its measured depth lies more than
-        ``tol_m`` beyond the point, or the point falls outside its silhouette (on the background)."""
-        free = np.zeros(len(x), bool)
+    def in_front(self, x: np.ndarray) -> np.ndarray:
+        """How far (m) the points lie in front of what the cameras saw: the largest over cameras of measured
+        depth minus the point's depth (0 where no camera measured a depth behind the point), and infinity
+        where no camera images the point or it falls outside a silhouette (on the background)."""
+        front = np.zeros(len(x))
         imaged = np.zeros(len(x), bool)
         for cam, depth, sil in zip(self.cameras, self.depths, self.silhouettes):
             rc, z = cam.project(x)
@@ -599,15 +611,25 @@ class _DepthViews:
             imaged |= ok
             d = np.zeros(len(x))
             d[ok] = depth[r[ok], col[ok]]
-            free |= (d > 0) & (d > z + self.tol_m)
+            front = np.maximum(front, np.where(d > 0, d - z, 0.0))
             if sil is not None:
-                free[ok] |= ~sil[r[ok], col[ok]]
-        return free | ~imaged
+                off = np.zeros(len(x), bool)
+                off[ok] = ~sil[r[ok], col[ok]]
+                front[off] = np.inf
+        front[~imaged] = np.inf
+        return front
+
+    def contradicted(self, x: np.ndarray) -> np.ndarray:
+        """True where no camera images the point, or one sees through it: its measured depth lies more than
+        ``tol_m`` beyond the point, or the point falls outside its silhouette (on the background)."""
+        return self.in_front(x) > self.tol_m
 
 
 def complete_by_symmetry(points: np.ndarray, rec: Recording, t: int = 0, *, ee_configs=(), ee_positions=None,
                          grip=None, ee_orientations=None, axis: Optional[Sequence[float]] = None,
-                         tol_m: float = 0.004, max_contradicted: float = 0.2, near_min: float = 0.01,
+                         contact: Optional[np.ndarray] = None,
+                         tol_m: float = 0.004, cap_m: float = 0.01, max_contradicted: float = 0.2,
+                         near_min: float = 0.01, smooth_m: float = 0.004, rule: str = "away",
                          max_points: int = 2000, seed: int = 0) -> Tuple[np.ndarray, dict]:
     """The far side of a body that the cameras see from one side only, by a stated symmetry prior.
 
@@ -643,24 +665,38 @@ def complete_by_symmetry(points: np.ndarray, rec: Recording, t: int = 0, *, ee_c
     if len(pts) < 10:
         raise ValueError(f"complete_by_symmetry: need at least 10 visible points, got {len(pts)}")
     rng = np.random.default_rng(seed)
-    sub = pts if len(pts) <= max_points else pts[rng.choice(len(pts), max_points, replace=False)]
+    sm = smooth_points(pts, smooth_m)
+    sub = sm if len(sm) <= max_points else sm[rng.choice(len(sm), max_points, replace=False)]
     coarse_pts = sub if len(sub) <= 600 else sub[rng.choice(len(sub), 600, replace=False)]
+    touch = None
+    if contact is not None and len(contact):
+        touch = np.asarray(contact, float).reshape(-1, 3)
+        touch = touch if len(touch) <= 600 else touch[rng.choice(len(touch), 600, replace=False)]
     views = _DepthViews(rec, t, tol_m)
 
-    def contradicted(x):
-        bad = views.contradicted(x)
+    def in_front(x):
+        e = views.in_front(x)
         if len(ee_configs):
-            bad |= inside_open_end_effectors(x, ee_configs, ee_positions, grip, ee_orientations)
-        return bad
+            e[inside_open_end_effectors(x, ee_configs, ee_positions, grip, ee_orientations)] = np.inf
+        return e
+
+    def contradicted(x):
+        return in_front(x) > tol_m
 
     def costs(P, centres):
-        out = np.empty(len(centres))
-        chunk = max(1, 400000 // len(P))
-        for i in range(0, len(centres), chunk):
-            c = centres[i:i + chunk]
-            X = np.repeat(P[None], len(c), axis=0)
-            X[..., :2] = 2.0 * c[:, None, :] - X[..., :2]
-            out[i:i + chunk] = contradicted(X.reshape(-1, 3)).reshape(len(c), len(P)).mean(1)
+        out = np.zeros(len(centres))
+        for S in (P,) if touch is None else (P, touch):
+            chunk = max(1, 400000 // len(S))
+            for i in range(0, len(centres), chunk):
+                c = centres[i:i + chunk]
+                X = np.repeat(S[None], len(c), axis=0)
+                X[..., :2] = 2.0 * c[:, None, :] - X[..., :2]
+                if S is P:
+                    e = in_front(X.reshape(-1, 3)).reshape(len(c), len(S))
+                    out[i:i + chunk] += np.mean(np.minimum(e / cap_m, 1.0) ** 2, axis=1)
+                else:  # contact material: turned, it must not enter an end-effector
+                    inside = inside_end_effectors(X.reshape(-1, 3), ee_configs, ee_positions, ee_orientations)
+                    out[i:i + chunk] += inside.reshape(len(c), len(S)).mean(1)
         return out
 
     def best(P, xs, ys):
@@ -670,8 +706,36 @@ def complete_by_symmetry(points: np.ndarray, rec: Recording, t: int = 0, *, ee_c
         i = np.unravel_index(np.argmin(C), C.shape)
         region, _ = ndimage.label(C <= C[i] + near_min)
         sel = region == region[i]
-        return np.array([cx[sel].mean(), cy[sel].mean()]), float(C[i]), (np.ptp(cx[sel]), np.ptp(cy[sel]))
+        spread = (np.ptp(cx[sel]), np.ptp(cy[sel]))
+        if rule == "argmin":
+            return np.array([cx[i], cy[i]]), float(C[i]), spread
+        Q = np.stack([cx[sel], cy[sel]], 1)
+        c = Q.mean(0)
+        if rule == "away" and away is not None and len(Q) >= 3:
+            # along each principal direction of the region that is short (a few pixels: the softness that
+            # the eroded silhouette leaves on the cameras' side), from its middle away from the cameras
+            h = min(xs[1] - xs[0], ys[1] - ys[0]) / 2.0
+            _, vecs = np.linalg.eigh(np.cov((Q - c).T))
+            for e in vecs.T:
+                a = float(e @ away)
+                if np.ptp(Q @ e) > short_m or abs(a) < 0.3:
+                    continue
+                e = e * np.sign(a)
+                for _ in range(int(short_m / h) + 2):
+                    q = c + h * e
+                    j = (int(round((q[0] - xs[0]) / (xs[1] - xs[0]))), int(round((q[1] - ys[0]) / (ys[1] - ys[0]))))
+                    if not (0 <= j[0] < len(xs) and 0 <= j[1] < len(ys)) or not sel[j]:
+                        break
+                    c = q
+        return c, float(C[i]), spread
 
+    cams = np.array([cam.position[:2] for cam in rec.cameras]) - pts[:, :2].mean(0)
+    cams = cams[np.linalg.norm(cams, axis=1) > 1e-3]
+    away = None
+    if len(cams):
+        u = np.sum(cams / np.linalg.norm(cams, axis=1, keepdims=True), axis=0)
+        away = -u / np.linalg.norm(u) if np.linalg.norm(u) > 1e-6 else None
+    short_m = 3.0 * views.pixel_m + 0.001
     if axis is None:
         lo, hi = pts[:, :2].min(0), pts[:, :2].max(0)
         size = hi - lo
