@@ -89,11 +89,6 @@ def rope_problem(tmp_path_factory):
     return _recovery_problem(tmp_path_factory, "rope")
 
 
-@pytest.fixture(scope="module")
-def dough_problem(tmp_path_factory):
-    return _recovery_problem(tmp_path_factory, "dough")
-
-
 def _fit(problem, param, method, **kw):
     from empm_gym.identification.offline import identify
 
@@ -109,11 +104,6 @@ def rope_adam(rope_problem):
     return _fit(rope_problem, "E", "adam", iters=12)
 
 
-@pytest.fixture(scope="module")
-def dough_adam(dough_problem):
-    return _fit(dough_problem, "yield_stress", "adam", iters=10)
-
-
 @pytest.mark.slow
 def test_adam_recovers_the_rope_E_from_a_synthetic_recording(rope_adam):
     ratio, res = rope_adam
@@ -126,20 +116,6 @@ def test_cmaes_recovers_the_rope_E_and_agrees_with_adam(rope_problem, rope_adam)
     ratio, res = _fit(rope_problem, "E", "cmaes", iters=6, popsize=4, sigma0=0.3)
     assert abs(ratio - 1.0) < 0.10, (ratio, res.param_history)
     assert abs(np.log(ratio / rope_adam[0])) < np.log(1.10)
-
-
-@pytest.mark.slow
-def test_adam_recovers_the_dough_yield_stress_from_a_synthetic_recording(dough_adam):
-    ratio, res = dough_adam
-    assert abs(ratio - 1.0) < 0.15, (ratio, res.param_history)
-    assert res.material.plastic and res.material.E == pytest.approx(2.0e4)  # E is not identified: kept
-
-
-@pytest.mark.slow
-def test_cmaes_recovers_the_dough_yield_stress_and_agrees_with_adam(dough_problem, dough_adam):
-    ratio, res = _fit(dough_problem, "yield_stress", "cmaes", iters=8, popsize=6)
-    assert abs(ratio - 1.0) < 0.15, (ratio, res.param_history)
-    assert abs(np.log(ratio / dough_adam[0])) < np.log(1.15)
 
 
 @pytest.mark.slow
