@@ -3,13 +3,16 @@
     python benchmarks/bench_identify.py                          # CPU, 3 cameras, 60 frames (slow on CPU)
     python benchmarks/bench_identify.py --device cuda:0 --methods adam,cmaes
     python benchmarks/bench_identify.py --frames 12 --width 212 --height 120 --dx 0.02 --iters 3   # smoke test
+    python benchmarks/bench_identify.py --cameras 1,2,3 --objects rope     # intervals against the camera count
 
 For each object (rope: elastic, E identified; dough: elastoplastic, yield stress identified with E known)
 a recording is synthesised with known parameters, loaded through the perception layer (fusion, interior
 fill, controls, lifted tracks) and fitted on its first ``--train-fraction`` of frames from a start
 ``--start-factor`` times off the truth. The harness reads ``ground_truth.json`` only to choose the known
 parameters, the start and to score the result; identification never sees it. Prints a table (wall time
-of the fit alone, parameter error, final loss, held-out Chamfer / IoU) and writes ``results.json``.
+of the fit alone, parameter error, final loss, the 95 % interval of :func:`assess_fit` (its width, whether
+it covers the truth, whether the parameter is reported determined, the seconds it took), held-out Chamfer /
+IoU) and writes ``results.json``.
 """
 
 from __future__ import annotations
@@ -43,9 +46,10 @@ def load_problem(rec, args):
     return scene, obs, views, gt, time.perf_counter() - t0
 
 
-def run_one(obj, method, args, problem):
+def run_one(obj, method, args, problem, cameras):
     from empm_gym.identification.evaluate import evaluate, held_out_frames
     from empm_gym.identification.offline import identify
+    from empm_gym.identification.uncertainty import assess_fit
 
     scene, obs, views, gt, t_load = problem
     if args.device:
@@ -57,7 +61,10 @@ def run_one(obj, method, args, problem):
     kw = dict(params=params, method=method, init=init, iters=args.iters, frames=F, progress=not args.quiet,
               popsize=args.popsize)
     res = identify(obs, scene, **kw)
-    out_dir = Path(args.out_dir) / f"{obj}_{method}"
+    t0 = time.perf_counter()
+    res.extra.update(assess_fit(res, scene, obs))
+    t_assess = time.perf_counter() - t0
+    out_dir = Path(args.out_dir) / f"{obj}_c{cameras}_{method}"
     res.extra["dx"] = args.dx
     res.save(out_dir / "material.json")
     nan = {"summary": {"chamfer": float("nan"), "iou": float("nan")}}
@@ -67,7 +74,12 @@ def run_one(obj, method, args, problem):
     rows = []
     for p in params:
         true = m[p] if p != "friction" else gt["table_friction"]
-        rows.append({"object": obj, "method": method, "param": p, "true": true, "init": init[p],
+        u = res.extra["uncertainty"][p]
+        lo, hi = u["interval"]
+        rows.append({"object": obj, "cameras": cameras, "method": method, "param": p, "true": true, "init": init[p],
+                     "interval": [lo, hi], "width_pct": 100.0 * (hi - lo) / true, "covered": bool(lo <= true <= hi),
+                     "determined": bool(u["determined"]), "assess_s": t_assess,
+                     "warnings": res.extra["identifiability"]["warnings"],
                      "fitted": res.params[p], "error_pct": 100.0 * (res.params[p] / true - 1.0),
                      "fit_wall_s": res.wall_time_s, "load_s": t_load, "iters": len(res.loss_history),
                      "particles": len(scene.particles), "frames_fitted": F, "loss": res.loss,
@@ -84,7 +96,7 @@ def main(argv=None):
     p.add_argument("--methods", default="adam", help="comma-separated: adam,cmaes")
     p.add_argument("--params", default=None, help="override the identified parameters, e.g. E,yield_stress")
     p.add_argument("--frames", type=int, default=60)
-    p.add_argument("--cameras", type=int, default=3)
+    p.add_argument("--cameras", default="3", help="comma-separated camera counts, e.g. 1,2,3")
     p.add_argument("--width", type=int, default=848)
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--dx", type=float, default=0.01, help="identification grid cell (m)")
@@ -108,37 +120,45 @@ def main(argv=None):
         if obj not in OBJECTS:
             print(f"unknown object {obj!r}; choose from {sorted(OBJECTS)}", file=sys.stderr)
             return 2
-        if args.problems:
-            with open(Path(args.problems) / f"{obj}.pkl", "rb") as f:
-                scene, obs, gt, t_load = pickle.load(f)
-            problem = (scene, obs, None, gt, t_load)
-        else:
-            t0 = time.perf_counter()
-            rec = synthesize(Path(args.out_dir) / f"rec_{obj}", obj, seed=args.seed, frames=args.frames,
-                             cameras=args.cameras, width=args.width, height=args.height, overwrite=True,
-                             progress=not args.quiet, device=args.device or "cpu")
-            print(f"synthesised {obj}: {args.frames} frames x {args.cameras} cameras in "
-                  f"{time.perf_counter() - t0:.1f} s", flush=True)
-            problem = load_problem(rec, args)
-            if args.save_problems:
-                Path(args.save_problems).mkdir(parents=True, exist_ok=True)
-                scene, obs, _, gt, t_load = problem
-                with open(Path(args.save_problems) / f"{obj}.pkl", "wb") as f:
-                    pickle.dump((scene, obs, gt, t_load), f)
-                print(f"saved the {obj} problem to {args.save_problems}")
-                continue
-        for method in args.methods.split(","):
-            rows.extend(run_one(obj, method, args, problem))
+        for C in (int(c) for c in str(args.cameras).split(",")):
+            key = f"{obj}_c{C}"
+            if args.problems:
+                with open(Path(args.problems) / f"{key}.pkl", "rb") as f:
+                    scene, obs, gt, t_load = pickle.load(f)
+                problem = (scene, obs, None, gt, t_load)
+            else:
+                t0 = time.perf_counter()
+                rec = synthesize(Path(args.out_dir) / f"rec_{key}", obj, seed=args.seed, frames=args.frames,
+                                 cameras=C, width=args.width, height=args.height, overwrite=True,
+                                 progress=not args.quiet, device=args.device or "cpu")
+                print(f"synthesised {obj}: {args.frames} frames x {C} cameras in "
+                      f"{time.perf_counter() - t0:.1f} s", flush=True)
+                problem = load_problem(rec, args)
+                if args.save_problems:
+                    Path(args.save_problems).mkdir(parents=True, exist_ok=True)
+                    scene, obs, _, gt, t_load = problem
+                    with open(Path(args.save_problems) / f"{key}.pkl", "wb") as f:
+                        pickle.dump((scene, obs, gt, t_load), f)
+                    print(f"saved the {key} problem to {args.save_problems}")
+                    continue
+            for method in args.methods.split(","):
+                rows.extend(run_one(obj, method, args, problem, C))
     if args.save_problems:
         return 0
-    hdr = f"{'object':6s} {'method':6s} {'param':12s} {'true':>10s} {'init':>10s} {'fitted':>10s} {'err %':>7s} " \
-          f"{'fit s':>7s} {'iters':>5s} {'N':>6s} {'loss':>9s} {'CD held':>8s} {'IoU held':>8s}"
+    hdr = f"{'object':6s} {'cams':>4s} {'method':6s} {'param':12s} {'true':>10s} {'init':>10s} {'fitted':>10s} " \
+          f"{'err %':>7s} {'95 % interval':>21s} {'width %':>7s} {'covers':>6s} {'determ.':>7s} {'fit s':>7s} " \
+          f"{'int. s':>6s} {'iters':>5s} {'N':>6s} {'loss':>9s} {'CD held':>8s} {'IoU held':>8s}"
     print(hdr)
     print("-" * len(hdr))
     for r in rows:
-        print(f"{r['object']:6s} {r['method']:6s} {r['param']:12s} {r['true']:10.4g} {r['init']:10.4g} "
-              f"{r['fitted']:10.4g} {r['error_pct']:7.2f} {r['fit_wall_s']:7.1f} {r['iters']:5d} {r['particles']:6d} "
-              f"{r['loss']:9.3g} {r['heldout_chamfer_m']:8.4f} {r['heldout_iou']:8.3f}")
+        iv = f"[{r['interval'][0]:.3g}, {r['interval'][1]:.3g}]"
+        print(f"{r['object']:6s} {r['cameras']:4d} {r['method']:6s} {r['param']:12s} {r['true']:10.4g} {r['init']:10.4g} "
+              f"{r['fitted']:10.4g} {r['error_pct']:7.2f} {iv:>21s} {r['width_pct']:7.1f} {'yes' if r['covered'] else 'no':>6s} "
+              f"{'yes' if r['determined'] else 'no':>7s} {r['fit_wall_s']:7.1f} {r['assess_s']:6.1f} {r['iters']:5d} "
+              f"{r['particles']:6d} {r['loss']:9.3g} {r['heldout_chamfer_m']:8.4f} {r['heldout_iou']:8.3f}")
+    for r in rows:
+        for w in r["warnings"]:
+            print(f"  {r['object']} {r['cameras']} cameras: {w}")
     out = Path(args.out_dir) / "results.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"args": vars(args), "rows": rows}, indent=2, default=float))

@@ -328,6 +328,11 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     # one z-step as a fraction of the box: "at the bound" means within 2 % of the box's z-width of an end
     for i, k in enumerate(names):
         lo_z, hi_z = np.quantile(draws[:, i], q) if np.all(np.isfinite(draws[:, i])) else _inf_quantiles(draws[:, i], q)
+        # every resample's minimum ran off one way: the interval is open on that side and ends at the fit
+        if np.isneginf(hi_z):
+            hi_z = z0[i]
+        if np.isposinf(lo_z):
+            lo_z = z0[i]
         interval = [_from_z(space, k, lo_z), _from_z(space, k, hi_z)]
         zl, zh = space.z_lo[i], space.z_hi[i]
         tol = 0.02 * (zh - zl)
