@@ -137,7 +137,7 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
                                             end_effector_sdf,
                                             estimate_table_plane, fuse_frame, initial_particles,
                                             inside_end_effectors, inside_open_end_effectors, load_controls,
-                                            view_gap_deg)
+                                            view_gap_deg, within_footprint)
     from empm_gym.perception.recording import Recording, controls_to_end_effectors
 
     rec = Recording(rec_dir)
@@ -195,14 +195,18 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
         # the parts of the object that the end-effectors hide from every camera (a rope's held ends)
         hidden = hidden_by_ees(body)
         if one_side and report["symmetry"]["used"] and len(hidden):
-            # the same prior bounds what the end-effectors hide: kept where its turned copy is not seen
-            # through, or inside a closed gripper (which holds it: a rope's end, whatever the axis)
-            turned_h, sym_h = complete_by_symmetry(hidden, rec, 0, axis=report["symmetry"]["axis_m"], **ee0)
+            # the same prior bounds what the end-effectors hide: kept where its turned copy is not seen through
+            # and over the footprint of the body seen and turned (half a cell around it), or inside a closed
+            # gripper (which holds it: a rope's end, whatever the axis); what is kept is turned as well
             held = inside_end_effectors(hidden, cfgs, pos[0], orient0, select=grip[0] == 1)
-            hidden = np.concatenate([hidden[sym_h["kept"] | held], turned_h])
+            over = within_footprint(hidden, body, dx / 4.0, dx / 2.0)
+            _, sym_h = complete_by_symmetry(hidden, rec, 0, axis=report["symmetry"]["axis_m"], **ee0)
+            hidden = hidden[(sym_h["kept"] & over) | held]
+            turned_h, _ = complete_by_symmetry(hidden, rec, 0, axis=report["symmetry"]["axis_m"], **ee0)
+            hidden = np.concatenate([hidden, turned_h])
         body = np.concatenate([body, hidden])
     x0, vol = initial_particles(body, dx=dx, particles_per_cell=particles_per_cell, table_plane=plane,
-                                fill_layers=one_side)
+                                fill_layers=one_side, open_thin=one_side)
     x0, vol = carve_with_depth(x0, vol, rec, 0)  # free space under overhangs that the column fill took
     if one_side and len(cfgs):
         keep = ~inside_open_end_effectors(x0, cfgs, pos[0], grip[0], orient0)

@@ -77,15 +77,18 @@ def sample_sphere(center: Sequence[float], radius: float, dx: float, particles_p
 
 
 def sample_points(points: np.ndarray, dx: float, particles_per_cell: float = 8, *, voxel: Optional[float] = None,
-                  fill_interior: bool = True, fill_layers: bool = False, seed: Optional[int] = 0,
-                  jitter: float = 0.0):
+                  fill_interior: bool = True, fill_layers: bool = False, open_thin: bool = False,
+                  seed: Optional[int] = 0, jitter: float = 0.0):
     """Fill the solid occupied by a point set (e.g. a fused surface scan).
 
     Points are voxelised at ``voxel`` (m, default dx / 4) on voxels centred on a lattice; voxels are
     closed morphologically (gaps up to ``2 * voxel`` between points) and, with ``fill_interior``,
     enclosed cavities are filled, so a closed surface-only scan yields a solid body. With ``fill_layers``
     the holes of every horizontal layer (constant z) are filled too: a body closed around its sides but
-    open at the top (walls seen from a low camera and their turned copies) becomes solid. The body's surface is
+    open at the top (walls seen from a low camera and their turned copies) becomes solid. With ``open_thin``
+    the voxels are then opened (eroded and dilated by one voxel, 3 x 3 x 3): sheets and slivers thinner than
+    three voxels go (a completion's film under a hovering end-effector: the grid of cells 4 voxels wide
+    cannot carry them). The body's surface is
     put through the centres of its boundary voxels (where the scanned points are, to half a voxel), not
     at the voxels' outer faces, so the sampled volume carries no systematic outward bias.
     """
@@ -107,6 +110,8 @@ def sample_points(points: np.ndarray, dx: float, particles_per_cell: float = 8, 
     if fill_layers:
         for k in range(occ.shape[2]):
             occ[:, :, k] = ndimage.binary_fill_holes(occ[:, :, k])
+    if open_thin:
+        occ = ndimage.binary_opening(occ, structure=np.ones((3, 3, 3), bool))
     # distance (in voxels) of every occupied voxel centre to the nearest empty one: 1 on the boundary
     # layer; interpolated, "distance >= 1" is the solid bounded by the boundary voxels' centres
     depth = ndimage.distance_transform_edt(occ)
