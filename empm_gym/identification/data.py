@@ -200,13 +200,18 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
             # gripper (which holds it: a rope's end, whatever the axis); what is kept is turned as well
             held = inside_end_effectors(hidden, cfgs, pos[0], orient0, select=grip[0] == 1)
             over = within_footprint(hidden, body, dx / 4.0, dx / 2.0)
+            # nor under an open end-effector (less than a cell below it): what a pusher hovering over the table
+            # hides beneath itself is not taken for material it would drag along
+            for s_up in (0.25, 0.5, 0.75, 1.0):
+                over &= ~inside_end_effectors(hidden + [0.0, 0.0, s_up * dx], cfgs, pos[0], orient0,
+                                              select=grip[0] == 0)
             _, sym_h = complete_by_symmetry(hidden, rec, 0, axis=report["symmetry"]["axis_m"], **ee0)
             hidden = hidden[(sym_h["kept"] & over) | held]
             turned_h, _ = complete_by_symmetry(hidden, rec, 0, axis=report["symmetry"]["axis_m"], **ee0)
             hidden = np.concatenate([hidden, turned_h])
         body = np.concatenate([body, hidden])
     x0, vol = initial_particles(body, dx=dx, particles_per_cell=particles_per_cell, table_plane=plane,
-                                fill_layers=one_side, open_thin=one_side)
+                                fill_layers=one_side, open_thin=one_side, align_lattice=one_side)
     x0, vol = carve_with_depth(x0, vol, rec, 0)  # free space under overhangs that the column fill took
     if one_side and len(cfgs):
         keep = ~inside_open_end_effectors(x0, cfgs, pos[0], grip[0], orient0)

@@ -234,7 +234,8 @@ def smooth_points(points: np.ndarray, radius_m: float) -> np.ndarray:
 def initial_particles(points: np.ndarray, *, dx: float, particles_per_cell: float = 8,
                       table_plane: Optional[Tuple[np.ndarray, float]] = None, voxel_m: Optional[float] = None,
                       smooth_radius_m: Optional[float] = None, seed: int = 0, jitter: float = 0.0,
-                      fill_layers: bool = False, open_thin: bool = False) -> Tuple[np.ndarray, np.ndarray]:
+                      fill_layers: bool = False, open_thin: bool = False,
+                      align_lattice: bool = False) -> Tuple[np.ndarray, np.ndarray]:
     """Frame-0 simulation particles filling the object's interior (not only its visible surface).
 
     ``points`` [N, 3] (m) is the fused object surface. It is first smoothed over ``smooth_radius_m`` (m,
@@ -243,7 +244,8 @@ def initial_particles(points: np.ndarray, *, dx: float, particles_per_cell: floa
     :func:`empm_gym.sim.sample_points` voxelises it at ``voxel_m`` (m, default dx / 4), fills enclosed
     cavities (with ``fill_layers`` also the holes of every horizontal layer: for a body completed around its
     sides from one view, :func:`complete_by_symmetry`; with ``open_thin`` sheets thinner than three voxels
-    are removed, see :func:`empm_gym.sim.sample_points`) and samples ``particles_per_cell``
+    are removed; ``align_lattice`` puts the lattice's outer rows half a step inside the body's bounding box,
+    see :func:`empm_gym.sim.sample_points`) and samples ``particles_per_cell``
     particles per grid cell of ``dx`` (m). Returns ``(positions [n, 3] m, volumes [n] m^3)``; with a
     table, no particle lies below it.
     """
@@ -254,7 +256,7 @@ def initial_particles(points: np.ndarray, *, dx: float, particles_per_cell: floa
     if table_plane is not None:
         pts = close_against_table(pts, table_plane, spacing_m=h / 2.0)
     x, vol = sample_points(pts, dx, particles_per_cell, voxel=h, fill_interior=True, fill_layers=fill_layers,
-                           open_thin=open_thin, seed=seed, jitter=jitter)
+                           open_thin=open_thin, align_lattice=align_lattice, seed=seed, jitter=jitter)
     if table_plane is not None:
         n, off = table_plane
         keep = x @ (np.asarray(n, float) / np.linalg.norm(n)) + off >= 0.0

@@ -78,7 +78,7 @@ def sample_sphere(center: Sequence[float], radius: float, dx: float, particles_p
 
 def sample_points(points: np.ndarray, dx: float, particles_per_cell: float = 8, *, voxel: Optional[float] = None,
                   fill_interior: bool = True, fill_layers: bool = False, open_thin: bool = False,
-                  seed: Optional[int] = 0, jitter: float = 0.0):
+                  align_lattice: bool = False, seed: Optional[int] = 0, jitter: float = 0.0):
     """Fill the solid occupied by a point set (e.g. a fused surface scan).
 
     Points are voxelised at ``voxel`` (m, default dx / 4) on voxels centred on a lattice; voxels are
@@ -88,7 +88,10 @@ def sample_points(points: np.ndarray, dx: float, particles_per_cell: float = 8, 
     open at the top (walls seen from a low camera and their turned copies) becomes solid. With ``open_thin``
     the voxels are then opened (eroded and dilated by one voxel, 3 x 3 x 3): sheets and slivers thinner than
     three voxels go (a completion's film under a hovering end-effector: the grid of cells 4 voxels wide
-    cannot carry them). The body's surface is
+    cannot carry them). With ``align_lattice`` the particle lattice spans the body's bounding box (between
+    its outermost voxel centres) instead of the padded voxel grid, so that its outer rows lie half a
+    lattice step inside each face of the box: otherwise a face gains or loses a row (a third of a cell at
+    27 per cell) with how the lattice happens to meet it. The body's surface is
     put through the centres of its boundary voxels (where the scanned points are, to half a voxel), not
     at the voxels' outer faces, so the sampled volume carries no systematic outward bias.
     """
@@ -116,7 +119,13 @@ def sample_points(points: np.ndarray, dx: float, particles_per_cell: float = 8, 
     # layer; interpolated, "distance >= 1" is the solid bounded by the boundary voxels' centres
     depth = ndimage.distance_transform_edt(occ)
     # a lattice offset from the voxel centres, so that no row of particles sits exactly on the surface
-    cand, vol = _lattice(lo - 0.5 * h, lo + (dims - 0.5) * h, _spacing(dx, particles_per_cell), seed, jitter)
+    if align_lattice and occ.any():
+        ix = [np.nonzero(occ.any(axis=tuple(j for j in range(3) if j != i)))[0] for i in range(3)]
+        box_lo = lo + np.array([v[0] for v in ix]) * h
+        box_hi = lo + np.array([v[-1] for v in ix]) * h
+        cand, vol = _lattice(box_lo, np.maximum(box_hi, box_lo + h), _spacing(dx, particles_per_cell), seed, jitter)
+    else:
+        cand, vol = _lattice(lo - 0.5 * h, lo + (dims - 0.5) * h, _spacing(dx, particles_per_cell), seed, jitter)
     coords = ((cand - lo) / h).T
     inside = ndimage.map_coordinates(depth, coords, order=1, mode="constant", cval=0.0) >= 1.0 - 1e-9
     out = cand[inside]
