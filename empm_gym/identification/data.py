@@ -4,7 +4,9 @@
 (:func:`empm_gym.perception.fusion.fuse_frame`), the table plane by RANSAC, frame-0 particles with the
 interior filled (:func:`empm_gym.perception.fusion.initial_particles`), end-effectors from
 ``controls.npz`` (or the controller masks), 2D tracks lifted to 3D with the depth at the tracked pixel,
-and lazy per-frame masks and colour images. ``ground_truth.json`` is never read.
+and lazy per-frame masks and colour images. ``ground_truth.json`` is never read. Recordings whose cameras
+all look from one side get their frame-0 body completed under a stated symmetry prior (see
+:func:`load_recording`).
 """
 
 from __future__ import annotations
@@ -124,12 +126,17 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     than 180 degrees in azimuth around it, :func:`empm_gym.perception.fusion.view_gap_deg`) see no far side,
     and no fill of the visible surface closes it. ``single_view`` (None: decided by that gap) then
     completes the frame-0 body under a stated prior: the far side is the visible side turned by 180 degrees
-    about a vertical axis (:func:`empm_gym.perception.fusion.complete_by_symmetry`); only what an
-    end-effector hides is added by ``complete_hidden``, and no particle is left inside an open end-effector.
-    The prior is reported: as a logged warning (logger ``empm_gym.identification``) and, when ``info`` (a
-    dict) is given, in ``info["body_completion"]`` (one line, for the material file's fit section), with
-    ``info["view_gap_deg"]`` and ``info["symmetry"]`` (the axis and how much of the turned surface the
-    depth images contradict).
+    about a vertical axis (:func:`empm_gym.perception.fusion.complete_by_symmetry`; material that an open
+    end-effector hides next to its faces is taken to touch it, which places the axis along what pushers
+    hide). ``complete_hidden`` then adds only what an end-effector hides (not what the object hides from
+    itself), where its turned copy is consistent with the views too and over the footprint of the body
+    seen and turned, or inside a closed gripper; nothing under a hovering open end-effector. The fill
+    closes horizontal layers, drops sheets thinner than three voxels, aligns its lattice to the body's box,
+    and no particle is left inside an open end-effector. The prior is reported: as a logged warning
+    (logger ``empm_gym.identification``) and, when ``info`` (a dict) is given, in
+    ``info["body_completion"]`` (one line, for the material file's fit section), with ``info["view_gap_deg"]``,
+    ``info["single_view"]`` and ``info["symmetry"]`` (the axis, how far the views leave it open, how much of
+    the turned surface the depth images contradict, whether the prior was used).
     """
     from tqdm.auto import tqdm
 
@@ -186,7 +193,7 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
             touch = near[sd < 0.75 * dx]
         turned, sym = complete_by_symmetry(body, rec, 0, contact=touch, **ee0)
         body = np.concatenate([body, turned])
-        report["symmetry"] = sym
+        report["symmetry"] = {k: v for k, v in sym.items() if k != "kept"}
         report["body_completion"] = (f"single-view ({rec.num_cameras} camera(s), {gap:.0f} deg of azimuth unseen): "
                                      + sym["note"])
     else:
@@ -210,8 +217,17 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
             turned_h, _ = complete_by_symmetry(hidden, rec, 0, axis=report["symmetry"]["axis_m"], **ee0)
             hidden = np.concatenate([hidden, turned_h])
         body = np.concatenate([body, hidden])
-    x0, vol = initial_particles(body, dx=dx, particles_per_cell=particles_per_cell, table_plane=plane,
-                                fill_layers=one_side, open_thin=one_side, align_lattice=one_side)
+    try:
+        x0, vol = initial_particles(body, dx=dx, particles_per_cell=particles_per_cell, table_plane=plane,
+                                    fill_layers=one_side, open_thin=one_side, align_lattice=one_side)
+    except ValueError as exc:
+        if not one_side:
+            raise
+        raise ValueError(f"{rec.path}: the frame-0 body cannot be completed from views on one side "
+                         f"({report['body_completion']}): the surface they show, turned, still encloses no volume "
+                         f"thicker than three voxels of {dx / 4.0:g} m (a camera low over the table sees the sides "
+                         f"but not the top); record from higher above the table, or add a camera on the other "
+                         f"side ({exc})") from exc
     x0, vol = carve_with_depth(x0, vol, rec, 0)  # free space under overhangs that the column fill took
     if one_side and len(cfgs):
         keep = ~inside_open_end_effectors(x0, cfgs, pos[0], grip[0], orient0)
