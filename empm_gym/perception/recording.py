@@ -21,6 +21,9 @@ Cameras are the folders ``color/0 .. color/C-1``; frame files are ``0.png`` or z
 ``000000.png``. :class:`Recording` checks the structure when opened and each image when it is read,
 raising :class:`RecordingError` that names the file and the problem.
 
+PGND's episodes (kywind/pgnd: ``camera_<i>/{rgb,depth,mask}``, ``calibration/``, ``robot/``) are read by
+the same class, detected by their files; :mod:`empm_gym.perception.pgnd` says what is mapped how.
+
 ``metadata.json`` without ``depth_scale`` means millimetres (0.001), as in PhysTwin.
 ``controls.npz`` without ``grip`` means closed grippers (1) throughout; without ``shape``, spheres;
 without ``radius``, 0.02 m.
@@ -58,6 +61,11 @@ CONTROLLER_LABEL = "hand"
 _SHAPES = ("sphere", "capsule", "box")
 _FRAME_RE = re.compile(r"^(\d+)\.(png|npy)$")
 _DEPTH_MEDIAN_RANGE_M = (0.02, 20.0)
+
+
+def _frame_name(t: int, ext: str, layout: str = "phystwin") -> str:
+    """The file name of frame ``t`` as the layout writes it (PhysTwin ``0.png``, PGND ``000000.png``)."""
+    return f"{t:06d}.{ext}" if layout == "pgnd" else f"{t}.{ext}"
 
 
 class RecordingError(ValueError):
@@ -285,13 +293,14 @@ def _read_json(path: Path):
 
 
 def _index_frames(folder: Path, exts: Sequence[str]) -> Dict[int, Dict[str, str]]:
-    """{frame number: {extension: file name}} of the frame files in a folder (empty if missing)."""
+    """{frame number: {extension: file name}} of the frame files ``<digits>.<ext>`` in a folder (empty if missing)."""
     out: Dict[int, Dict[str, str]] = {}
     if not folder.is_dir():
         return out
+    pattern = re.compile(r"^(\d+)\.(" + "|".join(re.escape(e) for e in exts) + r")$")
     for name in os.listdir(folder):
-        m = _FRAME_RE.match(name)
-        if not m or m.group(2) not in exts:
+        m = pattern.match(name)
+        if not m:
             continue
         t, ext = int(m.group(1)), m.group(2)
         prev = out.setdefault(t, {}).get(ext)
@@ -331,27 +340,103 @@ def _read_npz(path: Path) -> dict:
         raise RecordingError(f"{path}: cannot read .npz ({type(exc).__name__}: {exc}); object arrays are refused")
 
 
+def _check_intrinsics(K, width: int, height: int, src, what: str = "intrinsics") -> np.ndarray:
+    """Per-camera pinhole intrinsics [C, 3, 3] (pixels), checked; ``src`` names the file in errors."""
+    try:
+        K = np.asarray(K, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise RecordingError(f"{src}: {what} must be a [cameras][3][3] array of numbers") from None
+    if K.ndim != 3 or K.shape[1:] != (3, 3) or K.shape[0] < 1:
+        raise RecordingError(f"{src}: {what} must have shape [cameras, 3, 3], got {list(K.shape)}")
+    for i, k in enumerate(K):
+        if not np.all(np.isfinite(k)):
+            raise RecordingError(f"{src}: intrinsics of camera {i} hold non-finite values")
+        if k[0, 0] <= 0 or k[1, 1] <= 0:
+            raise RecordingError(f"{src}: intrinsics of camera {i}: focal lengths fx={k[0, 0]}, fy={k[1, 1]} "
+                                 f"must be > 0 pixels")
+        if not np.allclose(k[2], [0, 0, 1]) or k[1, 0] != 0:
+            raise RecordingError(f"{src}: intrinsics of camera {i}: must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], "
+                                 f"got {k.tolist()}")
+        if not (0 <= k[0, 2] <= width and 0 <= k[1, 2] <= height):
+            raise RecordingError(f"{src}: intrinsics of camera {i}: principal point (cx, cy) = "
+                                 f"({k[0, 2]}, {k[1, 2]}) lies outside the {width}x{height} image")
+    return K
+
+
 class Recording:
     """A recording directory opened for reading (frames load lazily, one image per call).
 
     Opening checks metadata, calibration, camera count and that every camera has every frame of
     colour, depth and (when present) masks; it raises :class:`RecordingError` otherwise. Nothing is
     ever written into the directory.
+
+    Two layouts are read, told apart by their files (no option): ours / PhysTwin's (``metadata.json``;
+    ``layout == "phystwin"``) and PGND's episodes (``camera_<i>/``, ``calibration/``, ``robot/`` and no
+    ``metadata.json``; ``layout == "pgnd"``), which :mod:`empm_gym.perception.pgnd` maps onto the same
+    attributes: cameras in a z-up world, depth in metres, object masks, and controls from the robot
+    telemetry (see that module for what is mapped how, and the defaults it assumes and logs).
     """
 
     def __init__(self, path):
+        from . import pgnd
+
         self.path = Path(path)
         if not self.path.is_dir():
             raise RecordingError(f"{self.path}: recording directory does not exist")
+        self._controls = None
+        self._mask_form = None
+        self._mask_ids: List[Tuple[List[str], List[str]]] = []
+        self._mask_dirs: List[Path] = []
+        self._color: List[Dict[int, Dict[str, str]]] = []  # per camera: {frame: {extension: file name}}
+        self._depth: List[Dict[int, Dict[str, str]]] = []
+        if not (self.path / "metadata.json").is_file():
+            if pgnd.is_pgnd_episode(self.path):
+                self._open_pgnd(pgnd.read_pgnd_episode(self.path))
+                return
+            raise RecordingError(pgnd.not_a_recording_message(self.path))
+        self.layout = "phystwin"
         self.metadata = _read_json(self.path / "metadata.json")
         self._parse_metadata()
+        self._frame_count_source = f"metadata.json says frame_num={self.num_frames}"
         self.c2w = self._read_calibration()
         self._check_camera_folders()
+        self._color_dirs = [self.path / "color" / c for c in self.camera_names]
+        self._depth_dirs = [self.path / "depth" / c for c in self.camera_names]
+        self._color_exts = ("png",)
         self._index()
-        self._controls = None
         if (self.path / "controls.npz").is_file():
             self._controls = validate_controls(_read_npz(self.path / "controls.npz"), self.num_frames,
                                                str(self.path / "controls.npz"))
+
+    def _open_pgnd(self, ep):
+        """Take over a PGND episode read and checked by :func:`empm_gym.perception.pgnd.read_pgnd_episode`."""
+        self.layout = "pgnd"
+        self.metadata = ep.metadata
+        self.width, self.height = ep.width, ep.height
+        self.intrinsics, self.c2w = ep.intrinsics, ep.c2w
+        self.fps, self.num_frames, self.depth_scale = ep.fps, ep.num_frames, ep.depth_scale
+        self.num_cameras = len(ep.camera_dirs)
+        self.camera_names = [str(i) for i in range(self.num_cameras)]
+        self.serial_numbers = [d.name for d in ep.camera_dirs]
+        self._frame_count_source = ep.frame_count_source
+        self._color_dirs = [d / "rgb" for d in ep.camera_dirs]
+        self._depth_dirs = [d / "depth" for d in ep.camera_dirs]
+        self._color_exts = ep.color_exts
+        for i, c in enumerate(self.camera_names):
+            for kind, folder, exts, store in (("rgb", self._color_dirs[i], self._color_exts, self._color),
+                                              ("depth", self._depth_dirs[i], ("png",), self._depth)):
+                if not folder.is_dir():
+                    raise RecordingError(f"{folder}: folder missing for camera {c}")
+                idx = _index_frames(folder, exts)
+                self._check_complete(idx, folder, c, kind, exts[0], exact=True)
+                store.append(idx)
+        masks = [d / "mask" for d in ep.camera_dirs]
+        if any(m.is_dir() for m in masks):
+            self._mask_form, self._mask_dirs = "simple", masks
+            for c, folder in zip(self.camera_names, masks):
+                self._check_complete(_index_frames(folder, ("png",)), folder, c, "mask", "png", exact=True)
+        if ep.controls is not None:
+            self._controls = validate_controls(ep.controls, self.num_frames, str(ep.controls_source))
 
     # -- structure -------------------------------------------------------------------------
     def _parse_metadata(self):
@@ -361,29 +446,12 @@ class Recording:
         for key in ("intrinsics", "WH", "fps", "frame_num"):
             if key not in md:
                 raise RecordingError(f"{src}: missing key {key!r}")
-        try:
-            K = np.asarray(md["intrinsics"], dtype=np.float64)
-        except (TypeError, ValueError):
-            raise RecordingError(f"{src}: 'intrinsics' must be a [cameras][3][3] array of numbers") from None
-        if K.ndim != 3 or K.shape[1:] != (3, 3) or K.shape[0] < 1:
-            raise RecordingError(f"{src}: 'intrinsics' must have shape [cameras, 3, 3], got {list(K.shape)}")
         wh = md["WH"]
         if (not isinstance(wh, (list, tuple)) or len(wh) != 2
                 or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in wh)):
             raise RecordingError(f"{src}: 'WH' must be [width, height] positive integers (pixels), got {wh!r}")
         self.width, self.height = int(wh[0]), int(wh[1])
-        for i, k in enumerate(K):
-            if not np.all(np.isfinite(k)):
-                raise RecordingError(f"{src}: intrinsics of camera {i} hold non-finite values")
-            if k[0, 0] <= 0 or k[1, 1] <= 0:
-                raise RecordingError(f"{src}: intrinsics of camera {i}: focal lengths fx={k[0, 0]}, fy={k[1, 1]} "
-                                     f"must be > 0 pixels")
-            if not np.allclose(k[2], [0, 0, 1]) or k[1, 0] != 0:
-                raise RecordingError(f"{src}: intrinsics of camera {i}: must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], "
-                                     f"got {k.tolist()}")
-            if not (0 <= k[0, 2] <= self.width and 0 <= k[1, 2] <= self.height):
-                raise RecordingError(f"{src}: intrinsics of camera {i}: principal point (cx, cy) = "
-                                     f"({k[0, 2]}, {k[1, 2]}) lies outside the {self.width}x{self.height} image")
+        K = _check_intrinsics(md["intrinsics"], self.width, self.height, src, "'intrinsics'")
         self.intrinsics = K
         fps = md["fps"]
         if not isinstance(fps, (int, float)) or isinstance(fps, bool) or not math.isfinite(fps) or fps <= 0:
@@ -433,19 +501,15 @@ class Recording:
         self.camera_names = expected
 
     def _index(self):
-        T = self.num_frames
-        self._color, self._depth = [], []
-        for c in self.camera_names:
-            for kind, exts, store in (("color", ("png",), self._color), ("depth", ("npy", "png"), self._depth)):
-                folder = self.path / kind / c
+        for i, c in enumerate(self.camera_names):
+            for kind, folder, exts, store in (("color", self._color_dirs[i], self._color_exts, self._color),
+                                              ("depth", self._depth_dirs[i], ("npy", "png"), self._depth)):
                 if not folder.is_dir():
                     raise RecordingError(f"{folder}: folder missing for camera {c}")
                 idx = _index_frames(folder, exts)
                 self._check_complete(idx, folder, c, kind, exts[0])
                 store.append(idx)
         # masks: PhysTwin form if mask_info_<cam>.json exists, else the simple form
-        self._mask_form = None
-        self._mask_ids: List[Tuple[List[str], List[str]]] = []
         mdir = self.path / "mask"
         if mdir.is_dir():
             infos = [mdir / f"mask_info_{c}.json" for c in self.camera_names]
@@ -465,16 +529,22 @@ class Recording:
                     self._mask_ids.append((obj, ctl))
             elif any((mdir / c).is_dir() for c in self.camera_names):
                 self._mask_form = "simple"
-                for c in self.camera_names:
-                    folder = mdir / c
+                self._mask_dirs = [mdir / c for c in self.camera_names]
+                for c, folder in zip(self.camera_names, self._mask_dirs):
                     self._check_complete(_index_frames(folder, ("png",)), folder, c, "mask", "png")
 
-    def _check_complete(self, idx, folder: Path, cam: str, kind: str, ext: str):
+    def _check_complete(self, idx, folder: Path, cam: str, kind: str, ext: str, exact: bool = False):
+        """Every frame 0..T-1 present in ``idx`` (and, with ``exact``, none beyond), else :class:`RecordingError`."""
         missing = [t for t in range(self.num_frames) if t not in idx]
         if missing:
             more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
-            raise RecordingError(f"{folder / f'{missing[0]}.{ext}'}: missing {kind} frame {missing[0]} of camera "
-                                 f"{cam}{more}; metadata.json says frame_num={self.num_frames}")
+            raise RecordingError(f"{folder / _frame_name(missing[0], ext, self.layout)}: missing {kind} frame "
+                                 f"{missing[0]} of camera {cam}{more}; {self._frame_count_source}")
+        extra = sorted(t for t in idx if t >= self.num_frames)
+        if exact and extra:
+            name = next(iter(idx[extra[0]].values()))
+            raise RecordingError(f"{folder / name}: mismatched frame counts: {kind} of camera {cam} has "
+                                 f"{len(idx)} frames but {self._frame_count_source}")
 
     # -- properties ----------------------------------------------------------------------------
     @property
@@ -525,7 +595,8 @@ class Recording:
     def color(self, cam, t) -> np.ndarray:
         """Colour image [H, W, 3] uint8 (RGB) of camera ``cam`` at frame ``t``."""
         i, t = self._cam(cam), self._frame(t)
-        p = self.path / "color" / self.camera_names[i] / self._color[i][t]["png"]
+        files = self._color[i][t]
+        p = self._color_dirs[i] / next(files[e] for e in self._color_exts if e in files)
         img = _read_png(p)
         self._check_hw(img, p, "colour image")
         if img.ndim == 2:
@@ -539,7 +610,7 @@ class Recording:
     def depth_path(self, cam, t) -> Path:
         i, t = self._cam(cam), self._frame(t)
         files = self._depth[i][t]
-        return self.path / "depth" / self.camera_names[i] / (files.get("npy") or files["png"])
+        return self._depth_dirs[i] / (files.get("npy") or files["png"])
 
     def depth_raw(self, cam, t) -> np.ndarray:
         """Depth image [H, W] as stored (depth_scale units; .npy preferred over .png)."""
@@ -593,10 +664,10 @@ class Recording:
         if self._mask_form is None:
             raise RecordingError(f"{self.path / 'mask'}: the recording has no object masks")
         if self._mask_form == "simple":
-            return self._mask_png(self.path / "mask" / c / self._frame_file("mask", c, None, t))
+            return self._mask_png(self._frame_file(self._mask_dirs[i], t))
         out = np.zeros((self.height, self.width), bool)
         for oid in self._mask_ids[i][0]:
-            out |= self._mask_png(self.path / "mask" / c / oid / self._frame_file("mask", c, oid, t))
+            out |= self._mask_png(self._frame_file(self.path / "mask" / c / oid, t))
         return out
 
     def controller_masks(self, cam, t) -> List[np.ndarray]:
@@ -605,7 +676,7 @@ class Recording:
         if self._mask_form != "phystwin":
             return []
         c = self.camera_names[i]
-        return [self._mask_png(self.path / "mask" / c / cid / self._frame_file("mask", c, cid, t))
+        return [self._mask_png(self._frame_file(self.path / "mask" / c / cid, t))
                 for cid in self._mask_ids[i][1]]
 
     def controller_mask(self, cam, t) -> Optional[np.ndarray]:
@@ -615,19 +686,20 @@ class Recording:
             return None
         return np.logical_or.reduce(ms)
 
-    def _frame_file(self, kind, cam, oid, t) -> str:
+    def _frame_file(self, folder: Path, t) -> Path:
         # masks are indexed on demand (cheap listing, cached per folder)
-        key = (kind, cam, oid)
         cache = self.__dict__.setdefault("_mask_index", {})
-        if key not in cache:
-            folder = self.path / "mask" / cam if oid is None else self.path / "mask" / cam / oid
-            cache[key] = _index_frames(folder, ("png",))
-        return cache[key][t]["png"]
+        if folder not in cache:
+            cache[folder] = _index_frames(folder, ("png",))
+        return folder / cache[folder][t]["png"]
 
     # -- other files ---------------------------------------------------------------------------
     def controls(self) -> dict:
         """Validated controls (copies): positions [T, K, 3] m, grip [T, K], shape [K], radius [K] m, ..."""
         if self._controls is None:
+            if self.layout == "pgnd":
+                raise RecordingError(f"{self.path / 'robot'}: no robot telemetry (robot/<frame>.txt) in this PGND "
+                                     f"episode, so no end-effector controls")
             raise RecordingError(f"{self.path / 'controls.npz'}: file missing (derive controls from the hand "
                                  f"masks with empm_gym.perception.fusion.controls_from_masks)")
         return {k: v.copy() for k, v in self._controls.items()}
@@ -661,8 +733,7 @@ class Recording:
         if vis.shape != tr.shape[:2]:
             raise RecordingError(f"{p}: 'visibility' must have shape {list(tr.shape[:2])}, got {list(vis.shape)}")
         if tr.shape[0] != self.num_frames:
-            raise RecordingError(f"{p}: 'tracks' has {tr.shape[0]} frames but metadata.json says "
-                                 f"frame_num={self.num_frames}")
+            raise RecordingError(f"{p}: 'tracks' has {tr.shape[0]} frames but {self._frame_count_source}")
         if not np.issubdtype(tr.dtype, np.number):
             raise RecordingError(f"{p}: 'tracks' must be numeric, got dtype {tr.dtype}")
         vis = vis > 0.5 if vis.dtype != bool else vis
