@@ -196,7 +196,8 @@ def _read_robot_file(p: Path) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarr
                              f"{str(exc)[:120]})") from None
     if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] not in (1, 5, 9):
         raise RecordingError(f"{p}: robot telemetry must be rows of 3 numbers: 5 rows for one arm (position, 3x3 "
-                             f"orientation, gripper), 9 for two arms, or 1 (a position only); got shape {list(a.shape)}")
+                             f"orientation, gripper), 9 for two arms, or 1 (a position only); "
+                             f"got shape {list(a.shape)}")
     if not np.all(np.isfinite(a)):
         raise RecordingError(f"{p}: robot telemetry holds non-finite values")
     if a.shape[0] == 1:
