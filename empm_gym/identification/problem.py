@@ -75,7 +75,11 @@ class Scene:
     the object was seen to occupy over the recording: the automatic grid then spans it and the
     end-effector path with a ``motion_margin`` (m) around them, instead of the generous guess of half the
     body's largest extent around the end-effector path (for a 30 cm rope that guess is a 4.7x larger
-    grid, and on the CPU the empty nodes cost as much as the particles).
+    grid, and on the CPU the empty nodes cost as much as the particles). ``dt_materials`` are materials
+    whose stable step bounds the substep too, besides those simulated: a fit that passes the stiffest
+    corners of its search box gets the same substeps for every evaluation, so that its loss is a function
+    of the parameters alone (not of which other candidates share the batch; MPM's result depends on dt by
+    about as much as the effects the doctor weighs).
     """
 
     particles: np.ndarray
@@ -95,6 +99,7 @@ class Scene:
     device: Optional[str] = None
     motion_bounds: Optional[Tuple[Sequence[float], Sequence[float]]] = None
     motion_margin: float = 0.03
+    dt_materials: Tuple[MaterialConfig, ...] = ()
 
     def __post_init__(self):
         x = np.asarray(self.particles, np.float64)
@@ -371,8 +376,8 @@ class ParamSpace:
 def substeps_for(scene: Scene, materials: Sequence[MaterialConfig], max_ee_speed: float,
                  margin: float = 0.9) -> Tuple[int, float]:
     """(substeps per frame, dt [s]) keeping dt below ``margin`` times the stable limit of the stiffest (and
-    most viscous) material."""
-    dt_max = margin * stable_dt(materials, scene.dx, scene.cfl, max_ee_speed)
+    most viscous) material, of ``materials`` and of the scene's ``dt_materials``."""
+    dt_max = margin * stable_dt(list(materials) + list(scene.dt_materials), scene.dx, scene.cfl, max_ee_speed)
     n = max(1, int(math.ceil((1.0 / scene.fps) / dt_max)))
     return n, 1.0 / (scene.fps * n)
 

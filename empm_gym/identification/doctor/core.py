@@ -10,7 +10,10 @@ Pipeline (:func:`diagnose`):
 2. **Localisation.** Per-frame and per-point residuals of the base model, split by phases read from the
    controls and by regions of the object (:mod:`.phases`, :mod:`.features`), and summary features.
 3. **Candidates.** Every effect of :data:`empm_gym.sim.effects.EFFECTS` that the base model lacks is added
-   and refitted together with E (CMA-ES, the same loss), each candidate in its own batched simulation.
+   and refitted together with E (CMA-ES, the same loss, from the base fit's E), each candidate in its own
+   batched simulation. The base model is refitted the same way (the null candidate) and is the base model
+   from then on: a candidate must gain by its effect, not by a second search of E. Every fit keeps one
+   substep count, from the stiffest corners of its search box, and is scored with it.
 4. **Scores.** Base and candidates are simulated over all frames; the per-frame score on the held-out
    frames (Chamfer plus the median tracking error, metres) is compared pairwise with :func:`empm_gym.identification.uncertainty.paired_gain_test` (block
    bootstrap over frames, a relative-gain penalty per added parameter). The verdict is the candidate
@@ -25,6 +28,7 @@ Nothing here reads a synthesiser's answer file, file names or script timing: onl
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -135,6 +139,7 @@ class _Fit:
     fit_loss: float
     wall_s: float
     added: int = 0
+    scene: Optional[Scene] = None
     heldout: Dict[str, float] = field(default_factory=dict)
     test: Dict[str, float] = field(default_factory=dict)
 
@@ -196,6 +201,32 @@ def _fit(name, scene, obs, params, init, bounds, base_mat, frames, cfg, progress
                 fit_loss=float(res.loss), wall_s=float(res.wall_time_s))
 
 
+def _box_corners(material: MaterialConfig, bounds: Dict[str, Tuple[float, float]]) -> Tuple[MaterialConfig, ...]:
+    """``material`` at every corner of the search box (of the parameters that set the stable step: all but
+    the table's friction)."""
+    names = [n for n in bounds if n != "friction"]
+    corners = []
+    for k in range(2 ** len(names)):
+        corners.append(material.replace(**{n: float(bounds[n][(k >> i) & 1]) for i, n in enumerate(names)}))
+    return tuple(corners)
+
+
+def _simulate_fits(fits: List["_Fit"], T: int) -> np.ndarray:
+    """Positions [T, len(fits), N, 3] of every fitted model over all T frames, fits that share a substep count
+    batched together, each with the substeps it was fitted with."""
+    groups: Dict[tuple, List[int]] = {}
+    for i, f in enumerate(fits):
+        groups.setdefault(tuple(m.to_dict().__repr__() for m in f.scene.dt_materials), []).append(i)
+    X = None
+    for idx in groups.values():
+        sc = fits[idx[0]].scene
+        Xg, _, _ = _ForwardSim(sc, [fits[i].material for i in idx], [fits[i].friction for i in idx]).run(T)
+        if X is None:
+            X = np.full((T, len(fits)) + Xg.shape[2:], np.nan, np.float32)
+        X[:, idx] = Xg
+    return X
+
+
 def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, base: Optional[MaterialConfig] = None,
              config: Optional[DoctorConfig] = None, out_dir=None, progress: bool = True,
              effects: Optional[Sequence[str]] = None) -> dict:
@@ -214,7 +245,6 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     heldout = list(range(F, T))
     noise = measurement_noise(obs.points[:T:max(1, T // 10)])
     motion = _motion_m(obs)
-    import dataclasses
 
     if scene.motion_bounds is not None:
         scene = dataclasses.replace(scene, motion_margin=cfg.motion_margin)
@@ -247,22 +277,29 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         warnings.append(f"the base fit's E = {E_base:.4g} Pa lies at its search bound ({lo:g}, {hi:g}) Pa")
 
     # -- 2. candidates ----------------------------------------------------------------------------------------
-    fits: List[_Fit] = [base_fit]
-    Elo, Ehi = E_base / cfg.E_refit_factor, E_base * cfg.E_refit_factor
-    for name in tqdm(names, desc="doctor: candidates", disable=not progress, leave=False):
-        ps = candidate_params(name)
+    # Every candidate is fitted from the base fit's E, with E free within E_refit_factor of it; so is the null
+    # candidate, the base model itself, which from here on is the base model: what a candidate gains from a
+    # second search of E is then not credited to its effect. Each fit keeps one substep count throughout, from
+    # the stiffest corners of its box (Scene.dt_materials), and is scored with it.
+    Elo, Ehi = max(lo, E_base / cfg.E_refit_factor), min(hi, E_base * cfg.E_refit_factor)
+    fits: List[_Fit] = []
+    for name in tqdm(["base"] + names, desc="doctor: candidates", disable=not progress, leave=False):
+        ps = () if name == "base" else candidate_params(name)
         init = {"E": E_base, **{p: PARAMETERS[p].start for p in ps}}
         bounds = {"E": (Elo, Ehi), **{p: _search_box(p, base_fit.material.replace(E=Ehi), scene.dx) for p in ps}}
-        start_mat = base_fit.material.replace(**{p: PARAMETERS[p].start for p in EFFECTS[name].param_names})
-        f = _fit(name, scene.with_material(start_mat), obs, ("E",) + ps, init, bounds, start_mat, F, cfg, progress,
-                 cfg.candidate_iters)
+        start_mat = base_fit.material.replace(**({} if name == "base" else
+                                                 {p: PARAMETERS[p].start for p in EFFECTS[name].param_names}))
+        sc = dataclasses.replace(scene.with_material(start_mat), dt_materials=_box_corners(start_mat, bounds))
+        f = _fit(name, sc, obs, ("E",) + ps, init, bounds, start_mat, F, cfg, progress, cfg.candidate_iters)
         f.added = len(ps)
+        f.scene = sc
         fits.append(f)
+    fits[0].wall_s += base_fit.wall_s
+    base_fit = fits[0]
 
     # -- 3. held-out scores -----------------------------------------------------------------------------------
     objective = Objective(scene, obs, T, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed)
-    sim = _ForwardSim(scene, [f.material for f in fits], [f.friction for f in fits])
-    X, _, _ = sim.run(T)
+    X = _simulate_fits(fits, T)
     per = [_per_frame_losses(objective, X[:, w]) for w in range(len(fits))]
     base_loss = per[0]["loss"][heldout]
     for f, pf in zip(fits, per):
