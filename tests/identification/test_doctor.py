@@ -121,3 +121,35 @@ def test_doctor_cli_reports_bad_input(tmp_path, capsys):
     assert main(["effects"]) == 0
     out = capsys.readouterr().out
     assert all(name in out for name in EFFECTS)
+
+
+def test_each_fit_is_scored_with_its_own_substeps():
+    """A base model scored beside a viscous candidate (which needs 4x the substeps) moves exactly as it does
+    alone: the substep count comes from each fit's own box (Scene.dt_materials), not from the batch."""
+    import dataclasses
+
+    from empm_gym.identification.doctor.core import _box_corners, _Fit, _simulate_fits
+    from empm_gym.identification.problem import _ForwardSim, substeps_for
+    from empm_gym.sim import MaterialConfig
+
+    T = 4
+    scene, _ = _still_scene(T=T)
+    pos = scene.ee_positions.copy()
+    pos[:, 0, 2] = np.linspace(0.06, 0.035, T)  # the sphere presses on the block
+    scene = dataclasses.replace(scene, ee_positions=pos)
+    base = MaterialConfig(E=2e4, nu=0.3, density=1000.0)
+    visc = base.replace(viscosity=200.0)
+    sc_base = dataclasses.replace(scene.with_material(base), dt_materials=_box_corners(base, {"E": (1e4, 4e4)}))
+    sc_visc = dataclasses.replace(scene.with_material(visc),
+                                  dt_materials=_box_corners(visc, {"E": (1e4, 4e4), "viscosity": (10.0, 500.0)}))
+    n_base, _ = substeps_for(sc_base, [base], 0.0)
+    n_visc, _ = substeps_for(sc_visc, [visc], 0.0)
+    assert n_visc > 2 * n_base  # the viscous box needs far smaller steps
+    fits = [_Fit("base", {"E": 2e4}, base, 0.5, 0.0, 0.0, scene=sc_base),
+            _Fit("viscosity", {"E": 2e4, "viscosity": 200.0}, visc, 0.5, 0.0, 0.0, scene=sc_visc)]
+    X = _simulate_fits(fits, T)
+    alone, _, _ = _ForwardSim(sc_base, [base], [0.5]).run(T)
+    np.testing.assert_array_equal(X[:, 0], alone[:, 0])
+    batched, _, _ = _ForwardSim(sc_visc, [base, visc], [0.5, 0.5]).run(T)
+    np.testing.assert_array_equal(X[:, 1], batched[:, 1])
+    assert np.abs(batched[:, 0] - alone[:, 0]).max() > 0  # the bug this guards against: dt from the batch
