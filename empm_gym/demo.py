@@ -195,11 +195,10 @@ def run_mpc_demo(out: Path, material: Path, *, steps: int = 8, samples: int = 12
     import json
 
     import gymnasium as gym
-    import imageio.v2 as imageio
 
     from . import envs  # noqa: F401  (registers the ids)
     from .planning import MPPIPlanner
-    from .viz import image_strip
+    from .viz import save_rollout_strip
 
     kwargs = {"material": str(material), "device": device, "dx": 0.015, "particles_per_cell": 4,
               "task_options": {"shapes": ("bar",)}}  # elongate the lump into a bar
@@ -208,17 +207,17 @@ def run_mpc_demo(out: Path, material: Path, *, steps: int = 8, samples: int = 12
 
     def episode(policy):
         obs, info = env.reset(seed=seed)
-        frames, cd0 = [env.render()], info["chamfer"]
+        frames, cd0 = [(env.render(), 0, info["chamfer"])], info["chamfer"]
         for t in tqdm(range(steps), desc="MPC on DoughShape" if policy is not None else "zero-action baseline",
                       unit="step"):
             a = np.zeros(A, np.float32) if policy is None else policy()
             obs, r, term, trunc, info = env.step(a)
-            frames.append(env.render())
+            frames.append((env.render(), t + 1, info["chamfer"]))
             if term or trunc:
                 break
         return frames, float(cd0), float(info["chamfer"]), float(info["iou"])
 
-    _, cd0, zero_cd, zero_iou = episode(None)
+    zero_frames, cd0, zero_cd, zero_iou = episode(None)
     planner = MPPIPlanner("DoughShape", samples=samples, iterations=2, noise=0.6, env_kwargs=kwargs, seed=seed)
     plan = None
 
@@ -229,7 +228,11 @@ def run_mpc_demo(out: Path, material: Path, *, steps: int = 8, samples: int = 12
         return plan[0].astype(np.float32)
 
     frames, _, cd, iou = episode(mpc)
-    imageio.imwrite(out / "mpc_strip.png", image_strip(frames, min(8, len(frames))))
+    save_rollout_strip(str(out / "mpc_strip.png"), {"MPC (MPPI), fitted material": frames,
+                                                    "zero action": zero_frames},
+                       view_lower=env.unwrapped.view_box()[0], view_upper=env.unwrapped.view_box()[1],
+                       title=f"EMPM/DoughShape-v0, target: a bar; MPPI ({samples} samples, horizon {horizon}) "
+                             f"against zero action")
     summary = {"env": "EMPM/DoughShape-v0", "material": str(material), "steps": len(frames) - 1,
                "chamfer_start_m": cd0, "chamfer_mpc_m": cd, "chamfer_zero_action_m": zero_cd,
                "iou_mpc": iou, "iou_zero_action": zero_iou}

@@ -15,13 +15,12 @@ from dataclasses import dataclass
 from typing import Optional
 
 import gymnasium as gym
-import imageio.v2 as imageio
 import numpy as np
 
 import empm_gym  # noqa: F401  (registers the ids)
 from empm_gym.envs.script_args import parse_args
 from empm_gym.planning import CEMPlanner, MPPIPlanner
-from empm_gym.viz import image_strip
+from empm_gym.viz import save_rollout_strip
 
 
 @dataclass
@@ -52,10 +51,10 @@ class Args:
 
 def run_episode(env, policy, steps):
     obs, info = env.reset(seed=run_episode.seed)
-    frames, chamfer, iou = [env.render()], info["chamfer"], info["iou"]
+    frames, chamfer, iou = [(env.render(), 0, info["chamfer"])], info["chamfer"], info["iou"]
     for t in range(steps):
         obs, r, term, trunc, info = env.step(policy(t))
-        frames.append(env.render())
+        frames.append((env.render(), t + 1, info["chamfer"]))
         chamfer, iou = info["chamfer"], info["iou"]
         if term or trunc:
             break
@@ -77,7 +76,7 @@ def main(argv=None):
     run_episode.seed = args.seed
     A = env.action_space.shape[0]
 
-    _, zero_cd, zero_iou = run_episode(env, lambda t: np.zeros(A, np.float32), args.steps)
+    zero_frames, zero_cd, zero_iou = run_episode(env, lambda t: np.zeros(A, np.float32), args.steps)
 
     plan = None
     t0 = time.time()
@@ -90,7 +89,11 @@ def main(argv=None):
 
     frames, cd, iou = run_episode(env, mpc, args.steps)
     wall = time.time() - t0
-    imageio.imwrite(os.path.join(args.out, "strip.png"), image_strip(frames, 8))
+    lo, hi = env.unwrapped.view_box()
+    save_rollout_strip(os.path.join(args.out, "strip.png"),
+                       {f"MPC ({args.planner.upper()})": frames, "zero action": zero_frames}, view_lower=lo,
+                       view_upper=hi, title=f"EMPM/RopeReshape-v0: {args.planner.upper()} ({args.samples} samples, "
+                                            f"horizon {args.horizon}) against zero action")
     summary = {"planner": args.planner, "steps": len(frames) - 1, "wall_s": wall, "chamfer": cd, "iou": iou,
                "zero_action_chamfer": zero_cd, "zero_action_iou": zero_iou}
     with open(os.path.join(args.out, "summary.json"), "w") as f:

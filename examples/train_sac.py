@@ -48,7 +48,7 @@ class Args:
     """Output directory."""
     baseline_episodes: int = 16
     """Episodes for each of the zero-action, random-action and trained evaluations (0 skips them)."""
-    strip_frames: int = 8
+    strip_frames: int = 5
     """Frames in the rollout image strip."""
 
 

@@ -13,13 +13,12 @@ from dataclasses import dataclass
 from typing import Optional
 
 import gymnasium as gym
-import imageio.v2 as imageio
 import numpy as np
 
 import empm_gym  # noqa: F401  (registers the ids)
 from empm_gym.envs.script_args import parse_args
 from empm_gym.planning import GradientPlanner
-from empm_gym.viz import image_strip
+from empm_gym.viz import save_rollout_strip
 from empm_gym.viz.plots import plot_learning_curve
 
 
@@ -61,21 +60,25 @@ def main(argv=None):
 
     def execute(actions):
         env.unwrapped.set_state(state)
-        frames, info = [env.render()], dict(info0)
-        for a in actions:
+        frames, info = [(env.render(), 0, info0["chamfer"])], dict(info0)
+        for t, a in enumerate(actions):
             _, _, term, trunc, info = env.step(a)
-            frames.append(env.render())
+            frames.append((env.render(), t + 1, info["chamfer"]))
             if term or trunc:
                 break
         return frames, info
 
-    _, zero = execute(np.zeros((args.horizon, A), np.float32))
+    zero_frames, zero = execute(np.zeros((args.horizon, A), np.float32))
     planner = GradientPlanner("DoughShape", iterations=args.iterations, lr=args.lr, env_kwargs=kwargs)
     t0 = time.time()
     actions = planner.plan(state, args.horizon)
     wall = time.time() - t0
     frames, info = execute(actions)
-    imageio.imwrite(os.path.join(args.out, "strip.png"), image_strip(frames, 8))
+    lo, hi = env.unwrapped.view_box()
+    save_rollout_strip(os.path.join(args.out, "strip.png"), {"gradient trajectory": frames, "zero action": zero_frames},
+                       view_lower=lo, view_upper=hi,
+                       title=f"EMPM/DoughShape-v0: gradient trajectory optimisation ({args.iterations} iterations, "
+                             f"horizon {args.horizon}) against zero action")
     plot_learning_curve(os.path.join(args.out, "loss.png"), np.arange(len(planner.history)), planner.history,
                         baselines={"zero action": zero["chamfer"]}, title="DoughShape trajopt: Chamfer [m]")
     summary = {"iterations": len(planner.history), "wall_s": wall, "initial_chamfer": info0["chamfer"],

@@ -108,10 +108,17 @@ class EMPMEnv(gym.Env):
         sl = c.model.world_slice(world)
         x = c.state.particle_x.numpy()[sl]
         ee = c.state.ee_pos.numpy()[world * c.K:(world + 1) * c.K]
-        lo = np.array([c.task.grid_lower[0], c.task.grid_lower[1], -0.01])
-        hi = np.array([c.task.grid_upper[0], c.task.grid_upper[1], c.task.grid_upper[0] - c.task.grid_lower[0] - 0.01])
+        lo, hi = self.view_box()
         return render_scene(x, c.targets[world], ee, c.model.ee_configs[world], c.grip[world], lo, hi,
                             size=self.render_size)
+
+    def view_box(self):
+        """(lower, upper) [m] of what ``render()`` shows: its top view spans x and y, its side view x and z
+        (see :func:`empm_gym.viz.save_rollout_strip`, which labels the axes with it)."""
+        t = self.core.task
+        lo = np.array([t.grid_lower[0], t.grid_lower[1], -0.01])
+        hi = np.array([t.grid_upper[0], t.grid_upper[1], t.grid_upper[0] - t.grid_lower[0] - 0.01])
+        return lo, hi
 
     def _log_rerun(self, info):
         if self._rerun is None:

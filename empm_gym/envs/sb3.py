@@ -110,11 +110,9 @@ def train_and_report(args, make_model, *, algo_name: str) -> dict:
     import os
     import time
 
-    import imageio.v2 as imageio
     from stable_baselines3.common.callbacks import BaseCallback
 
-    from ..viz.plots import plot_learning_curve
-    from ..viz.render import image_strip
+    from ..viz.plots import plot_learning_curve, save_rollout_strip
 
     os.makedirs(args.out, exist_ok=True)
     kwargs = json.loads(args.env_kwargs) if isinstance(args.env_kwargs, str) else dict(args.env_kwargs)
@@ -160,14 +158,17 @@ def train_and_report(args, make_model, *, algo_name: str) -> dict:
                         baselines=baselines, title=f"{algo_name} on {args.env_id} ({args.num_envs} envs)")
 
     env = gym.make(args.env_id, render_mode="rgb_array", **kwargs)
-    obs, _ = env.reset(seed=args.seed)
-    frames = [env.render()]
-    for _ in range(env.spec.max_episode_steps or 100):
-        obs, _, term, trunc, _ = env.step(model.predict(obs, deterministic=True)[0])
-        frames.append(env.render())
+    obs, info = env.reset(seed=args.seed)
+    frames = [(env.render(), 0, info["chamfer"])]
+    for t in range(env.spec.max_episode_steps or 100):
+        obs, _, term, trunc, info = env.step(model.predict(obs, deterministic=True)[0])
+        frames.append((env.render(), t + 1, info["chamfer"]))
         if term or trunc:
             break
-    imageio.imwrite(os.path.join(args.out, "strip.png"), image_strip(frames, args.strip_frames))
+    lo, hi = env.unwrapped.view_box()
+    save_rollout_strip(os.path.join(args.out, "strip.png"), {f"trained {algo_name} policy": frames}, view_lower=lo,
+                       view_upper=hi, max_frames=args.strip_frames,
+                       title=f"{algo_name} on {args.env_id}: one episode of the trained policy (seed {args.seed})")
     summary = {"algo": algo_name, "env_id": args.env_id, "num_envs": args.num_envs, "total_steps": args.total_steps,
                "wall_s": wall, "steps_per_s": args.total_steps / max(wall, 1e-9), "episodes": len(curve.returns),
                "final_mean_return": float(np.mean(curve.returns[-20:])) if curve.returns else None,

@@ -1,8 +1,9 @@
-"""Visualisation: rgb_array rendering (numpy rasteriser), rerun logging, image strips."""
+"""Visualisation: rgb_array rendering (numpy rasteriser), rerun logging, labelled rollout strips."""
 
-from .render import image_strip, render_scene
+from .plots import plot_learning_curve, save_rollout_strip
+from .render import render_scene
 
-__all__ = ["image_strip", "render_scene", "RerunLogger"]
+__all__ = ["render_scene", "save_rollout_strip", "plot_learning_curve", "RerunLogger"]
 
 
 def __getattr__(name):

@@ -1,12 +1,12 @@
-"""Plots for the examples: learning curves against baselines (matplotlib, Agg backend)."""
+"""Plots for the examples: learning curves against baselines, labelled rollout strips (matplotlib, Agg backend)."""
 
 from __future__ import annotations
 
-from typing import Mapping, Optional, Sequence
+from typing import Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
-__all__ = ["plot_learning_curve"]
+__all__ = ["plot_learning_curve", "save_rollout_strip"]
 
 
 def plot_learning_curve(path: str, steps: Sequence[float], returns: Sequence[float], *,
@@ -38,4 +38,60 @@ def plot_learning_curve(path: str, steps: Sequence[float], returns: Sequence[flo
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path)
+    plt.close(fig)
+
+
+def save_rollout_strip(path: str, rows: Mapping[str, Sequence[Tuple[np.ndarray, int, float]]], *, view_lower,
+                       view_upper, title: str, max_frames: int = 5, metric: str = "Chamfer to target") -> None:
+    """Rollouts side by side, one row each, saved to ``path``: evenly picked frames of ``render()``
+    (:func:`empm_gym.viz.render_scene`), each split into its top view (x, y) and side view (x, z) with axes
+    in metres, titled with the step and ``metric`` (given in metres, shown in mm), and a legend of the
+    colours (object, target, closed and open end-effectors, table).
+
+    ``rows`` maps a label (for instance "MPC (MPPI)", "zero action") to frames ``(image, step, metric_m)``;
+    ``view_lower`` / ``view_upper`` are the rendered box (``env.unwrapped.view_box()``).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    from .render import _CLOSED, _OPEN, _TABLE, _TARGET
+
+    if not rows or any(len(f) == 0 for f in rows.values()):
+        raise ValueError("save_rollout_strip: every row needs at least one frame")
+    lo, hi = np.asarray(view_lower, float), np.asarray(view_upper, float)
+    picks = {k: np.unique(np.linspace(0, len(f) - 1, min(max_frames, len(f))).round().astype(int))
+             for k, f in rows.items()}
+    ncol = max(len(v) for v in picks.values())
+    fig, axes = plt.subplots(len(rows), 2 * ncol, figsize=(2.3 * 2 * ncol, 2.6 * len(rows) + 0.9), squeeze=False)
+    for r, (label, frames) in enumerate(rows.items()):
+        for c in range(ncol):
+            ax_top, ax_side = axes[r, 2 * c], axes[r, 2 * c + 1]
+            if c >= len(picks[label]):
+                ax_top.axis("off")
+                ax_side.axis("off")
+                continue
+            img, step, value = frames[picks[label][c]]
+            img = np.asarray(img)
+            size = img.shape[0]
+            ax_top.imshow(img[:, :size], extent=(lo[0], hi[0], lo[1], hi[1]), aspect="equal")
+            ax_side.imshow(img[:, -size:], extent=(lo[0], hi[0], lo[2], hi[2]), aspect="equal")
+            ax_top.set_title(f"{label}\nstep {step}: {metric} {1e3 * value:.1f} mm" if c == 0
+                             else f"step {step}: {1e3 * value:.1f} mm", fontsize=8)
+            ax_side.set_title("side view", fontsize=8)
+            ax_top.set_xlabel("x [m]", fontsize=7)
+            ax_side.set_xlabel("x [m]", fontsize=7)
+            ax_top.set_ylabel("y [m]", fontsize=7)
+            ax_side.set_ylabel("z [m]", fontsize=7)
+            for ax in (ax_top, ax_side):
+                ax.tick_params(labelsize=6)
+    handles = [Patch(color=np.array([50, 85, 175]) / 255, label="object (darker = higher)"),
+               Patch(color=_TARGET / 255, label="target"), Patch(color=_CLOSED / 255, label="closed gripper / tool"),
+               Patch(color=_OPEN / 255, label="open gripper / tool"), Patch(color=_TABLE / 255, label="table")]
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout(rect=(0, 0.05, 1, 0.97))
+    fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -12,7 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["render_scene", "image_strip"]
+__all__ = ["render_scene"]
 
 _BG = np.array([250, 250, 250], np.uint8)
 _TABLE = np.array([200, 200, 200], np.uint8)
@@ -100,11 +100,3 @@ def render_scene(particles: np.ndarray, target: np.ndarray, ee_pos: np.ndarray, 
     side = _panel((0, 2), particles, target, ee_pos, ee_cfgs, grip, lo, hi, size)
     sep = np.full((size, 4, 3), 60, np.uint8)
     return np.concatenate([top, sep, side], 1)
-
-
-def image_strip(frames: Sequence[np.ndarray], max_frames: int = 8) -> np.ndarray:
-    """Frames evenly picked from a rollout, stacked vertically into one image."""
-    if not len(frames):
-        raise ValueError("image_strip: no frames")
-    idx = np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).round().astype(int))
-    return np.concatenate([frames[i] for i in idx], 0)

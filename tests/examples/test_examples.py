@@ -50,3 +50,10 @@ def test_trajopt_dough(tmp_path):
                                      "--env-kwargs", DOUGH, "--out", str(tmp_path)])
     assert (tmp_path / "loss.png").exists() and (tmp_path / "strip.png").exists()
     assert s["iterations"] == 3 and min(s["loss_history"]) <= s["loss_history"][0]
+
+
+def test_rollout_strip_refuses_an_empty_row(tmp_path):
+    from empm_gym.viz import save_rollout_strip
+
+    with pytest.raises(ValueError, match="at least one frame"):
+        save_rollout_strip(str(tmp_path / "s.png"), {"MPC": []}, view_lower=(0, 0, 0), view_upper=(1, 1, 1), title="t")
