@@ -1,9 +1,10 @@
 """Recordings from one camera: the frame-0 body is completed under the half-turn symmetry prior
-(:func:`empm_gym.perception.fusion.complete_by_symmetry`), checked against the true geometry.
+(:func:`empm_gym.perception.fusion.complete_by_symmetry`), checked against the true geometry, and the
+rope's E identified from one camera.
 
 The constructed scenes are ray-cast here (a box and a cylinder on the table, exact geometry, no
-end-effectors); the dough recording comes from ``empm synth --cameras 1``. ground_truth.json is
-read only to check results.
+end-effectors); the rope and dough recordings come from ``empm synth --cameras 1``. ground_truth.json is
+read only to check results (and for the parameters that are not fitted).
 """
 
 import json
@@ -195,3 +196,24 @@ def test_dough_body_from_one_camera(dough_one_camera):
     assert not inside_open_end_effectors(x, scene.ee_configs, scene.ee_positions[0], scene.ee_grip[0]).any()
     plain, _, _ = load_recording(dough_one_camera, single_view=False, progress=False)
     assert covered(plain.particles) < covered(x) - 0.15
+
+
+@pytest.fixture(scope="module")
+def rope_one_camera(tmp_path_factory):
+    return _synth_one_camera(tmp_path_factory, "rope", 30)
+
+
+@pytest.mark.slow
+def test_rope_E_from_one_camera(rope_one_camera):
+    """E of the rope from one camera within 15 %: 30 frames at 424 x 240 (the first 21 fitted, which hold its
+    lift and sway), 8 particles per cell, Adam from 2x below with a larger step; density known. (Measured:
+    +1.8 % after 8 steps; after 5, Adam's momentum still carried it 21 % past.)"""
+    from empm_gym.identification.offline import identify
+
+    m = json.loads((rope_one_camera / "ground_truth.json").read_text())["material"]
+    start = MaterialConfig(E=0.5 * m["E"], nu=m["nu"], density=m["density"], yield_stress=m["yield_stress"])
+    info = {}
+    scene, obs, _ = load_recording(rope_one_camera, particles_per_cell=8, material=start, info=info, progress=False)
+    assert info["single_view"] and info["symmetry"]["used"], info
+    res = identify(obs, scene, params=("E",), iters=8, lr=0.3, frames=21, progress=False)
+    assert abs(res.params["E"] / m["E"] - 1.0) < 0.15, res.param_history
