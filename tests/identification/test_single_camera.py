@@ -1,6 +1,6 @@
 """Recordings from one camera: the frame-0 body is completed under the half-turn symmetry prior
-(:func:`empm_gym.perception.fusion.complete_by_symmetry`), checked against the true geometry, and the
-rope's E identified from one camera.
+(:func:`empm_gym.perception.fusion.complete_by_symmetry`), checked against the true geometry, the
+rope's E identified from one camera, and the dough's identified or reported undetermined.
 
 The constructed scenes are ray-cast here (a box and a cylinder on the table, exact geometry, no
 end-effectors); the rope and dough recordings come from ``empm synth --cameras 1``. ground_truth.json is
@@ -161,7 +161,7 @@ def _synth_one_camera(tmp_path_factory, obj, frames):
 
 @pytest.fixture(scope="module")
 def dough_one_camera(tmp_path_factory):
-    return _synth_one_camera(tmp_path_factory, "dough", 3)
+    return _synth_one_camera(tmp_path_factory, "dough", 30)
 
 
 def _inside_box(x, geo, grow=0.0):
@@ -217,3 +217,21 @@ def test_rope_E_from_one_camera(rope_one_camera):
     assert info["single_view"] and info["symmetry"]["used"], info
     res = identify(obs, scene, params=("E",), iters=8, lr=0.3, frames=21, progress=False)
     assert abs(res.params["E"] / m["E"] - 1.0) < 0.15, res.param_history
+
+
+@pytest.mark.slow
+def test_dough_E_from_one_camera_is_found_or_flagged(dough_one_camera):
+    """The dough's E from one camera (the default squeeze, yield stress and density known): within 15 %, or
+    reported undetermined with the true E inside its interval, never a confident wrong number. (Measured: the
+    fit settles at 13.6 kPa against 20 kPa, the loss flat within noise along E: interval [8.9 kPa, open),
+    determined false; the plastic squeeze hardly depends on E, and three cameras do no better.)"""
+    from empm_gym.identification.offline import identify
+    from empm_gym.identification.uncertainty import assess_fit
+
+    m = json.loads((dough_one_camera / "ground_truth.json").read_text())["material"]
+    start = MaterialConfig(E=0.5 * m["E"], nu=m["nu"], density=m["density"], yield_stress=m["yield_stress"])
+    scene, obs, _ = load_recording(dough_one_camera, particles_per_cell=8, material=start, progress=False)
+    res = identify(obs, scene, params=("E",), iters=8, lr=0.3, frames=21, progress=False)
+    u = assess_fit(res, scene, obs, n_boot=500)["uncertainty"]["E"]
+    lo, hi = u["interval"]
+    assert abs(res.params["E"] / m["E"] - 1.0) < 0.15 or (not u["determined"] and lo <= m["E"] <= hi), (res.params, u)
