@@ -216,7 +216,7 @@ def _simulate_fits(fits: List["_Fit"], T: int) -> np.ndarray:
     batched together, each with the substeps it was fitted with."""
     groups: Dict[tuple, List[int]] = {}
     for i, f in enumerate(fits):
-        groups.setdefault(tuple(m.to_dict().__repr__() for m in f.scene.dt_materials), []).append(i)
+        groups.setdefault(repr(f.scene.dt_materials), []).append(i)  # the same box corners: the same substeps
     X = None
     for idx in groups.values():
         sc = fits[idx[0]].scene
