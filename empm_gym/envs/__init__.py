@@ -1,13 +1,14 @@
 """Gymnasium environments (single and natively batched) for rope and dough tasks with geometry targets.
 
 ``import empm_gym`` registers the ids (``EMPM/RopeReshape-v0``, ``EMPM/DoughFlatten-v0``,
-``EMPM/DoughShape-v0``); the classes are importable from here without loading Warp kernels.
+``EMPM/DoughFlatten-v1``, ``EMPM/DoughShape-v0``); the classes are importable from here without loading Warp kernels.
 """
 
 from .registration import ENV_IDS
 
 __all__ = ["ENV_IDS", "BatchedCore", "EMPMEnv", "EMPMVectorEnv", "RopeReshapeEnv", "DoughFlattenEnv",
-           "DoughShapeEnv", "RopeReshapeVectorEnv", "DoughFlattenVectorEnv", "DoughShapeVectorEnv"]
+           "DoughFlattenV1Env", "DoughShapeEnv", "RopeReshapeVectorEnv", "DoughFlattenVectorEnv",
+           "DoughFlattenV1VectorEnv", "DoughShapeVectorEnv"]
 
 
 def __getattr__(name):

@@ -112,7 +112,8 @@ class BatchedCore:
         control_dt: control period [s] (default: the task's).
         max_episode_steps: truncation horizon of each world, or None for none.
         obs_particles: particles in the "state" observation; points_count: in the "points" one.
-        obs_target_points: target points in observations; chamfer_points: points used for the reward.
+        obs_target_points: target points in observations; chamfer_points: points used for the reward
+            (default: the task's ``chamfer_points``).
         depth_resolution: side [px] of the depth image.
         device: Warp device ("cpu", "cuda:0", None = Warp's default).
     """
@@ -133,7 +134,7 @@ class BatchedCore:
         obs_particles: int = 64,
         points_count: int = 256,
         obs_target_points: int = 64,
-        chamfer_points: int = 128,
+        chamfer_points: Optional[int] = None,
         depth_resolution: int = 64,
         cfl: float = 0.4,
         device=None,
@@ -203,7 +204,7 @@ class BatchedCore:
         # -- observation / reward subsets -----------------------------------------------------------
         self.obs_particles = min(int(obs_particles), self.P)
         self.points_count = min(int(points_count), self.P)
-        self.chamfer_points = min(int(chamfer_points), self.P)
+        self.chamfer_points = min(int(task.chamfer_points if chamfer_points is None else chamfer_points), self.P)
         self.obs_target_points = min(int(obs_target_points), task.target_points)
         self.chamfer_target_points = min(self.chamfer_points, task.target_points)
         G = max(self.chamfer_points, self.obs_particles, self.points_count if obs_mode == "points" else 0)

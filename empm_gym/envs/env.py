@@ -21,7 +21,8 @@ from .core import BatchedCore
 
 __all__ = [
     "EMPMEnv", "EMPMVectorEnv", "RopeReshapeEnv", "RopeReshapeVectorEnv", "DoughFlattenEnv",
-    "DoughFlattenVectorEnv", "DoughShapeEnv", "DoughShapeVectorEnv", "make_spaces",
+    "DoughFlattenVectorEnv", "DoughFlattenV1Env", "DoughFlattenV1VectorEnv", "DoughShapeEnv", "DoughShapeVectorEnv",
+    "make_spaces",
 ]
 
 
@@ -217,7 +218,7 @@ _COMMON_ARGS = """
     | `particles_per_cell` | 8 | particle sampling density |
     | `control_dt` | 0.05 | control period [s] |
     | `obs_particles`, `points_count`, `obs_target_points` | 64, 256, 64 | points in observations |
-    | `chamfer_points` | 128 | particle / target points of the reward's Chamfer distance |
+    | `chamfer_points` | task's (128; DoughFlatten-v1 1024) | particle / target points of the reward's Chamfer distance |
     | `depth_resolution` | 64 | side of the depth image [px] |
     | `device` | Warp default | `"cpu"`, `"cuda:0"`, ... |
     | `render_mode` | `None` | `"rgb_array"` (top and side views) or `"rerun"` (streams every step; `rerun_path=` saves an .rrd, else kept in memory) |
@@ -309,8 +310,43 @@ class DoughFlattenEnv(EMPMEnv):
     {_COMMON_ARGS}
     ## Version History
     - v0: initial release.
+    - v1 (:class:`DoughFlattenV1Env`): a 4 cm thick tool and targets centred on the lump; v0's 1.6 cm tool
+      lets pressed dough flow into it at dx = 1 cm, and its shifted targets are out of a press's reach.
     """
     TASK = "DoughFlatten"
+
+
+class DoughFlattenV1Env(EMPMEnv):
+    __doc__ = f"""Press an elastoplastic dough lump to a target thickness with a flat tool (DoughFlatten-v1).
+
+    ## Description
+    A 6 x 6 x 4 cm dough lump (von Mises: E = 30 kPa, nu = 0.3, 1000 kg/m^3, yield stress 1 kPa;
+    table friction 0.6) sits on a table under a flat box tool (10 x 10 x 4 cm, friction 0.3). At reset
+    a target is drawn: a slab of the dough's volume, height in [1.4, 2.4] cm, with a disc or square
+    footprint, centred on the lump. The dough springs back when the tool lifts, by an amount set by
+    its yield stress: a plan that ends with the tool lifted has to know the material. dx = 1 cm.
+
+    ## Action Space
+    `Box(-1, 1, (3,), float32)`: the tool's velocity (x, y, z) times 0.1 m/s. The tool centre stays
+    inside x, y in [-0.03, 0.03] m, z in [0.024, 0.09] m (its bottom at least 4 mm above the table).
+    Control period 0.05 s.
+
+    ## Observation Space
+    {_COMMON_OBS}
+    ## Rewards
+    {_COMMON_REWARD}
+    Success: `chamfer < 0.004` m on 1024 points (two samples of one slab are about 3 mm apart; the lump at
+    rest starts 5.5-8 mm from its target).
+
+    ## Episode End
+    {_COMMON_END}
+    ## Arguments
+    {_COMMON_ARGS}
+    ## Version History
+    - v1: replaces v0's 1.6 cm tool (dough flowed into it) and its shifted targets (out of reach); the
+      reward's Chamfer on 1024 points (v0's 128 cannot tell 5 mm); 30 steps.
+    """
+    TASK = "DoughFlatten-v1"
 
 
 class DoughShapeEnv(EMPMEnv):
@@ -351,6 +387,11 @@ class RopeReshapeVectorEnv(EMPMVectorEnv):
 class DoughFlattenVectorEnv(EMPMVectorEnv):
     __doc__ = "DoughFlatten with ``num_envs`` worlds in one simulation; see :class:`DoughFlattenEnv`.\n\n" + EMPMVectorEnv.__doc__
     TASK = "DoughFlatten"
+
+
+class DoughFlattenV1VectorEnv(EMPMVectorEnv):
+    __doc__ = "DoughFlatten-v1 with ``num_envs`` worlds in one simulation; see :class:`DoughFlattenV1Env`.\n\n" + EMPMVectorEnv.__doc__
+    TASK = "DoughFlatten-v1"
 
 
 class DoughShapeVectorEnv(EMPMVectorEnv):

@@ -13,6 +13,7 @@ __all__ = ["ENV_IDS", "register_envs"]
 _SPECS = {
     "EMPM/RopeReshape-v0": ("RopeReshape", 100),
     "EMPM/DoughFlatten-v0": ("DoughFlatten", 50),
+    "EMPM/DoughFlatten-v1": ("DoughFlattenV1", 30),
     "EMPM/DoughShape-v0": ("DoughShape", 100),
 }
 ENV_IDS = tuple(_SPECS)

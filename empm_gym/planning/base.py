@@ -17,10 +17,14 @@ __all__ = ["Planner", "task_of"]
 
 
 def task_of(env_or_id) -> str:
-    """The task name of an environment, an env id ("EMPM/RopeReshape-v0") or a task name."""
+    """The task name of an environment, an env id ("EMPM/RopeReshape-v0") or a task name.
+
+    v0 ids map to the bare name ("RopeReshape"); later versions keep theirs ("DoughFlatten-v1"), as
+    :data:`empm_gym.envs.tasks.TASKS` names them.
+    """
     if isinstance(env_or_id, str):
-        name = env_or_id.split("/")[-1].split("-v")[0]
-        return name
+        name = env_or_id.split("/")[-1]
+        return name[: -len("-v0")] if name.endswith("-v0") else name
     core = getattr(getattr(env_or_id, "unwrapped", env_or_id), "core", None)
     if core is None:
         raise ValueError(f"cannot tell the task of {env_or_id!r}: pass an EMPM environment, an id or a task name")

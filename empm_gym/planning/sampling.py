@@ -19,10 +19,16 @@ __all__ = ["SamplingPlanner", "CEMPlanner", "MPPIPlanner"]
 
 
 class SamplingPlanner(Planner):
-    """Shared machinery: a batched core of ``samples`` worlds and sequence evaluation."""
+    """Shared machinery: a batched core of ``samples`` worlds and sequence evaluation.
+
+    ``tail`` [k, action_dim] (in [-1, 1]) is a fixed action sequence run after every candidate when it is
+    scored, neither optimised nor returned: for instance lifting a pressing tool, so that the score is
+    that of the shape the object keeps once released (its spring-back included), which is what an
+    open-loop plan executed on the real object ends with.
+    """
 
     def __init__(self, task, *, samples: int = 32, iterations: int = 5, noise: float = 0.5,
-                 env_kwargs=None, seed: Optional[int] = 0):
+                 env_kwargs=None, seed: Optional[int] = 0, tail: Optional[np.ndarray] = None):
         super().__init__(task, env_kwargs=env_kwargs, seed=seed)
         if samples < 2:
             raise ValueError(f"samples must be >= 2, got {samples!r}")
@@ -34,9 +40,17 @@ class SamplingPlanner(Planner):
         self.core = self._core(self.samples)
         self.action_dim = self.core.action_dim
         self.best_return = -np.inf
+        self.tail = np.zeros((0, self.action_dim), np.float32)
+        if tail is not None:
+            t = np.asarray(tail, np.float32)
+            if t.ndim != 2 or t.shape[1] != self.action_dim or not np.all(np.isfinite(t)) or np.abs(t).max() > 1:
+                raise ValueError(f"tail must be finite actions in [-1, 1] of shape [k, {self.action_dim}], "
+                                 f"got shape {t.shape}")
+            self.tail = t
 
     def evaluate(self, state: dict, actions: np.ndarray) -> np.ndarray:
-        """Summed reward [samples] of the sequences ``actions`` [samples, H, A], all from ``state``."""
+        """Summed reward [samples] of the sequences ``actions`` [samples, H, A], all from ``state``, each
+        followed by the planner's ``tail``."""
         S, H, A = actions.shape
         if S != self.samples or A != self.action_dim:
             raise ValueError(f"evaluate: actions must be [{self.samples}, H, {self.action_dim}], got {actions.shape}")
@@ -44,8 +58,10 @@ class SamplingPlanner(Planner):
         core.set_world_states(list(range(S)), [state] * S)
         total = np.zeros(S)
         dead = np.zeros(S, bool)
-        for t in range(H):
-            r, term, trunc, info = core.step(np.clip(actions[:, t], -1, 1).astype(np.float32))
+        tail = np.broadcast_to(self.tail[None], (S, *self.tail.shape))
+        seq = np.concatenate([np.clip(actions, -1, 1).astype(np.float32), tail], axis=1)
+        for t in range(seq.shape[1]):
+            r, term, trunc, info = core.step(seq[:, t])
             total += np.where(dead, 0.0, r)
             dead |= info["diverged"]
         total[dead] = -np.inf
@@ -62,8 +78,10 @@ class CEMPlanner(SamplingPlanner):
     """Cross-entropy method: refit a diagonal Gaussian to the ``elite_frac`` best sequences each iteration."""
 
     def __init__(self, task, *, samples: int = 32, iterations: int = 5, noise: float = 0.5,
-                 elite_frac: float = 0.2, momentum: float = 0.1, env_kwargs=None, seed: Optional[int] = 0):
-        super().__init__(task, samples=samples, iterations=iterations, noise=noise, env_kwargs=env_kwargs, seed=seed)
+                 elite_frac: float = 0.2, momentum: float = 0.1, env_kwargs=None, seed: Optional[int] = 0,
+                 tail: Optional[np.ndarray] = None):
+        super().__init__(task, samples=samples, iterations=iterations, noise=noise, env_kwargs=env_kwargs, seed=seed,
+                         tail=tail)
         if not 0 < elite_frac <= 1:
             raise ValueError(f"elite_frac must lie in (0, 1], got {elite_frac!r}")
         self.elites = max(2, int(round(elite_frac * self.samples)))
@@ -95,8 +113,9 @@ class MPPIPlanner(SamplingPlanner):
     """
 
     def __init__(self, task, *, samples: int = 32, iterations: int = 5, noise: float = 0.5,
-                 temperature: float = 0.1, env_kwargs=None, seed: Optional[int] = 0):
-        super().__init__(task, samples=samples, iterations=iterations, noise=noise, env_kwargs=env_kwargs, seed=seed)
+                 temperature: float = 0.1, env_kwargs=None, seed: Optional[int] = 0, tail: Optional[np.ndarray] = None):
+        super().__init__(task, samples=samples, iterations=iterations, noise=noise, env_kwargs=env_kwargs, seed=seed,
+                         tail=tail)
         if not temperature > 0:
             raise ValueError(f"temperature must be > 0, got {temperature!r}")
         self.temperature = float(temperature)

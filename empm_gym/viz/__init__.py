@@ -1,9 +1,9 @@
 """Visualisation: rgb_array rendering (numpy rasteriser), rerun logging, labelled rollout strips."""
 
-from .plots import plot_learning_curve, save_rollout_strip
+from .plots import plot_learning_curve, save_rollout_strip, save_transfer_chart
 from .render import render_scene
 
-__all__ = ["render_scene", "save_rollout_strip", "plot_learning_curve", "RerunLogger"]
+__all__ = ["render_scene", "save_rollout_strip", "save_transfer_chart", "plot_learning_curve", "RerunLogger"]
 
 
 def __getattr__(name):

@@ -6,7 +6,7 @@ from typing import Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
-__all__ = ["plot_learning_curve", "save_rollout_strip"]
+__all__ = ["plot_learning_curve", "save_rollout_strip", "save_transfer_chart"]
 
 
 def plot_learning_curve(path: str, steps: Sequence[float], returns: Sequence[float], *,
@@ -94,4 +94,37 @@ def save_rollout_strip(path: str, rows: Mapping[str, Sequence[Tuple[np.ndarray, 
     fig.suptitle(title, fontsize=10)
     fig.tight_layout(rect=(0, 0.05, 1, 0.97))
     fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def save_transfer_chart(path: str, result: Mapping) -> None:
+    """Bar chart of a real-to-sim-to-real comparison (:func:`empm_gym.planning.transfer.compare_materials`):
+    per target, the Chamfer distance at rest and after each model's plan on the real object, in mm, with
+    the task's success threshold."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = result["rows"]
+    if not rows:
+        raise ValueError("save_transfer_chart: the result has no rows")
+    seeds = sorted({r["seed"] for r in rows})
+    labels = list(dict.fromkeys(r["model"] for r in rows))
+    by = {(r["seed"], r["model"]): r for r in rows}
+    width = 0.8 / (len(labels) + 1)
+    x = np.arange(len(seeds))
+    fig, ax = plt.subplots(figsize=(max(6.5, 1.2 + 0.5 * len(seeds) * (len(labels) + 1)), 4.2))
+    start = [by[(s, labels[0])]["chamfer_start_m"] * 1000 for s in seeds]
+    ax.bar(x - 0.4 + width / 2, start, width, color="0.8", label="at rest (start)")
+    for i, label in enumerate(labels):
+        ax.bar(x - 0.4 + width * (i + 1.5), [by[(s, label)]["chamfer_real_m"] * 1000 for s in seeds], width,
+               label=f"planned with {label}")
+    ax.axhline(result["success_chamfer_m"] * 1000, color="k", ls="--", lw=1, label="success threshold")
+    ax.set_xticks(x, [f"target {s}" for s in seeds])
+    ax.set_ylabel("Chamfer to target, real object [mm]")
+    ax.set_title(f"{result['env']}: open-loop plans executed on the real object", fontsize=10)
+    ax.legend(fontsize=8, loc="lower left", framealpha=0.9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
     plt.close(fig)
