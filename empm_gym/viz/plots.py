@@ -124,7 +124,7 @@ def save_transfer_chart(path: str, result: Mapping) -> None:
     ax.set_xticks(x, [f"target {s}" for s in seeds])
     ax.set_ylabel("Chamfer to target, real object [mm]")
     ax.set_title(f"{result['env']}: open-loop plans executed on the real object", fontsize=10)
-    ax.legend(fontsize=8, loc="lower left", framealpha=0.9)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -77,8 +77,12 @@ def test_hidden_rope_ends_are_filled_and_grippers_keep_their_size(rope_rec):
 RECOVERY_FRAMES = 45
 
 
-def _recovery_problem(tmp_path_factory, obj):
-    rec = _synth(tmp_path_factory, obj, frames=RECOVERY_FRAMES, width=424, height=240)
+def _recovery_recording(tmp_path_factory, obj):
+    return _synth(tmp_path_factory, obj, frames=RECOVERY_FRAMES, width=424, height=240)
+
+
+def _recovery_problem(tmp_path_factory, obj, rec=None):
+    rec = _recovery_recording(tmp_path_factory, obj) if rec is None else rec
     gt, true = _truth(rec)
     scene, obs, views = load_recording(rec, material=true, table_friction=gt["table_friction"], progress=False)
     return gt, scene, obs, int(round(0.7 * obs.num_frames)), views
