@@ -71,73 +71,90 @@ def control_force_kernel(
     wp.atomic_add(f, p, fa)
 
 
-@wp.kernel
-def integrate_kernel(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    f: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
-    attached: wp.array(dtype=int),
-    gravity: wp.vec3,
-    dt: float,
-    drag: float,
-    has_table: int,
-    table_z: float,
-    table_mu: float,
-    contact_radius: float,
-    ee_shape: wp.array(dtype=int),
-    ee_radius: wp.array(dtype=float),
-    ee_half_height: wp.array(dtype=float),
-    ee_half_extents: wp.array(dtype=wp.vec3),
-    ee_friction: wp.array(dtype=float),
-    ee_pos: wp.array(dtype=wp.vec3),
-    ee_rot: wp.array(dtype=wp.quat),
-    ee_vel: wp.array(dtype=wp.vec3),
-    ee_omega: wp.array(dtype=wp.vec3),
-    ee_count: int,
-    step: int,
-    x_out: wp.array(dtype=wp.vec3),
-    v_out: wp.array(dtype=wp.vec3),
-):
-    """Semi-implicit Euler: v += dt (f / m + g), drag, contacts (velocity projection, then push-out of the
-    new position); x += dt v. Fixed particles (inv_mass 0) keep their position."""
-    p = wp.tid()
-    im = inv_mass[p]
-    xp = x[p]
-    if im == 0.0:
-        x_out[p] = xp
-        v_out[p] = wp.vec3(0.0)
-        return
-    vn = (v[p] + dt * (im * f[p] + gravity)) * wp.exp(-dt * drag)
-    held = attached[p]
-    r = contact_radius
-    # end-effectors: Coulomb contact where the particle touches the shape (not the gripper holding it)
-    for k in range(ee_count):
-        e = step * ee_count + k
-        if ee_shape[k] >= 0 and k != held:
-            c = ee_pos[e]
-            d, n = shape_sdf_normal(ee_shape[k], xp, c, ee_rot[e], ee_radius[k], ee_half_height[k],
-                                    ee_half_extents[k])
-            if d < r:
-                v_ee = ee_vel[e] + wp.cross(ee_omega[e], xp - c)
-                vn = v_ee + coulomb_project(vn - v_ee, n, ee_friction[k])
-    if has_table != 0:
-        if xp[2] < table_z + r:
-            vn = coulomb_project(vn, wp.vec3(0.0, 0.0, 1.0), table_mu)
-    xn = xp + dt * vn
-    # push-out: a particle still inside a shape at its new pose (or below the table) is moved to its surface
-    for k in range(ee_count):
-        e = (step + 1) * ee_count + k
-        if ee_shape[k] >= 0 and k != held:
-            d, n = shape_sdf_normal(ee_shape[k], xn, ee_pos[e], ee_rot[e], ee_radius[k], ee_half_height[k],
-                                    ee_half_extents[k])
-            if d < r:
-                xn = xn + (r - d) * n
-    if has_table != 0:
-        if xn[2] < table_z + r:
-            xn = wp.vec3(xn[0], xn[1], table_z + r)
-    x_out[p] = xn
-    v_out[p] = vn
+_INTEGRATE = {}
+
+
+def integrate_kernel(ee_count: int):
+    """The integration kernel for ``ee_count`` end-effectors (its contact loop unrolled: Warp's adjoint does
+    not replay variables reassigned in a dynamic loop)."""
+    if ee_count not in _INTEGRATE:
+        _INTEGRATE[ee_count] = _make_integrate_kernel(ee_count)
+    return _INTEGRATE[ee_count]
+
+
+def _make_integrate_kernel(ee_count: int):
+    EE = ee_count
+
+    @wp.kernel(module="unique")
+    def integrate(
+        x: wp.array(dtype=wp.vec3),
+        v: wp.array(dtype=wp.vec3),
+        f: wp.array(dtype=wp.vec3),
+        inv_mass: wp.array(dtype=float),
+        attached: wp.array(dtype=int),
+        gravity: wp.vec3,
+        dt: float,
+        drag: float,
+        has_table: int,
+        table_z: float,
+        table_mu: float,
+        contact_radius: float,
+        ee_shape: wp.array(dtype=int),
+        ee_radius: wp.array(dtype=float),
+        ee_half_height: wp.array(dtype=float),
+        ee_half_extents: wp.array(dtype=wp.vec3),
+        ee_friction: wp.array(dtype=float),
+        ee_pos: wp.array(dtype=wp.vec3),
+        ee_rot: wp.array(dtype=wp.quat),
+        ee_vel: wp.array(dtype=wp.vec3),
+        ee_omega: wp.array(dtype=wp.vec3),
+        step: int,
+        x_out: wp.array(dtype=wp.vec3),
+        v_out: wp.array(dtype=wp.vec3),
+    ):
+        """Semi-implicit Euler: v += dt (f / m + g), drag, contacts (velocity projection where the step would
+        end in contact, then push-out of what still penetrates); x += dt v. Fixed particles (inv_mass 0) keep their position."""
+        p = wp.tid()
+        im = inv_mass[p]
+        xp = x[p]
+        if im == 0.0:
+            x_out[p] = xp
+            v_out[p] = wp.vec3(0.0)
+            return
+        vn = (v[p] + dt * (im * f[p] + gravity)) * wp.exp(-dt * drag)
+        held = attached[p]
+        r = contact_radius
+        # contact where the particle would touch a shape (at its new pose; not the gripper holding the
+        # particle) or the table after this step: Coulomb projection of the relative velocity
+        for k in range(EE):
+            e = (step + 1) * EE + k
+            if ee_shape[k] >= 0 and k != held:
+                c = ee_pos[e]
+                xq = xp + dt * vn
+                d, n = shape_sdf_normal(ee_shape[k], xq, c, ee_rot[e], ee_radius[k], ee_half_height[k],
+                                        ee_half_extents[k])
+                if d < r:
+                    v_ee = ee_vel[step * EE + k] + wp.cross(ee_omega[step * EE + k], xq - c)
+                    vn = v_ee + coulomb_project(vn - v_ee, n, ee_friction[k])
+        if has_table != 0:
+            if xp[2] + dt * vn[2] < table_z + r:
+                vn = coulomb_project(vn, wp.vec3(0.0, 0.0, 1.0), table_mu)
+        xn = xp + dt * vn
+        # push-out: a particle still inside a shape at its new pose (or below the table) is moved to its surface
+        for k in range(EE):
+            e = (step + 1) * EE + k
+            if ee_shape[k] >= 0 and k != held:
+                d, n = shape_sdf_normal(ee_shape[k], xn, ee_pos[e], ee_rot[e], ee_radius[k], ee_half_height[k],
+                                        ee_half_extents[k])
+                if d < r:
+                    xn = xn + (r - d) * n
+        if has_table != 0:
+            if xn[2] < table_z + r:
+                xn = wp.vec3(xn[0], xn[1], table_z + r)
+        x_out[p] = xn
+        v_out[p] = vn
+
+    return integrate
 
 
 @wp.kernel

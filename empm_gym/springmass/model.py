@@ -219,7 +219,7 @@ def downsample(points: np.ndarray, volumes: np.ndarray, spacing: float):
     x = np.asarray(points, np.float64)
     vol = np.asarray(volumes, np.float64)
     spacing = _positive("spacing [m]", spacing)
-    key = np.floor((x - x.min(0)) / spacing).astype(np.int64)
+    key = np.floor((x - x.min(0)) / spacing + 0.5).astype(np.int64)  # a lattice at this spacing keeps every point
     _, inv = np.unique(key, axis=0, return_inverse=True)
     inv = inv.reshape(-1)
     n = int(inv.max()) + 1

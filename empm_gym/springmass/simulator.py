@@ -242,6 +242,7 @@ class SpringMassSim:
         self.records = [xs[0]]
         self.tape = wp.Tape() if requires_grad else None
         g = wp.vec3(*m.gravity)
+        integrate = K.integrate_kernel(self.ee_count)
         phases: dict = {}
         no_attach = None
         d = m.device
@@ -268,11 +269,11 @@ class SpringMassSim:
                         wp.launch(K.control_force_kernel, dim=ap.shape[0],
                                   inputs=[xs[a], vs[a], m.particle_mass, ap, ae, al, ee_pos, ee_rot, ee_vel, ee_om,
                                           self.ee_count, s, float(m.config.control_omega)], outputs=[f], device=d)
-                    wp.launch(K.integrate_kernel, dim=N,
+                    wp.launch(integrate, dim=N,
                               inputs=[xs[a], vs[a], f, m.particle_inv_mass, owner, g, dt, float(m.config.drag),
                                       int(self.has_table), self.table_z, self.table_friction, self.contact_radius,
                                       self._shape, self._radius, self._half_height, self._half_extents,
-                                      self._friction, ee_pos, ee_rot, ee_vel, ee_om, self.ee_count, s],
+                                      self._friction, ee_pos, ee_rot, ee_vel, ee_om, s],
                               outputs=[xs[b], vs[b]], device=d)
                 b = (t + 1) * sub if requires_grad else ((t + 1) * sub) % 2
                 out[t + 1] = xs[b].numpy()
@@ -305,7 +306,12 @@ class SpringMassSim:
         if not np.all(np.isfinite(g)):
             raise ValueError("grad_positions holds non-finite values")
         m = self.model
-        self.tape.zero()
+        # the state buffers are reused between rollouts and a fresh tape's zero() does not know them: clear every
+        # adjoint by hand, else the previous backward pass leaks into this one
+        for bufs in self._buffers.values():
+            for arr in (a for group in bufs for a in group):
+                if arr.grad is not None:
+                    arr.grad.zero_()
         for a in (m.stiffness, m.damping, m.spring_log_scale):
             a.grad.zero_()
         grads = {}
