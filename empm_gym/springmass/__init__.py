@@ -8,9 +8,8 @@ through Coulomb contact (:mod:`.simulator`). Imports neither torch nor gymnasium
 :mod:`empm_gym.identification.springmass`.
 """
 
-from .model import (MEASURED_E_OVER_Y, SpringMassConfig, SpringMassModel, build_network, downsample,
-                    model_from_body)
+from .model import SpringMassConfig, SpringMassModel, build_network, downsample, model_from_body
 from .simulator import SpringMassSim
 
-__all__ = ["MEASURED_E_OVER_Y", "SpringMassConfig", "SpringMassModel", "SpringMassSim", "build_network",
+__all__ = ["SpringMassConfig", "SpringMassModel", "SpringMassSim", "build_network",
            "downsample", "model_from_body"]

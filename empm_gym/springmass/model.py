@@ -10,9 +10,9 @@ log multiplier (0 by default) and the geometric weight ``w_ij = 6 (v_i / n_i + v
 springs, so Y is an elastic modulus of the network, independent of the particle spacing: for an isotropic
 network of central springs the energy density under a uniform strain gives C_11 = sum(V_s) Y / (5 V) and, by
 Cauchy's relation (nu = 1/4 for central forces), E = C_11 / 1.2 = Y when the spring volumes sum to 6 V.
-Measured on cubic lattices with the default neighbour radius (1.8 spacings, 26 neighbours) the network's
-Young's modulus is about ``MEASURED_E_OVER_Y`` Y (tests/springmass). ``eta`` is likewise a viscosity-like
-coefficient. This is PhysTwin's model (Jiang et al. 2025: springs with F = Y (l / L - 1) plus dashpot and
+That holds for an isotropic network away from its surface; a lattice is not isotropic and a thin body is
+mostly surface, so Y is a nominal modulus (not measured against the MPM's E). ``eta`` is likewise a
+viscosity-like coefficient. This is PhysTwin's model (Jiang et al. 2025: springs with F = Y (l / L - 1) plus dashpot and
 drag damping, control springs to the controller) with the spring constants normalised by geometry.
 """
 
@@ -25,11 +25,7 @@ from typing import Optional, Sequence
 import numpy as np
 import warp as wp
 
-__all__ = ["SpringMassConfig", "SpringMassModel", "build_network", "downsample", "model_from_body", "MEASURED_E_OVER_Y"]
-
-#: Young's modulus of a cubic-lattice block over Y (uniaxial stretch of a 9 x 9 x 9 lattice, default radius).
-MEASURED_E_OVER_Y = 1.0  # updated from the measurement in tests/springmass/test_springmass.py (see README)
-
+__all__ = ["SpringMassConfig", "SpringMassModel", "build_network", "downsample", "model_from_body"]
 
 def _positive(name, v, *, allow_zero=False):
     try:

@@ -211,7 +211,7 @@ class SpringMassSim:
     def run(self, frames: int, *, substeps: Optional[int] = None, requires_grad: bool = False,
             x0: Optional[np.ndarray] = None, v0: Optional[np.ndarray] = None, progress=None) -> np.ndarray:
         """Simulate frames 0 .. frames-1 from the model's frame-0 body (or ``x0``, ``v0`` [N, 3]); returns the
-        positions [frames, N, 3] (m). ``substeps`` per frame default to the stable count of the model's current
+        positions [frames, N, 3] (m) (the velocities [frames, N, 3] (m/s) are left in ``self.velocities``). ``substeps`` per frame default to the stable count of the model's current
         parameters. Raises :class:`~empm_gym.sim.SimulationDiverged` when the state turns non-finite or faster
         than ``max_speed``."""
         m = self.model
@@ -239,6 +239,9 @@ class SpringMassSim:
         ee_pos, ee_rot, ee_vel, ee_om = self._ee_steps(frames, sub)
         out = np.empty((frames, N, 3), np.float32)
         out[0] = x_init
+        vel = np.empty((frames, N, 3), np.float32)
+        vel[0] = v_init
+        self.velocities = vel
         self.records = [xs[0]]
         self.tape = wp.Tape() if requires_grad else None
         g = wp.vec3(*m.gravity)
@@ -278,7 +281,8 @@ class SpringMassSim:
                 b = (t + 1) * sub if requires_grad else ((t + 1) * sub) % 2
                 out[t + 1] = xs[b].numpy()
                 self.records.append(xs[b])
-                vmax = float(np.max(np.linalg.norm(vs[b].numpy(), axis=1)))
+                vel[t + 1] = vs[b].numpy()
+                vmax = float(np.max(np.linalg.norm(vel[t + 1], axis=1)))
                 if not np.all(np.isfinite(out[t + 1])) or not math.isfinite(vmax) or vmax > self.max_speed:
                     why = "non-finite positions or velocities" if not math.isfinite(vmax) or \
                         not np.all(np.isfinite(out[t + 1])) else f"a particle speed of {vmax:.3g} m/s > {self.max_speed} m/s"
