@@ -31,7 +31,7 @@ from .offline import FitResult, Objective
 from .problem import Observations, Scene
 
 __all__ = ["SPRING_MASS_PARAMS", "spring_mass_sim", "spring_mass_scene", "simulate_frames_spring_mass",
-           "identify_spring_mass", "SpringMassFitResult", "read_spring_mass"]
+           "identify_spring_mass", "evaluate_spring_mass", "SpringMassFitResult", "read_spring_mass"]
 
 #: Fitted parameters and their reference scales (the optimiser sees z = log(value / scale)).
 SPRING_MASS_PARAMS = {"stiffness": 1.0e5, "damping": 1.0}
@@ -285,3 +285,20 @@ def identify_spring_mass(observations: Observations, scene: Scene, *, config: Sp
                               iterations_requested=iters, config=fitted)
     res.spring_log_scale = log_scale
     return res
+
+
+def evaluate_spring_mass(scene: Scene, config: SpringMassConfig, obs: Observations, views=None, **kwargs) -> dict:
+    """:func:`~.evaluate.evaluate` of a spring-mass model: the same held-out metrics (Chamfer, tracking, IoU,
+    PSNR, SSIM), computed on the network's particles simulated with ``config`` (keyword arguments as there)."""
+    from .evaluate import evaluate, held_out_frames
+
+    T = obs.num_frames if scene.num_frames is None else min(obs.num_frames, scene.num_frames)
+    frames = kwargs.get("eval_frames")
+    if frames is None:
+        frames = held_out_frames(T, kwargs.get("train_fraction", 0.7))
+        kwargs["eval_frames"] = frames
+    sim = spring_mass_sim(scene, config)
+    X = simulate_frames_spring_mass(scene, config, frames=max(frames) + 1, sim=sim)
+    params = {"model": "spring-mass", "stiffness": config.stiffness, "damping": config.damping,
+              "density": scene.material.density}
+    return evaluate(spring_mass_scene(scene, sim), params, scene.table_friction, obs, views, positions=X, **kwargs)
