@@ -3,6 +3,11 @@
     empm identify REC_DIR --out material.json [--method adam|cmaes] [--params E,nu,...] [--iters N] [--resume]
     empm identify REC_DIR --out material.json --online
     empm evaluate REC_DIR --material material.json [--out-dir DIR]
+    empm identify REC_DIR --model spring-mass --out sm.json [--params stiffness,damping]
+
+``--model spring-mass`` fits the PhysTwin-style spring-mass model family instead of the MPM
+(:mod:`empm_gym.identification.springmass`: stiffness [Pa] and damping [Pa s], Adam through ``wp.Tape``) and
+writes a ``"model": "spring-mass"`` material file; ``evaluate`` reads the family from the file.
 
 ``identify`` fits the first ``--train-fraction`` of the frames (default 0.7) and writes ``material.json``,
 ``<stem>_fit.png`` (loss and parameter curves) and ``<stem>.rrd`` (simulation over the measured points)
@@ -81,6 +86,8 @@ def _base_material(init, params):
 
 
 def _identify(args) -> int:
+    if getattr(args, "model", "mpm") == "spring-mass":
+        return _identify_spring_mass(args)
     from empm_gym.sim import MaterialConfig  # noqa: F401  (import errors surface early)
 
     from .data import load_recording
@@ -92,7 +99,7 @@ def _identify(args) -> int:
     out = Path(args.out)
     resume = None
     try:
-        params = _parse_params(args.params)
+        params = _parse_params(args.params or "E")
         init = _parse_init(args.init)
         if not (0.0 < args.train_fraction <= 1.0):
             raise ValueError(f"--train-fraction must lie in (0, 1], got {args.train_fraction}")
@@ -253,7 +260,9 @@ def _evaluate(args) -> int:
     from empm_gym.sim import read_material
 
     try:
-        mf = read_material(args.material)
+        mf = read_material(args.material, models=("mpm", "spring-mass"))
+        if args.model is not None and args.model != mf.model:
+            raise ValueError(f"{args.material} holds a {mf.model} model, not --model {args.model}")
         mat, mu, fit = mf.material, mf.table_friction, mf.fit or {}
         dx = args.dx or float(fit.get("dx", 0.01))
         ppc = args.particles_per_cell or float(fit.get("particles_per_cell", 27))
@@ -265,8 +274,19 @@ def _evaluate(args) -> int:
         print(f"empm evaluate: error: {exc}", file=sys.stderr)
         return 2
     out_dir = Path(args.out_dir) if args.out_dir else Path(args.material).resolve().parent
-    res = evaluate(scene, mat, mu, obs, views, eval_frames=frames, downsample=args.downsample, out_dir=out_dir,
-                   progress=not args.quiet)
+    if mf.model == "spring-mass":
+        from .springmass import evaluate_spring_mass, read_spring_mass
+
+        try:
+            cfg, _ = read_spring_mass(args.material)
+        except ValueError as exc:
+            print(f"empm evaluate: error: {exc}", file=sys.stderr)
+            return 2
+        res = evaluate_spring_mass(scene, cfg, obs, views, eval_frames=frames, downsample=args.downsample,
+                                   out_dir=out_dir, progress=not args.quiet)
+    else:
+        res = evaluate(scene, mat, mu, obs, views, eval_frames=frames, downsample=args.downsample, out_dir=out_dir,
+                       progress=not args.quiet)
     print(f"held-out frames {frames[0]}-{frames[-1]} of {obs.num_frames}:")
     units = {"chamfer": "m", "chamfer_obs": "m", "track": "m", "iou": "", "psnr": "dB", "ssim": ""}
     for k, v in res["summary"].items():
@@ -282,10 +302,13 @@ def register(subparsers) -> None:
     p.add_argument("rec_dir", help="recording directory")
     p.add_argument("--out", default="material.json", help="output material file (default material.json)")
     p.add_argument("--method", choices=("adam", "cmaes"), default="adam")
+    p.add_argument("--model", choices=("mpm", "spring-mass"), default="mpm",
+                   help="model family: the MPM (default) or the PhysTwin-style spring-mass model (adam only)")
     from .problem import PARAM_NAMES
 
-    p.add_argument("--params", default="E", help=f"comma-separated subset of {','.join(PARAM_NAMES)} (the base "
-                   f"parameters and every effect parameter of empm_gym.sim.effects)")
+    p.add_argument("--params", default=None, help=f"comma-separated subset of {','.join(PARAM_NAMES)} (the base "
+                   f"parameters and every effect parameter of empm_gym.sim.effects; default E); with --model "
+                   f"spring-mass of stiffness,damping (the default)")
     p.add_argument("--init", default="", help="starting values, e.g. E=1e5,yield_stress=2000,viscosity=5 (SI units; "
                    "default: E=1e5, nu=0.3, density=1000, friction=0.5, an effect's registry start value)")
     p.add_argument("--iters", type=int, default=None, help="Adam steps or CMA-ES generations in all (default 30; "
@@ -319,7 +342,84 @@ def register(subparsers) -> None:
     e.add_argument("--dx", type=float, default=None, help="grid cell in m (default: the one used for fitting)")
     e.add_argument("--particles-per-cell", type=float, default=None,
                    help="particles per grid cell (default: the one used for fitting)")
+    e.add_argument("--model", choices=("mpm", "spring-mass"), default=None,
+                   help="model family expected in --material (default: whatever the file holds)")
     e.add_argument("--downsample", type=int, default=2, help="image downsampling for IoU / PSNR / SSIM (2)")
     e.add_argument("--device", default=None, help="Warp device (cpu, cuda:0)")
     e.add_argument("--quiet", action="store_true", help="no progress bars")
     e.set_defaults(func=_evaluate)
+
+
+def _identify_spring_mass(args) -> int:
+    """``empm identify --model spring-mass``: fit stiffness / damping of the spring-mass model family."""
+    from empm_gym.sim import MaterialConfig
+
+    from .data import load_recording
+    from .interrupt import stop_on_signals
+    from .report import plot_fit, save_rrd
+    from .springmass import SPRING_MASS_PARAMS, identify_spring_mass, simulate_frames_spring_mass
+
+    out = Path(args.out)
+    allowed = tuple(SPRING_MASS_PARAMS) + ("density", "friction")
+    try:
+        if args.method != "adam" or args.online or args.resume:
+            raise ValueError("--model spring-mass fits with --method adam only (no --online, no --resume)")
+        params = tuple(s.strip() for s in (args.params or "stiffness,damping").split(",") if s.strip())
+        bad = [n for n in params if n not in SPRING_MASS_PARAMS]
+        if not params or bad:
+            raise ValueError(f"--params for --model spring-mass must be a subset of {','.join(SPRING_MASS_PARAMS)}, "
+                             f"got {args.params!r}")
+        init = {}
+        for item in filter(None, (s.strip() for s in (args.init or "").split(","))):
+            k, sep, v = item.partition("=")
+            if not sep or k.strip() not in allowed:
+                raise ValueError(f"--init takes NAME=VALUE with NAME in {', '.join(allowed)} for --model spring-mass, "
+                                 f"got {item!r}")
+            try:
+                init[k.strip()] = float(v)
+            except ValueError:
+                raise ValueError(f"--init: {k.strip()} must be a number, got {v!r}") from None
+        if not (0.0 < args.train_fraction <= 1.0):
+            raise ValueError(f"--train-fraction must lie in (0, 1], got {args.train_fraction}")
+        scene, obs, views = load_recording(args.rec_dir, dx=args.dx, particles_per_cell=args.particles_per_cell,
+                                           material=MaterialConfig(density=init.get("density", 1000.0)),
+                                           table_friction=init.get("friction", 0.5), frames=args.frames,
+                                           device=args.device, progress=not args.quiet)
+    except (ValueError, OSError) as exc:
+        print(f"empm identify: error: {exc}", file=sys.stderr)
+        return 2
+    T = obs.num_frames
+    F = max(2, int(round(args.train_fraction * T)))
+    iters = args.iters or 30
+    print(f"empm identify: fitting {','.join(params)} of the spring-mass model on frames 0-{F - 1} of {T} "
+          f"({iters} iterations); Ctrl-C stops after the current iteration and saves", file=sys.stderr)
+    kw = {"lr": args.lr} if args.lr else {}
+    with stop_on_signals() as stop:
+        try:
+            res = identify_spring_mass(obs, scene, params=params, init={k: v for k, v in init.items()
+                                                                         if k in SPRING_MASS_PARAMS},
+                                       iters=iters, frames=F, progress=not args.quiet, stop=stop, **kw)
+        except ValueError as exc:
+            print(f"empm identify: error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print(f"empm identify: stopped at once by a second signal; {out} not written", file=sys.stderr)
+            return stop.exit_code
+    res.extra.update(dx=scene.dx, particles_per_cell=args.particles_per_cell,
+                     recording=str(Path(args.rec_dir).resolve()))
+    res.save(out)
+    stem = out.with_suffix("")
+    if stop.is_set():
+        print(f"empm identify: interrupted after {res.iterations_done} of {iters} iterations; wrote {out} "
+              f"(fit.complete: false)", file=sys.stderr)
+        return stop.exit_code
+    plot_fit(res, f"{stem}_fit.png")
+    if not args.no_rrd:
+        X = simulate_frames_spring_mass(scene, res.config, frames=T)
+        save_rrd(f"{stem}.rrd", X, obs.points, obs.fps, ee_positions=scene.ee_positions,
+                 ee_radius=[c.radius for c in scene.ee_configs], particle_radius=0.5 * res.extra["spacing_m"])
+    print(f"spring-mass: {', '.join(f'{k}={v:.5g}' for k, v in res.params.items())}  loss {res.loss:.5g}  "
+          f"({res.wall_time_s:.1f} s, {len(res.loss_history)} iterations, {res.extra['particles']} particles, "
+          f"{res.extra['springs']} springs, frames 0-{F - 1} of {T})")
+    print(f"wrote {out}, {stem}_fit.png" + ("" if args.no_rrd else f", {stem}.rrd"))
+    return 0

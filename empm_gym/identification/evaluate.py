@@ -93,8 +93,13 @@ def _crop(a: np.ndarray, b: np.ndarray, pad: int = 4):
 
 def evaluate(scene: Scene, material, friction: Optional[float], obs: Observations, views: Optional[Views] = None, *,
              eval_frames: Optional[Sequence[int]] = None, train_fraction: float = 0.7, downsample: int = 2,
-             out_dir=None, progress: bool = True, name: str = "evaluation") -> dict:
+             out_dir=None, progress: bool = True, name: str = "evaluation",
+             positions: Optional[np.ndarray] = None) -> dict:
     """Metrics of ``material`` (a MaterialConfig) with table ``friction`` on held-out frames.
+
+    ``positions`` [T', N, 3] (m): the scene's particles as another model family simulated them (the spring-mass
+    model, :func:`.springmass.evaluate_spring_mass`); the MPM simulation is then skipped and ``material`` may be
+    a dict of that model's parameters (reported as given).
 
     Returns {"frames": [...], "per_frame": {metric: [...]}, "summary": {metric: mean}}; with ``out_dir``
     also writes ``<name>.json``, ``<name>_metrics.png`` and ``<name>.rrd`` there.
@@ -108,7 +113,13 @@ def evaluate(scene: Scene, material, friction: Optional[float], obs: Observation
     if not frames or min(frames) < 0 or max(frames) >= T:
         raise ValueError(f"eval_frames must be a non-empty list of frames in [0, {T - 1}], got {frames}")
     mu = scene.table_friction if friction is None else float(friction)
-    X = simulate_frames(scene, [material], [mu], frames=max(frames) + 1)[:, 0]
+    if positions is None:
+        X = simulate_frames(scene, [material], [mu], frames=max(frames) + 1)[:, 0]
+    else:
+        X = np.asarray(positions)
+        if X.ndim != 3 or X.shape[1:] != scene.particles.shape or len(X) <= max(frames):
+            raise ValueError(f"positions must have shape [>{max(frames)}, {len(scene.particles)}, 3], got {X.shape}")
+        X = X[: max(frames) + 1]
     radius = scene.particle_radius
     track_idx = None
     if obs.tracks is not None and obs.visibility[0].any():
@@ -152,9 +163,12 @@ def evaluate(scene: Scene, material, friction: Optional[float], obs: Observation
             per["ssim"].append(float(np.mean(ss)))
     per = {k: v for k, v in per.items() if len(v)}
     summary = {k: float(np.nanmean(v)) for k, v in per.items()}
-    out = {"frames": frames, "per_frame": per, "summary": summary,
-           "material": {"E": material.E, "nu": material.nu, "density": material.density,
-                        "yield_stress": material.yield_stress, "friction": mu}}
+    if isinstance(material, dict):
+        mat_out = {**material, "friction": mu}
+    else:
+        mat_out = {"E": material.E, "nu": material.nu, "density": material.density,
+                   "yield_stress": material.yield_stress, "friction": mu}
+    out = {"frames": frames, "per_frame": per, "summary": summary, "material": mat_out}
     if out_dir is not None:
         from .report import plot_metrics, save_rrd
 

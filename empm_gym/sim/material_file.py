@@ -21,6 +21,12 @@ simulate, keyed by their name in :data:`~empm_gym.sim.effects.EFFECTS`, each wit
 (a parameter left out takes its effect's ``off`` value; ``fracture_softening`` defaults to its start
 value); an effect that is not listed is not simulated. ``fit`` is the identification report (free form).
 
+A file of another model family says so in ``"model"`` (default ``"mpm"``): ``"model": "spring-mass"`` files
+(:mod:`empm_gym.springmass`) hold ``density``, the table friction effect and a ``"spring_mass"`` object of
+that model's settings (``stiffness`` [Pa], ``damping`` [Pa s], ...), and no E / nu. :func:`read_material`
+refuses a model family its caller did not ask for (``models=``), so an MPM consumer never runs a spring-mass
+fit as if it were a material.
+
 Older files still load: schema 1 / flat objects with the keys E, nu, density and any effect parameter
 (yield_stress, viscosity, friction, ...; ``null`` means absent), optionally nested in a ``"material"``
 object, optionally with a ``fit`` section. Unknown keys, effects and parameters raise ``ValueError``
@@ -39,13 +45,15 @@ from typing import Any, Dict, Mapping, Optional, Union
 from .config import MaterialConfig
 from .effects import BASE_PARAMETERS, EFFECTS, PARAMETERS
 
-__all__ = ["MaterialFile", "read_material", "write_material", "SCHEMA"]
+__all__ = ["MaterialFile", "read_material", "write_material", "SCHEMA", "MODELS"]
 
 #: Version written by :func:`write_material`.
 SCHEMA = 2
 
 _BASE = ("E", "nu", "density")
-_TOP_V2 = ("schema", "E", "nu", "density", "effects", "fit")
+_TOP_V2 = ("schema", "model", "E", "nu", "density", "effects", "spring_mass", "fit")
+#: Model families a material file can hold.
+MODELS = ("mpm", "spring-mass")
 _TOP_FLAT = ("schema", *_BASE, *PARAMETERS, "fit")
 
 
@@ -61,6 +69,11 @@ class MaterialFile:
     """The path it was read from (None for a mapping)."""
     schema: int = SCHEMA
     """Schema version of the source (1 for flat files)."""
+    model: str = "mpm"
+    """Model family: "mpm" or "spring-mass" (then ``material`` carries only the density and the effects)."""
+    spring_mass: Optional[dict] = None
+    """The spring-mass model's settings (``model == "spring-mass"``): numbers (or null) by name, checked by
+    :class:`empm_gym.springmass.SpringMassConfig`."""
 
     @property
     def table_friction(self) -> Optional[float]:
@@ -72,8 +85,11 @@ def _label(source) -> str:
     return str(source) if source is not None else "<material mapping>"
 
 
-def read_material(source: Union[str, os.PathLike, Mapping], *, base: Optional[MaterialConfig] = None) -> MaterialFile:
+def read_material(source: Union[str, os.PathLike, Mapping], *, base: Optional[MaterialConfig] = None,
+                  models: tuple = ("mpm",)) -> MaterialFile:
     """Read a material file (a JSON path) or an already parsed mapping.
+
+    ``models``: the model families the caller simulates; a file of another family raises ValueError naming it.
 
     ``base`` fills what the source leaves out: E, nu, density (without ``base`` they are required), and for
     flat (schema 1) sources also the effect parameters they do not mention (a flat source *overrides*
@@ -103,13 +119,44 @@ def read_material(source: Union[str, os.PathLike, Mapping], *, base: Optional[Ma
     schema = data.get("schema", 1)
     if schema not in (1, 2) or isinstance(schema, bool):
         raise ValueError(f"{where}: unknown schema {schema!r} (this version reads schema 1 and 2)")
+    model = data.pop("model", "mpm")
+    if model not in MODELS:
+        raise ValueError(f"{where}: unknown model {model!r}; known: {', '.join(MODELS)}")
+    if model not in models:
+        raise ValueError(f"{where}: holds a {model} model (\"model\": {model!r}), not one of {', '.join(models)}; "
+                         f"use it where that model family is simulated (empm evaluate reads the family from the file)")
+    sm = None
+    if model == "spring-mass":
+        sm = _read_spring_mass(data, where)
+        data.pop("spring_mass")
+        base = base or MaterialConfig()  # E and nu are no part of a spring-mass file
+    elif "spring_mass" in data:
+        raise ValueError(f"{where}: a 'spring_mass' section needs \"model\": \"spring-mass\"")
     if schema == 2:
         mat, fit = _read_v2(data, where, base)
+    elif model != "mpm":
+        raise ValueError(f"{where}: a {model} model needs schema 2")
     else:
         mat, fit = _read_flat(data, where, base)
     if fit is not None and not isinstance(fit, Mapping):
         raise ValueError(f"{where}: 'fit' must be a JSON object, got {type(fit).__name__}")
-    return MaterialFile(material=mat, fit=None if fit is None else dict(fit), source=path, schema=int(schema))
+    return MaterialFile(material=mat, fit=None if fit is None else dict(fit), source=path, schema=int(schema),
+                        model=model, spring_mass=sm)
+
+
+def _read_spring_mass(data: Mapping, where: str) -> dict:
+    import math
+
+    sec = data.get("spring_mass")
+    if not isinstance(sec, Mapping) or not sec:
+        raise ValueError(f"{where}: a spring-mass file needs a 'spring_mass' object of its settings "
+                         f"(stiffness [Pa], damping [Pa s], ...)")
+    out = {}
+    for k, v in sec.items():
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)):
+            raise ValueError(f"{where}: spring_mass.{k} must be a finite number or null, got {v!r}")
+        out[str(k)] = v
+    return out
 
 
 def _base_values(data: Mapping, where: str, base: Optional[MaterialConfig]) -> Dict[str, float]:
@@ -182,8 +229,10 @@ def _read_flat(data: Mapping, where: str, base: Optional[MaterialConfig]):
     return _make(where, kw), fit
 
 
-def material_dict(material: MaterialConfig, fit: Optional[Mapping] = None) -> dict:
-    """The schema 2 JSON object of ``material`` (and the ``fit`` report)."""
+def material_dict(material: MaterialConfig, fit: Optional[Mapping] = None, *,
+                  spring_mass: Optional[Mapping] = None) -> dict:
+    """The schema 2 JSON object of ``material`` (and the ``fit`` report); with ``spring_mass`` (that model's
+    settings) a ``"model": "spring-mass"`` file, which keeps the density and the effects but not E and nu."""
     if not isinstance(material, MaterialConfig):
         raise TypeError(f"material must be a MaterialConfig, got {type(material).__name__}")
     effects = {}
@@ -201,6 +250,9 @@ def material_dict(material: MaterialConfig, fit: Optional[Mapping] = None) -> di
         if vals:
             effects[e.name] = vals
     out = {"schema": SCHEMA, "E": material.E, "nu": material.nu, "density": material.density, "effects": effects}
+    if spring_mass is not None:
+        out = {"schema": SCHEMA, "model": "spring-mass", "density": material.density, "effects": effects,
+               "spring_mass": dict(spring_mass)}
     if fit is not None:
         out["fit"] = dict(fit)
     return out
@@ -214,14 +266,16 @@ def _json_default(o):
     raise TypeError(f"material file: cannot write {type(o).__name__} {o!r} as JSON")
 
 
-def write_material(path: Union[str, os.PathLike], material: MaterialConfig, fit: Optional[Mapping] = None) -> Path:
-    """Write ``material`` (and the ``fit`` report) as a schema 2 file; returns the path.
+def write_material(path: Union[str, os.PathLike], material: MaterialConfig, fit: Optional[Mapping] = None, *,
+                   spring_mass: Optional[Mapping] = None) -> Path:
+    """Write ``material`` (and the ``fit`` report) as a schema 2 file; returns the path (``spring_mass``: see
+    :func:`material_dict`).
 
     Atomic: the text goes to a temporary file in the same folder, which then replaces ``path``, so a
     failure (unserialisable ``fit``, full disk) leaves any previous file untouched.
     """
     p = Path(path)
-    text = json.dumps(material_dict(material, fit), indent=2, default=_json_default) + "\n"
+    text = json.dumps(material_dict(material, fit, spring_mass=spring_mass), indent=2, default=_json_default) + "\n"
     p.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=str(p.parent))
     try:
