@@ -20,7 +20,7 @@ from empm_gym.sim import MaterialConfig, TableConfig
 
 from .problem import Observations, Scene, Views
 
-__all__ = ["load_recording", "lift_tracks", "attach_grippers"]
+__all__ = ["load_recording", "load_views", "lift_tracks", "attach_grippers"]
 
 _log = logging.getLogger("empm_gym.identification")
 
@@ -251,8 +251,22 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
                   material=material or MaterialConfig(E=1e5, nu=0.3, density=1000.0),
                   table=TableConfig(height=float(height), friction=table_friction), dx=dx, device=device,
                   motion_bounds=(np.min([p.min(0) for p in pts], 0), np.max([p.max(0) for p in pts], 0)))
+    return scene, obs, _views(rec, T)
+
+
+def _views(rec, T: int) -> Views:
     C = rec.num_cameras
-    views = Views(rec.cameras,
-                  masks=_LazyFrames(T, lambda t: [rec.mask(c, t) for c in range(C)]) if rec.has_masks else None,
-                  images=_LazyFrames(T, lambda t: [rec.color(c, t) for c in range(C)]))
-    return scene, obs, views
+    return Views(rec.cameras,
+                 masks=_LazyFrames(T, lambda t: [rec.mask(c, t) for c in range(C)]) if rec.has_masks else None,
+                 images=_LazyFrames(T, lambda t: [rec.color(c, t) for c in range(C)]))
+
+
+def load_views(rec_dir, *, frames: Optional[int] = None) -> Views:
+    """The :class:`~.problem.Views` of the recording in ``rec_dir`` (its cameras, lazy per-frame masks and colour
+    images; ``frames`` limits them to the leading frames) as :func:`load_recording` returns them, without its
+    fusion and body completion: what scoring already simulated positions needs (no Open3D)."""
+    from empm_gym.perception.recording import Recording
+
+    rec = Recording(rec_dir)
+    T = rec.num_frames if frames is None else min(int(frames), rec.num_frames)
+    return _views(rec, T)
