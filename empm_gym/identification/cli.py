@@ -422,4 +422,12 @@ def _identify_spring_mass(args) -> int:
           f"({res.wall_time_s:.1f} s, {len(res.loss_history)} iterations, {res.extra['particles']} particles, "
           f"{res.extra['springs']} springs, frames 0-{F - 1} of {T})")
     print(f"wrote {out}, {stem}_fit.png" + ("" if args.no_rrd else f", {stem}.rrd"))
+    idf = res.extra["identifiability"]
+    for w in idf["warnings"]:
+        print(f"  warning: {w}")
+    undetermined = [k for k, ok in idf["determined"].items() if not ok]
+    if undetermined and args.strict:
+        print(f"empm identify: --strict: {', '.join(undetermined)} not determined by this recording (exit 3)",
+              file=sys.stderr)
+        return 3
     return 0

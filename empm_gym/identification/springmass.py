@@ -275,6 +275,7 @@ def identify_spring_mass(observations: Observations, scene: Scene, *, config: Sp
              "particles": sim.model.particle_count, "springs": S, "spacing_m": sim.model.spacing,
              "bounds": {n: list(box[n]) for n in params}, "observation": observation, "per_spring": per_spring,
              "objective": {"l_dist": l_dist, "l_trk": l_trk, "chamfer": chamfer, "max_points": max_points, "seed": seed}}
+    extra["identifiability"] = bound_warnings({n: best_p[n] for n in params}, box)
     if log_scale is not None:
         extra["spring_log_scale"] = {"mean": float(log_scale.mean()), "std": float(log_scale.std()),
                                      "min": float(log_scale.min()), "max": float(log_scale.max())}
@@ -285,6 +286,25 @@ def identify_spring_mass(observations: Observations, scene: Scene, *, config: Sp
                               iterations_requested=iters, config=fitted)
     res.spring_log_scale = log_scale
     return res
+
+
+def bound_warnings(values: Dict[str, float], box: Dict[str, Tuple[float, float]]) -> dict:
+    """Which fitted values sit at their search bound (within 2 % of the box's log-width of an end, the rule
+    of the MPM fit's :func:`~empm_gym.identification.uncertainty.assess_fit`): ``{"method", "warnings",
+    "determined": {param: bool}}``. A value at its bound is what the box allowed, not what the data say.
+    Spring-mass fits get this check only, no intervals."""
+    warnings, determined = [], {}
+    for n, v in values.items():
+        lo, hi = (math.log(b) for b in box[n])
+        tol = 0.02 * (hi - lo)
+        z = math.log(v)
+        determined[n] = lo + tol < z < hi - tol
+        if not determined[n]:
+            side, b = ("lower", box[n][0]) if z <= lo + tol else ("upper", box[n][1])
+            warnings.append(f"{n}: at its {side} search bound {b:.4g}: the data ask for a value outside the box "
+                            f"searched, or do not determine it (the loss is flat along it)")
+    return {"method": "bound check only (no intervals for spring-mass fits)", "warnings": warnings,
+            "determined": determined}
 
 
 def evaluate_spring_mass(scene: Scene, config: SpringMassConfig, obs: Observations, views=None, **kwargs) -> dict:

@@ -77,6 +77,28 @@ def test_cli_identify_and_evaluate_on_synth_recording(synth_rope, tmp_path, caps
     assert "held-out frames 8-11 of 12" in text
 
 
+def test_cli_spring_mass_identify_and_evaluate(synth_rope, tmp_path, capsys):
+    """`empm identify --model spring-mass` fits stiffness and damping and writes a spring-mass file that
+    `empm evaluate` reads by itself; the MPM environments refuse that file by name."""
+    out = tmp_path / "sm.json"
+    rc = main(["identify", str(synth_rope), "--model", "spring-mass", "--out", str(out), "--iters", "3", "--dx", "0.02",
+               "--quiet", "--no-rrd"])
+    assert rc == 0
+    d = json.loads(out.read_text())
+    assert d["model"] == "spring-mass" and d["fit"]["frames_used"] == 8
+    assert d["fit"]["loss"] <= d["fit"]["loss_history"][0]
+    assert set(d["fit"]["identifiability"]["determined"]) == {"stiffness", "damping"}
+    assert "spring-mass:" in capsys.readouterr().out
+    rc = main(["evaluate", str(synth_rope), "--material", str(out), "--quiet"])
+    assert rc == 0
+    ev = json.loads((tmp_path / "evaluation.json").read_text())
+    assert ev["frames"] == [8, 9, 10, 11] and ev["summary"]["chamfer"] > 0
+    import gymnasium as gym
+
+    with pytest.raises(ValueError, match="spring-mass"):
+        gym.make("EMPM/DoughFlatten-v1", material=str(out), device="cpu", dx=0.02, particles_per_cell=2)
+
+
 def test_cli_online_on_synth_recording(synth_rope, tmp_path, capsys):
     out = tmp_path / "online.json"
     rc = main(["identify", str(synth_rope), "--out", str(out), "--online", "--dx", "0.02", "--quiet", "--every", "2",

@@ -125,6 +125,8 @@ def test_recovers_stiffness_from_its_own_trajectory(tmp_path):
     res = identify_spring_mass(obs, scene, config=truth.replace(stiffness=9e3), params=("stiffness",), iters=14,
                                l_trk=0.0, bounds={"stiffness": (1.5e3, 1.2e4)}, progress=False)
     assert abs(res.params["stiffness"] / 3e3 - 1.0) < 0.03, res.param_history
+    assert res.extra["identifiability"] == {**res.extra["identifiability"], "warnings": [],
+                                            "determined": {"stiffness": True}}
     path = res.save(tmp_path / "sm.json")
     cfg, mf = read_spring_mass(path)
     assert mf.model == "spring-mass" and cfg.stiffness == pytest.approx(res.params["stiffness"])
@@ -161,3 +163,17 @@ def test_bad_input_raises_clear_errors():
         identify_spring_mass(obs, scene, params=("E",))
     with pytest.raises(ValueError, match="stiffness must be finite and > 0"):
         identify_spring_mass(obs, scene, init={"stiffness": -3.0})
+
+
+def test_a_value_at_its_search_bound_is_flagged_not_determined():
+    """The spring-mass fit's bound check: a value within 2 % (log-width) of an end of its box is reported as
+    not determined, with a warning naming the parameter and the side; one inside is determined."""
+    from empm_gym.identification.springmass import bound_warnings
+
+    box = {"stiffness": (1e4, 1e6), "damping": (0.1, 10.0)}
+    out = bound_warnings({"stiffness": 1e6, "damping": 1.0}, box)
+    assert out["determined"] == {"stiffness": False, "damping": True}
+    assert len(out["warnings"]) == 1 and out["warnings"][0].startswith("stiffness: at its upper search bound")
+    out = bound_warnings({"stiffness": 1.05e4, "damping": 0.5}, box)  # log-distance 0.5 % of the box from 1e4
+    assert out["determined"]["stiffness"] is False and "lower" in out["warnings"][0]
+    assert bound_warnings({"stiffness": 1.2e4, "damping": 0.5}, box)["determined"]["stiffness"] is True
