@@ -105,6 +105,10 @@ def compare_materials(env_id: str, real_material, models: Mapping[str, object], 
     threshold; per label the mean and median real Chamfer, the success count and the mean prediction
     error |real - predicted|; ``frames`` holds rendered real rollouts of ``render_seed`` per label.
     """
+    seeds = [int(s) for s in seeds]
+    if not seeds or not models:
+        raise ValueError(f"compare_materials needs at least one seed and one model, got seeds {seeds} and "
+                         f"models {list(models)}")
     kw = dict(env_kwargs or {})
     probe = _env(env_id, real_material, kw)
     A = probe.action_space.shape[0]

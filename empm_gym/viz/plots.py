@@ -126,5 +126,5 @@ def save_transfer_chart(path: str, result: Mapping) -> None:
     ax.set_title(f"{result['env']}: open-loop plans executed on the real object", fontsize=10)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, bbox_inches="tight")  # keeps the title and the legend beside the axes
     plt.close(fig)

@@ -126,3 +126,16 @@ def test_closed_loop_mpc_beats_zero_and_random_actions(env_id):
 
     cd = run(mpc)
     assert cd < (1.0 - margin) * min(zero, rand), f"MPC {cd * 1e3:.2f} mm, zero {zero * 1e3:.2f}, random {rand * 1e3:.2f}"
+
+
+def test_compare_materials_refuses_empty_seeds_and_models():
+    from empm_gym.planning.transfer import compare_materials, wrong_yield_models
+
+    with pytest.raises(ValueError, match="at least one seed"):
+        compare_materials("EMPM/DoughFlatten-v1", {}, {"m": {}}, [])
+    with pytest.raises(ValueError, match="at least one seed"):
+        compare_materials("EMPM/DoughFlatten-v1", {}, {}, [0])
+    with pytest.raises(ValueError, match="plastic"):
+        wrong_yield_models({"E": 1e4, "yield_stress": None}, [5.0])
+    with pytest.raises(ValueError, match="factors"):
+        wrong_yield_models({"E": 1e4, "yield_stress": 1e3}, [1.0])
