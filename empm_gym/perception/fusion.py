@@ -134,28 +134,63 @@ def fuse_frame(rec: Recording, t: int, *, voxel_m: float = 0.002, nb_neighbors: 
 
 def fit_table_plane(points: np.ndarray, *, distance_threshold_m: float = 0.004, iterations: int = 1000,
                     up_hint: Sequence[float] = (0.0, 0.0, 1.0), seed: int = 0) -> Tuple[np.ndarray, float, np.ndarray]:
-    """Dominant plane of a point set by RANSAC (Open3D ``segment_plane``).
+    """Dominant plane of a point set by RANSAC, then a least-squares refit to its inliers.
 
     Returns ``(normal [3], offset, inlier indices)`` with ``normal . x + offset = 0`` on the plane and
     the normal oriented to have a positive component along ``up_hint`` (e.g. towards the cameras).
+
+    Deterministic for a given ``seed``, whatever the machine's load: every one of ``iterations`` samples
+    is scored (most inliers, then the smallest inlier RMS; ties go to the earlier sample). Open3D's
+    ``segment_plane`` stops early in whichever thread gets there first, so under load it returned
+    different planes for the same points, and a fit could not be resumed in another process.
     """
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     if len(pts) < 3:
         raise ValueError(f"fit_table_plane: need at least 3 points, got {len(pts)}")
-    o3d = _o3d()
-    try:
-        o3d.utility.random.seed(int(seed))
-    except AttributeError:  # older Open3D
-        pass
-    model, inliers = _pcd(pts).segment_plane(distance_threshold=float(distance_threshold_m), ransac_n=3,
-                                             num_iterations=int(iterations))
-    a, b, c, d = model
-    n = np.array([a, b, c], np.float64)
-    s = np.linalg.norm(n)
-    n, d = n / s, d / s
+    if not np.all(np.isfinite(pts)):
+        raise ValueError("fit_table_plane: the points hold NaN or infinite coordinates")
+    thr = float(distance_threshold_m)
+    if not thr > 0.0:
+        raise ValueError(f"fit_table_plane: distance_threshold_m must be positive, got {distance_threshold_m}")
+    rng = np.random.default_rng(int(seed))
+    samples = rng.integers(0, len(pts), (max(1, int(iterations)), 3))  # repeated points give no plane: skipped
+    centred = pts - pts.mean(0)  # better conditioned offsets
+    best = (-1, np.inf, None)
+    chunk = max(1, min(len(samples), (1 << 22) // len(pts)))
+    for i in range(0, len(samples), chunk):
+        s = samples[i:i + chunk]
+        a, b, c = centred[s[:, 0]], centred[s[:, 1]], centred[s[:, 2]]
+        nrm = np.cross(b - a, c - a)
+        norm = np.linalg.norm(nrm, axis=1)
+        ok = norm > 1e-12
+        nrm = nrm[ok] / norm[ok, None]
+        if not len(nrm):
+            continue
+        dist = np.abs(centred @ nrm.T - np.sum(nrm * a[ok], axis=1))
+        inl = dist < thr
+        count = inl.sum(0)
+        rms = np.sqrt(np.where(inl, dist * dist, 0.0).sum(0) / np.maximum(count, 1))
+        k = np.lexsort((rms, -count))[0]  # most inliers, then smallest RMS; stable: the earliest on ties
+        if count[k] > best[0] or (count[k] == best[0] and rms[k] < best[1]):
+            best = (int(count[k]), float(rms[k]), (nrm[k], float(-nrm[k] @ a[ok][k])))
+    if best[2] is None:
+        raise ValueError("fit_table_plane: the points are collinear; no plane through them")
+    n, d = best[2]
+    inliers = np.flatnonzero(np.abs(centred @ n + d) < thr)
+    for _ in range(10):  # least-squares refits to the inliers (smallest principal direction) until they settle
+        q = centred[inliers]
+        mean = q.mean(0)
+        n_new = np.linalg.svd(q - mean, full_matrices=False)[2][-1]
+        n = n_new if n_new @ n >= 0 else -n_new
+        d = float(-n @ mean)
+        new = np.flatnonzero(np.abs(centred @ n + d) < thr)
+        if len(new) < 3 or np.array_equal(new, inliers):
+            break
+        inliers = new
+    d = float(d - n @ pts.mean(0))  # back to the original coordinates
     if n @ np.asarray(up_hint, float) < 0:
         n, d = -n, -d
-    return n, float(d), np.asarray(inliers, np.int64)
+    return n, d, inliers.astype(np.int64)
 
 
 def estimate_table_plane(rec: Recording, t: int = 0, *, voxel_m: float = 0.005, distance_threshold_m: float = 0.004,

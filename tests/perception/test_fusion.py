@@ -47,6 +47,26 @@ def test_fit_table_plane_with_clutter():
     assert np.sum(inl < 3000) > 2800 and np.sum(inl >= 3000) == 0
 
 
+def test_fit_table_plane_is_the_least_squares_plane_of_its_inliers_and_repeatable():
+    rng = np.random.default_rng(1)
+    tilt = np.array([0.02, -0.01, 1.0]) / np.linalg.norm([0.02, -0.01, 1.0])
+    xy = rng.uniform(-0.4, 0.4, (5000, 2))
+    plane = np.c_[xy, 0.3 - (tilt[0] * xy[:, 0] + tilt[1] * xy[:, 1]) / tilt[2]] + rng.normal(0, 0.0015, (5000, 1)) * tilt
+    pts = np.r_[plane, rng.uniform([-0.1, -0.1, 0.31], [0.1, 0.1, 0.4], (1500, 3))]
+    runs = [F.fit_table_plane(pts, seed=3) for _ in range(3)]
+    for n, d, inl in runs[1:]:  # bit for bit: a resumed fit in another process must see the same table
+        assert np.array_equal(n, runs[0][0]) and d == runs[0][1] and np.array_equal(inl, runs[0][2])
+    n, d, inl = runs[0]
+    q = pts[inl]
+    ls = np.linalg.svd(q - q.mean(0))[2][-1]
+    np.testing.assert_allclose(abs(n @ ls), 1.0, atol=1e-12)
+    assert n @ q.mean(0) + d == pytest.approx(0.0, abs=1e-12)
+    assert np.degrees(np.arccos(n @ tilt)) < 0.1  # 3 random points alone are off by about a degree
+    assert d == pytest.approx(-0.3 * tilt[2], abs=2e-4)
+    with pytest.raises(ValueError, match="collinear"):
+        F.fit_table_plane(np.c_[np.linspace(0, 1, 10), np.zeros(10), np.zeros(10)])
+
+
 def test_close_against_table_columns():
     p = np.array([[0.0, 0.0, 0.05], [0.1, 0.0, -0.01]])
     out = F.close_against_table(p, (np.array([0, 0, 1.0]), 0.0), 0.01)
