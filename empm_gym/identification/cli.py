@@ -19,7 +19,9 @@ After an offline fit, ``identify`` says how far to trust it (:func:`.uncertainty
 interval per parameter in ``fit.uncertainty.<param>`` (``interval``, ``level``, ``determined``), the
 combinations that motion alone determines (E / density when the density is assumed), and warnings in
 ``fit.identifiability`` for a parameter at its search bound, flat within noise, strongly correlated with
-another, or a grid too coarse for the body; ``--strict`` then exits with 3.
+another, or a grid too coarse for the body; ``--strict`` then exits with 3. The interval includes the
+share of the frame-0 body's reconstructed shape: the body is rebuilt with each camera left out in turn
+and the probes rerun on each (a one-camera recording cannot do this, and a warning says so).
 
 Interrupting ``identify`` (Ctrl-C or SIGTERM) stops the fit after its current iteration, writes the best
 parameters so far to ``--out`` with ``fit.complete: false`` and the state to continue from, and exits with
@@ -107,10 +109,11 @@ def _identify(args) -> int:
             if args.online:
                 raise ValueError("--resume continues an interrupted offline fit; it does not apply to --online")
             resume = read_resume_state(out)
+        body_info = {}
         scene, obs, views = load_recording(args.rec_dir, dx=args.dx, particles_per_cell=args.particles_per_cell,
                                            material=_base_material(init, params),
                                            table_friction=init.get("friction", 0.5), frames=args.frames,
-                                           device=args.device, progress=not args.quiet)
+                                           device=args.device, progress=not args.quiet, info=body_info)
     except (ValueError, OSError) as exc:
         print(f"empm identify: error: {exc}", file=sys.stderr)
         return 2
@@ -177,7 +180,10 @@ def _identify(args) -> int:
         if not args.quiet:
             print("empm identify: intervals and identifiability (probe simulations around the fit) ...",
                   file=sys.stderr)
-        a = assess_fit(res, scene, obs)
+        from .data import view_jackknife_bodies
+
+        others = view_jackknife_bodies(args.rec_dir, scene, particles_per_cell=args.particles_per_cell)
+        a = assess_fit(res, scene, obs, other_bodies=others, body_note=body_info.get("body_completion"))
         res.extra.update(a)
         undetermined = [k for k, u in a["uncertainty"].items() if not u["determined"]]
     res.save(out)

@@ -12,7 +12,7 @@ all look from one side get their frame-0 body completed under a stated symmetry 
 from __future__ import annotations
 
 import logging
-from typing import Optional, Tuple
+from typing import List, Optional, Tuple
 
 import numpy as np
 
@@ -105,68 +105,22 @@ def attach_grippers(configs, positions, grip, particles, dx: float):
     return out, changed
 
 
-def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27, voxel_m: float = 0.003,
-                   material: Optional[MaterialConfig] = None, table_friction: float = 0.5,
-                   ee_friction: float = 0.8, use_tracks: bool = True, frames: Optional[int] = None,
-                   grow_grippers: bool = True, complete_hidden: bool = True,
-                   single_view: Optional[bool] = None, info: Optional[dict] = None,
-                   device: Optional[str] = None, progress: bool = True):
-    """(Scene, Observations, Views) of the recording in ``rec_dir`` (see the module docstring).
-
-    ``dx`` (m) is the simulation grid cell, ``particles_per_cell`` the density of the frame-0 fill (27: a
-    lattice at dx / 3; at 8 per cell a 2.4 cm rope is four or five particles across at dx = 1 cm, and the
-    lattice's rounding of its cross-section biased the fitted E by +15 % on synthetic recordings, against
-    +1-3 % at 27), ``voxel_m`` (m) the voxel of the fused point sets, ``material``
-    the starting / fixed material (default E = 1e5 Pa, nu = 0.3, density = 1000 kg/m^3, elastic),
-    ``frames`` limits the number of leading frames read; ``complete_hidden`` adds to the frame-0 body the parts
-    that the end-effectors hide from every camera (:func:`empm_gym.perception.fusion.complete_occluded`);
-    ``grow_grippers`` then applies :func:`attach_grippers` to closed grippers that still miss the body.
-
-    Views from one side (one camera, or cameras that all lie on one side of the object: a gap of more
-    than 180 degrees in azimuth around it, :func:`empm_gym.perception.fusion.view_gap_deg`) see no far side,
-    and no fill of the visible surface closes it. ``single_view`` (None: decided by that gap) then
-    completes the frame-0 body under a stated prior: the far side is the visible side turned by 180 degrees
-    about a vertical axis (:func:`empm_gym.perception.fusion.complete_by_symmetry`; material that an open
-    end-effector hides next to its faces is taken to touch it, which places the axis along what pushers
-    hide). ``complete_hidden`` then adds only what an end-effector hides (not what the object hides from
-    itself), where its turned copy is consistent with the views too and over the footprint of the body
-    seen and turned, or inside a closed gripper; nothing under a hovering open end-effector. The fill
-    closes horizontal layers, drops sheets thinner than three voxels, aligns its lattice to the body's box,
-    and no particle is left inside an open end-effector. The prior is reported: as a logged warning
-    (logger ``empm_gym.identification``) and, when ``info`` (a dict) is given, in
-    ``info["body_completion"]`` (one line, for the material file's fit section), with ``info["view_gap_deg"]``,
-    ``info["single_view"]`` and ``info["symmetry"]`` (the axis, how far the views leave it open, how much of
-    the turned surface the depth images contradict, whether the prior was used).
-    """
-    from tqdm.auto import tqdm
-
+def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particles_per_cell: float,
+                voxel_m: float = 0.003, complete_hidden: bool = True, single_view: Optional[bool] = None,
+                points: Optional[np.ndarray] = None):
+    """The frame-0 body of recording ``rec`` as simulation particles: ``(x0 [N, 3] m, volumes [N] m^3, report)``
+    (what :func:`load_recording` builds, see there; ``report`` holds ``view_gap_deg``, ``single_view``,
+    ``body_completion`` and, for views from one side, ``symmetry``). ``plane`` is the table (normal, offset),
+    ``cfgs``, ``pos`` [T, K, 3], ``grip`` [T, K] and ``orient`` the end-effectors as the controls give them;
+    ``points`` the fused frame-0 points when already at hand (else fused from ``rec``'s cameras)."""
     from empm_gym.perception.fusion import (carve_with_depth, complete_by_symmetry, complete_occluded,
-                                            end_effector_sdf,
-                                            estimate_table_plane, fuse_frame, initial_particles,
-                                            inside_end_effectors, inside_open_end_effectors, load_controls,
-                                            view_gap_deg, within_footprint)
-    from empm_gym.perception.recording import Recording, controls_to_end_effectors
+                                            end_effector_sdf, fuse_frame, initial_particles, inside_end_effectors,
+                                            inside_open_end_effectors, view_gap_deg, within_footprint)
 
-    rec = Recording(rec_dir)
-    T = rec.num_frames if frames is None else min(int(frames), rec.num_frames)
-    if T < 2:
-        raise ValueError(f"{rec.path}: need at least 2 frames, have {T}")
-    n, off = estimate_table_plane(rec)
-    if abs(n[2]) < 0.98:
-        raise ValueError(f"{rec.path}: the table plane's normal {np.round(n, 3).tolist()} is not the world z axis; "
-                         f"the simulator needs a z-up world frame with a horizontal table (recalibrate c2w)")
-    height = -off / n[2]
-    plane = (np.array([0.0, 0.0, 1.0]), -height)
-    pts = []
-    for t in tqdm(range(T), desc="fuse point clouds", disable=not progress, leave=False):
-        p = fuse_frame(rec, t, voxel_m=voxel_m, table_plane=plane, min_height_m=0.5 * voxel_m)
-        if len(p) == 0:
-            raise ValueError(f"{rec.path}: frame {t} has no object points (check the masks and depth)")
-        pts.append(p)
-    controls = load_controls(rec)
-    cfgs, pos, grip = controls_to_end_effectors(controls, friction=ee_friction)
-    orient = controls.get("orientations")
-    body = pts[0]
+    body = points if points is not None else fuse_frame(rec, 0, voxel_m=voxel_m, table_plane=plane,
+                                                        min_height_m=0.5 * voxel_m)
+    if len(body) == 0:
+        raise ValueError(f"{rec.path}: frame 0 has no object points (check the masks and depth)")
     orient0 = None if orient is None else orient[0]
     gap = view_gap_deg(rec.cameras, body.mean(0))
     one_side = gap > 180.0 if single_view is None else bool(single_view)
@@ -234,7 +188,105 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
         if not keep.any():
             raise ValueError(f"{rec.path}: every frame-0 particle lies inside an open end-effector")
         x0, vol = x0[keep], vol[keep]
-    if one_side:
+    return x0, vol, report
+
+
+def view_jackknife_bodies(rec_dir, scene, *, particles_per_cell: float, voxel_m: float = 0.003,
+                          complete_hidden: bool = True, ee_friction: float = 0.8) -> List[Tuple[str, object]]:
+    """The frame-0 body rebuilt with each camera of the recording left out in turn, as scenes that differ from
+    ``scene`` (made by :func:`load_recording` from the same recording) only in the body and in the closed
+    grippers grown to reach it: ``[(label, Scene), ...]``, one per camera, empty for a one-camera recording.
+    A subset whose views cannot close a body is skipped (its label says so: ``(label, None)``). How far a fit
+    moves on these bodies is the share of the body's reconstructed shape in its uncertainty
+    (:func:`empm_gym.identification.uncertainty.assess_fit`)."""
+    from dataclasses import replace
+
+    from empm_gym.perception.fusion import load_controls
+    from empm_gym.perception.recording import Recording, controls_to_end_effectors
+
+    rec = Recording(rec_dir)
+    if rec.num_cameras < 2:
+        return []
+    plane = (np.array([0.0, 0.0, 1.0]), -float(scene.table.height)) if scene.table is not None else None
+    cfgs, pos, grip = controls_to_end_effectors(load_controls(rec), friction=ee_friction)
+    orient = load_controls(rec).get("orientations")
+    out = []
+    for c in range(rec.num_cameras):
+        keep = [i for i in range(rec.num_cameras) if i != c]
+        label = f"without camera {rec.camera_names[c]}"
+        try:
+            x0, vol, _ = frame0_body(rec.with_cameras(keep), plane, cfgs, pos, grip, orient, dx=scene.dx,
+                                     particles_per_cell=particles_per_cell, voxel_m=voxel_m,
+                                     complete_hidden=complete_hidden)
+        except ValueError as exc:
+            out.append((f"{label}: {exc}", None))
+            continue
+        grown, _ = attach_grippers(cfgs, pos, grip, x0, scene.dx)
+        out.append((label, replace(scene, particles=x0, volumes=vol, ee_configs=grown)))
+    return out
+
+
+def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27, voxel_m: float = 0.003,
+                   material: Optional[MaterialConfig] = None, table_friction: float = 0.5,
+                   ee_friction: float = 0.8, use_tracks: bool = True, frames: Optional[int] = None,
+                   grow_grippers: bool = True, complete_hidden: bool = True,
+                   single_view: Optional[bool] = None, info: Optional[dict] = None,
+                   device: Optional[str] = None, progress: bool = True):
+    """(Scene, Observations, Views) of the recording in ``rec_dir`` (see the module docstring).
+
+    ``dx`` (m) is the simulation grid cell, ``particles_per_cell`` the density of the frame-0 fill (27: a
+    lattice at dx / 3; at 8 per cell a 2.4 cm rope is four or five particles across at dx = 1 cm, and the
+    lattice's rounding of its cross-section biased the fitted E by +15 % on synthetic recordings, against
+    +1-3 % at 27), ``voxel_m`` (m) the voxel of the fused point sets, ``material``
+    the starting / fixed material (default E = 1e5 Pa, nu = 0.3, density = 1000 kg/m^3, elastic),
+    ``frames`` limits the number of leading frames read; ``complete_hidden`` adds to the frame-0 body the parts
+    that the end-effectors hide from every camera (:func:`empm_gym.perception.fusion.complete_occluded`);
+    ``grow_grippers`` then applies :func:`attach_grippers` to closed grippers that still miss the body.
+
+    Views from one side (one camera, or cameras that all lie on one side of the object: a gap of more
+    than 180 degrees in azimuth around it, :func:`empm_gym.perception.fusion.view_gap_deg`) see no far side,
+    and no fill of the visible surface closes it. ``single_view`` (None: decided by that gap) then
+    completes the frame-0 body under a stated prior: the far side is the visible side turned by 180 degrees
+    about a vertical axis (:func:`empm_gym.perception.fusion.complete_by_symmetry`; material that an open
+    end-effector hides next to its faces is taken to touch it, which places the axis along what pushers
+    hide). ``complete_hidden`` then adds only what an end-effector hides (not what the object hides from
+    itself), where its turned copy is consistent with the views too and over the footprint of the body
+    seen and turned, or inside a closed gripper; nothing under a hovering open end-effector. The fill
+    closes horizontal layers, drops sheets thinner than three voxels, aligns its lattice to the body's box,
+    and no particle is left inside an open end-effector. The prior is reported: as a logged warning
+    (logger ``empm_gym.identification``) and, when ``info`` (a dict) is given, in
+    ``info["body_completion"]`` (one line, for the material file's fit section), with ``info["view_gap_deg"]``,
+    ``info["single_view"]`` and ``info["symmetry"]`` (the axis, how far the views leave it open, how much of
+    the turned surface the depth images contradict, whether the prior was used).
+    """
+    from tqdm.auto import tqdm
+
+    from empm_gym.perception.fusion import estimate_table_plane, fuse_frame, load_controls
+    from empm_gym.perception.recording import Recording, controls_to_end_effectors
+
+    rec = Recording(rec_dir)
+    T = rec.num_frames if frames is None else min(int(frames), rec.num_frames)
+    if T < 2:
+        raise ValueError(f"{rec.path}: need at least 2 frames, have {T}")
+    n, off = estimate_table_plane(rec)
+    if abs(n[2]) < 0.98:
+        raise ValueError(f"{rec.path}: the table plane's normal {np.round(n, 3).tolist()} is not the world z axis; "
+                         f"the simulator needs a z-up world frame with a horizontal table (recalibrate c2w)")
+    height = -off / n[2]
+    plane = (np.array([0.0, 0.0, 1.0]), -height)
+    pts = []
+    for t in tqdm(range(T), desc="fuse point clouds", disable=not progress, leave=False):
+        p = fuse_frame(rec, t, voxel_m=voxel_m, table_plane=plane, min_height_m=0.5 * voxel_m)
+        if len(p) == 0:
+            raise ValueError(f"{rec.path}: frame {t} has no object points (check the masks and depth)")
+        pts.append(p)
+    controls = load_controls(rec)
+    cfgs, pos, grip = controls_to_end_effectors(controls, friction=ee_friction)
+    orient = controls.get("orientations")
+    x0, vol, report = frame0_body(rec, plane, cfgs, pos, grip, orient, dx=dx, particles_per_cell=particles_per_cell,
+                                  voxel_m=voxel_m, complete_hidden=complete_hidden, single_view=single_view,
+                                  points=pts[0])
+    if report["single_view"]:
         _log.warning("%s: %s", rec.path, report["body_completion"])
     if info is not None:
         info.update(report)

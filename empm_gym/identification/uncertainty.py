@@ -262,7 +262,8 @@ def newton_bootstrap(per_frame: np.ndarray, dz: np.ndarray, *, n_boot: int = 200
 
 
 def assess_fit(result, scene, observations, *, level: float = 0.95, step: float = 0.1, n_boot: int = 2000,
-               resample_bodies: int = 2, seed: int = 0, objective=None) -> Dict:
+               resample_bodies: int = 2, seed: int = 0, objective=None, other_bodies: Sequence = (),
+               body_note: Optional[str] = None) -> Dict:
     """Uncertainty intervals and identifiability of a :class:`~.offline.FitResult`, from the data alone.
 
     Method (stated): the fitted scene is simulated once more with the fitted parameters moved by
@@ -272,9 +273,14 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     resamples of the recorded frames. The same is repeated with the frame-0 body sampled by
     ``resample_bodies`` other particle lattices (each particle moved by up to half a spacing), and the
     ``level`` interval of every parameter is the quantile range of all these minima together: noise in the
-    recording plus the discretisation of the body. It assumes the model is right up to noise that is
-    stationary and weakly dependent over frames (blocks of frames are resampled); the shape of the
-    reconstructed frame-0 body is taken as given, and the grid's resolution is checked separately.
+    recording plus the discretisation of the body. ``other_bodies`` (``[(label, Scene or None)]``, from
+    :func:`~.data.view_jackknife_bodies`: the frame-0 body rebuilt with one camera left out at a time) add the
+    share of the body's reconstructed *shape*: the same probes run on each, and their minima are pooled with
+    the rest, so the interval spans how far the fit moves when one view less shapes the body (conservative:
+    a body from fewer views is worse than the one fitted). Without them (one camera, or not given) the shape
+    is taken as given, and a warning says so quoting ``body_note`` (how the body was built) when given. It assumes
+    the model is right up to noise that is stationary and weakly dependent over frames (blocks of frames
+    are resampled); the grid's resolution is checked separately.
 
     A parameter is ``determined: false`` (with the reasons in ``identifiability.warnings``) when it lies at
     its search bound, when its interval reaches past the search box (the loss is flat within noise along
@@ -304,11 +310,15 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     mu0 = result.friction if result.friction is not None else scene.table_friction
     mats = [space.material(c, base, mu0) for c in cand]
     rng = np.random.default_rng(seed)
-    draws_all, diverged, nbs = [], [], []
-    for b in range(1 + int(resample_bodies)):
-        sc, obj = scene, objective
-        if b > 0:  # the same body sampled by another particle lattice: the discretisation's share
-            sc = _resampled_body(scene, rng)
+    draws_all, diverged, nbs, labels = [], [], [], []
+    variants = [("fitted body", scene)] + [(f"lattice {b}", None) for b in range(1, 1 + int(resample_bodies))]
+    variants += [(label, sc) for label, sc in other_bodies if sc is not None]
+    skipped = [label for label, sc in other_bodies if sc is None]
+    for b, (label, sc) in enumerate(variants):
+        obj = objective
+        if b > 0:
+            if sc is None:  # the same body sampled by another particle lattice: the discretisation's share
+                sc = _resampled_body(scene, rng)
             obj = Objective(sc, observations, F, observation=objective.observation, l_dist=objective.l_dist,
                             l_trk=objective.l_trk, chamfer=objective.direction,
                             **{k: v for k, v in result.extra.get("objective", {}).items() if k in ("max_points", "seed")})
@@ -318,9 +328,14 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
         L = np.stack([obj.per_frame(X[:, w]) for w in range(len(cand))])
         nb = newton_bootstrap(L, dz, n_boot=n_boot, seed=seed + b)
         nbs.append(nb)
+        labels.append(label)
         draws_all.append(nb["draws"])
     nb = nbs[0]
     pooled = np.concatenate(draws_all)
+    shape_note = None
+    if len(variants) == 1 + int(resample_bodies) and body_note:
+        shape_note = (f"the frame-0 body's shape is taken as given ({body_note}): the interval does not include "
+                      f"an error in its shape")
     q = [(1.0 - level) / 2.0, 1.0 - (1.0 - level) / 2.0]
     warnings, reasons = [], {k: [] for k in names}
     unc = {}
@@ -387,7 +402,13 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     elif note:
         warnings.append(note)
     if diverged:
-        warnings.append(f"{len(diverged)} of {len(cand)} probe simulations diverged: the interval is approximate")
+        warnings.append(f"{len(diverged)} of {len(cand) * len(variants)} probe simulations diverged: the interval "
+                        f"is approximate")
+    for label in skipped:
+        warnings.append(f"the frame-0 body could not be rebuilt {label}: the interval leaves out that view's share "
+                        f"of the body's shape")
+    if shape_note:
+        warnings.append(shape_note)
     if nb["residual"] > 0.2:
         warnings.append(f"the loss is far from quadratic within +-{2 * step:g} of the optimum (misfit "
                         f"{nb['residual']:.0%}): the intervals are approximate")
@@ -406,10 +427,14 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                 "method": (f"moving-block bootstrap over the fitted frames ({n_boot} resamples) of the minimum of a "
                            f"quadratic fitted per frame to the loss at +-{step:g} and +-{2 * step:g} around the "
                            f"optimum (optimiser coordinates: log scale, logit for nu), pooled over the body "
-                           f"sampled by {1 + int(resample_bodies)} particle lattices; assumes the model is right "
-                           f"up to stationary, weakly dependent noise and the frame-0 body's shape"),
-                "body_minima": [_from_z(space, names[0], z0[0] + (m["step"][0] if np.isfinite(m["step"][0]) else 0.0))
-                                for m in nbs] if n == 1 else None,
+                           f"sampled by {1 + int(resample_bodies)} particle lattices"
+                           + (f" and rebuilt without each camera in turn ({len(variants) - 1 - int(resample_bodies)} "
+                              f"bodies)" if len(variants) > 1 + int(resample_bodies) else "")
+                           + "; assumes the model is right up to stationary, weakly dependent noise"
+                           + ("" if len(variants) > 1 + int(resample_bodies) else " and the frame-0 body's shape")),
+                "body_minima": ({lab: _from_z(space, names[0], z0[0] + (m["step"][0] if np.isfinite(m["step"][0])
+                                                                        else 0.0))
+                                 for lab, m in zip(labels, nbs)} if n == 1 else None),
                 "warnings": warnings, "combinations": combos, "correlation": corr, "resolution": resolution,
                 "curvature": nb["H"].tolist(), "quadratic_misfit": nb["residual"]}}
 

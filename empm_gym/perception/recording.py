@@ -570,6 +570,24 @@ class Recording:
     def has_controller_masks(self) -> bool:
         return self._mask_form == "phystwin" and any(ctl for _, ctl in self._mask_ids)
 
+    def with_cameras(self, cameras: Sequence[int]) -> "Recording":
+        """The same recording seen by the cameras ``cameras`` only (indices into this one's, in that order):
+        every per-camera attribute is narrowed, the files are the same. Used to rebuild the frame-0 body from
+        fewer views (how much its shape depends on each view)."""
+        import copy
+
+        idx = [self._cam(c) for c in cameras]
+        if not idx or len(set(idx)) != len(idx):
+            raise ValueError(f"with_cameras: need distinct camera indices, at least one, got {list(cameras)}")
+        sub = copy.copy(self)
+        sub.intrinsics, sub.c2w = np.asarray(self.intrinsics)[idx], np.asarray(self.c2w)[idx]
+        sub.num_cameras = len(idx)
+        for name in ("camera_names", "serial_numbers", "_color_dirs", "_depth_dirs", "_color", "_depth",
+                     "_mask_ids", "_mask_dirs"):
+            full = getattr(self, name)
+            setattr(sub, name, [full[i] for i in idx] if len(full) else full)
+        return sub
+
     def __repr__(self):
         return (f"Recording({str(self.path)!r}, cameras={self.num_cameras}, frames={self.num_frames}, "
                 f"{self.width}x{self.height} @ {self.fps:g} fps)")

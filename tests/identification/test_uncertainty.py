@@ -85,6 +85,33 @@ def test_intervals_cover_the_true_E(exact_fits):
 
 
 @pytest.mark.slow
+def test_other_bodies_put_the_shape_into_the_interval(exact_fits):
+    """A body of another shape (the rope 20 % thinner, as a reconstruction from fewer views might give) moves
+    the loss's minimum; pooled in, the interval spans both minima. One that could not be rebuilt, or none at
+    all with a stated completion prior, is said in the warnings."""
+    p, r = exact_fits[0]
+    x, v = sample_cylinder((-0.12, 0, 0.016), (0.12, 0, 0.016), 0.016, p.scene.dx, 8, seed=7, jitter=0.5)
+    thin = dataclasses.replace(p.scene, particles=x, volumes=v)
+    alone = assess_fit(r, p.scene, p.obs, resample_bodies=0)
+    both = assess_fit(r, p.scene, p.obs, resample_bodies=0,
+                      other_bodies=[("thin", thin), ("without camera 2: encloses no volume", None)])
+    m = both["identifiability"]["body_minima"]
+    assert set(m) == {"fitted body", "thin"}
+    lo0, hi0 = alone["uncertainty"]["E"]["interval"]
+    lo, hi = both["uncertainty"]["E"]["interval"]
+    # a thinner rope bends more at the same E: its minimum is stiffer, outside the shape-blind interval
+    assert m["thin"] > 1.1 * m["fitted body"] and m["thin"] > hi0, (m, hi0)
+    assert lo <= m["fitted body"] <= hi and lo <= m["thin"] <= hi, (m, lo, hi)
+    assert lo <= lo0 * 1.01 and hi > hi0
+    w = " ".join(both["identifiability"]["warnings"])
+    assert "could not be rebuilt without camera 2" in w
+    assert "rebuilt without each camera in turn (1 bodies)" in both["identifiability"]["method"]
+    note = assess_fit(r, p.scene, p.obs, resample_bodies=0, body_note="single-view (1 camera(s), ...)")
+    assert "shape is taken as given (single-view (1 camera(s), ...))" in " ".join(
+        note["identifiability"]["warnings"])
+
+
+@pytest.mark.slow
 def test_intervals_shrink_with_more_tracks(exact_fits):
     p, r = exact_fits[0]
     few = Observations(p.obs.fps, p.obs.points, tracks=p.obs.tracks[:, :8], visibility=p.obs.visibility[:, :8])
