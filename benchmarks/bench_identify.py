@@ -24,7 +24,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 OBJECTS = {
     "rope": {"params": ("E",)},
@@ -33,17 +32,23 @@ OBJECTS = {
 
 
 def load_problem(rec, args):
-    """(scene, observations, views, ground truth, load seconds) of a synthetic recording."""
-    from empm_gym.identification.data import load_recording
+    """(scene, observations, views, ground truth, load seconds, bodies) of a synthetic recording; ``bodies`` are
+    what :func:`assess_fit` needs for the body's shape: ``{"other_bodies", "body_note"}`` (the frame-0 body
+    rebuilt without each camera in turn, as ``empm identify`` does)."""
+    from empm_gym.identification.data import load_recording, view_jackknife_bodies
     from empm_gym.sim import MaterialConfig
 
     gt = json.loads((rec / "ground_truth.json").read_text())
     m = gt["material"]
     known = MaterialConfig(E=m["E"], nu=m["nu"], density=m["density"], yield_stress=m["yield_stress"])
     t0 = time.perf_counter()
+    info = {}
     scene, obs, views = load_recording(rec, dx=args.dx, material=known, table_friction=gt["table_friction"],
-                                       device=args.device, progress=not args.quiet)
-    return scene, obs, views, gt, time.perf_counter() - t0
+                                       device=args.device, progress=not args.quiet, info=info)
+    t_load = time.perf_counter() - t0
+    bodies = {"other_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=27),
+              "body_note": info.get("body_completion")}
+    return scene, obs, views, gt, t_load, bodies
 
 
 def run_one(obj, method, args, problem, cameras):
@@ -51,9 +56,10 @@ def run_one(obj, method, args, problem, cameras):
     from empm_gym.identification.offline import identify
     from empm_gym.identification.uncertainty import assess_fit
 
-    scene, obs, views, gt, t_load = problem
+    scene, obs, views, gt, t_load, bodies = problem
     if args.device:
-        scene.device = args.device
+        for sc in [scene] + [b for _, b in bodies["other_bodies"] if b is not None]:
+            sc.device = args.device
     m = gt["material"]
     params = tuple(args.params.split(",")) if args.params else OBJECTS[obj]["params"]
     init = {p: (m[p] if p != "friction" else gt["table_friction"]) * args.start_factor for p in params}
@@ -62,8 +68,9 @@ def run_one(obj, method, args, problem, cameras):
               popsize=args.popsize)
     res = identify(obs, scene, **kw)
     t0 = time.perf_counter()
-    res.extra.update(assess_fit(res, scene, obs))
+    res.extra.update(assess_fit(res, scene, obs, **bodies))
     t_assess = time.perf_counter() - t0
+    blind = assess_fit(res, scene, obs)["uncertainty"]  # without the shape's share, for comparison
     out_dir = Path(args.out_dir) / f"{obj}_c{cameras}_{method}"
     res.extra["dx"] = args.dx
     res.save(out_dir / "material.json")
@@ -76,8 +83,11 @@ def run_one(obj, method, args, problem, cameras):
         true = m[p] if p != "friction" else gt["table_friction"]
         u = res.extra["uncertainty"][p]
         lo, hi = u["interval"]
+        blo, bhi = blind[p]["interval"]
         rows.append({"object": obj, "cameras": cameras, "method": method, "param": p, "true": true, "init": init[p],
                      "interval": [lo, hi], "width_pct": 100.0 * (hi - lo) / true, "covered": bool(lo <= true <= hi),
+                     "interval_shape_blind": [blo, bhi], "covered_shape_blind": bool(blo <= true <= bhi),
+                     "body_minima": res.extra["identifiability"].get("body_minima"),
                      "determined": bool(u["determined"]), "assess_s": t_assess,
                      "warnings": res.extra["identifiability"]["warnings"],
                      "fitted": res.params[p], "error_pct": 100.0 * (res.params[p] / true - 1.0),
@@ -124,8 +134,8 @@ def main(argv=None):
             key = f"{obj}_c{C}"
             if args.problems:
                 with open(Path(args.problems) / f"{key}.pkl", "rb") as f:
-                    scene, obs, gt, t_load = pickle.load(f)
-                problem = (scene, obs, None, gt, t_load)
+                    scene, obs, gt, t_load, bodies = pickle.load(f)
+                problem = (scene, obs, None, gt, t_load, bodies)
             else:
                 t0 = time.perf_counter()
                 rec = synthesize(Path(args.out_dir) / f"rec_{key}", obj, seed=args.seed, frames=args.frames,
@@ -136,9 +146,9 @@ def main(argv=None):
                 problem = load_problem(rec, args)
                 if args.save_problems:
                     Path(args.save_problems).mkdir(parents=True, exist_ok=True)
-                    scene, obs, _, gt, t_load = problem
+                    scene, obs, _, gt, t_load, bodies = problem
                     with open(Path(args.save_problems) / f"{key}.pkl", "wb") as f:
-                        pickle.dump((scene, obs, gt, t_load), f)
+                        pickle.dump((scene, obs, gt, t_load, bodies), f)
                     print(f"saved the {key} problem to {args.save_problems}")
                     continue
             for method in args.methods.split(","):
@@ -146,17 +156,22 @@ def main(argv=None):
     if args.save_problems:
         return 0
     hdr = f"{'object':6s} {'cams':>4s} {'method':6s} {'param':12s} {'true':>10s} {'init':>10s} {'fitted':>10s} " \
-          f"{'err %':>7s} {'95 % interval':>21s} {'width %':>7s} {'covers':>6s} {'determ.':>7s} {'fit s':>7s} " \
+          f"{'err %':>7s} {'95 % interval':>21s} {'width %':>7s} {'covers':>6s} {'shape-blind interval':>21s} " \
+          f"{'covers':>6s} {'determ.':>7s} {'fit s':>7s} " \
           f"{'int. s':>6s} {'iters':>5s} {'N':>6s} {'loss':>9s} {'CD held':>8s} {'IoU held':>8s}"
     print(hdr)
     print("-" * len(hdr))
     for r in rows:
         iv = f"[{r['interval'][0]:.3g}, {r['interval'][1]:.3g}]"
+        bv = f"[{r['interval_shape_blind'][0]:.3g}, {r['interval_shape_blind'][1]:.3g}]"
         print(f"{r['object']:6s} {r['cameras']:4d} {r['method']:6s} {r['param']:12s} {r['true']:10.4g} {r['init']:10.4g} "
               f"{r['fitted']:10.4g} {r['error_pct']:7.2f} {iv:>21s} {r['width_pct']:7.1f} {'yes' if r['covered'] else 'no':>6s} "
-              f"{'yes' if r['determined'] else 'no':>7s} {r['fit_wall_s']:7.1f} {r['assess_s']:6.1f} {r['iters']:5d} "
+              f"{bv:>21s} {'yes' if r['covered_shape_blind'] else 'no':>6s} {'yes' if r['determined'] else 'no':>7s} {r['fit_wall_s']:7.1f} {r['assess_s']:6.1f} {r['iters']:5d} "
               f"{r['particles']:6d} {r['loss']:9.3g} {r['heldout_chamfer_m']:8.4f} {r['heldout_iou']:8.3f}")
     for r in rows:
+        if r.get("body_minima"):
+            print(f"  {r['object']} {r['cameras']} cameras: minimum per body: "
+                  + ", ".join(f"{k} {v:.4g}" for k, v in r["body_minima"].items()))
         for w in r["warnings"]:
             print(f"  {r['object']} {r['cameras']} cameras: {w}")
     out = Path(args.out_dir) / "results.json"
