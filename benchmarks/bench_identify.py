@@ -43,10 +43,11 @@ def load_problem(rec, args):
     known = MaterialConfig(E=m["E"], nu=m["nu"], density=m["density"], yield_stress=m["yield_stress"])
     t0 = time.perf_counter()
     info = {}
-    scene, obs, views = load_recording(rec, dx=args.dx, material=known, table_friction=gt["table_friction"],
-                                       device=args.device, progress=not args.quiet, info=info)
+    scene, obs, views = load_recording(rec, dx=args.dx, particles_per_cell=args.particles_per_cell, material=known,
+                                       table_friction=gt["table_friction"], device=args.device,
+                                       progress=not args.quiet, info=info)
     t_load = time.perf_counter() - t0
-    bodies = {"other_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=27),
+    bodies = {"other_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.particles_per_cell),
               "body_note": info.get("body_completion")}
     return scene, obs, views, gt, t_load, bodies
 
@@ -66,6 +67,8 @@ def run_one(obj, method, args, problem, cameras):
     F = max(2, int(round(args.train_fraction * obs.num_frames)))
     kw = dict(params=params, method=method, init=init, iters=args.iters, frames=F, progress=not args.quiet,
               popsize=args.popsize)
+    if args.lr:
+        kw["lr"] = args.lr
     res = identify(obs, scene, **kw)
     t0 = time.perf_counter()
     res.extra.update(assess_fit(res, scene, obs, **bodies))
@@ -110,7 +113,9 @@ def main(argv=None):
     p.add_argument("--width", type=int, default=848)
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--dx", type=float, default=0.01, help="identification grid cell (m)")
+    p.add_argument("--particles-per-cell", type=float, default=27, help="frame-0 fill (default 27, as identify)")
     p.add_argument("--iters", type=int, default=20, help="Adam steps / CMA-ES generations")
+    p.add_argument("--lr", type=float, default=None, help="Adam step in log space (default: identify's)")
     p.add_argument("--popsize", type=int, default=8)
     p.add_argument("--start-factor", type=float, default=3.0, help="start = truth x this factor")
     p.add_argument("--train-fraction", type=float, default=0.7)

@@ -88,6 +88,11 @@ def _base_material(init, params):
 
 
 def _identify(args) -> int:
+    # which options the user set (a time budget never changes those), then their defaults
+    args.user_set = {"particles_per_cell": args.particles_per_cell is not None, "iters": args.iters is not None,
+                     "lr": bool(args.lr), "frames": args.train_fraction is not None}
+    args.train_fraction = 0.7 if args.train_fraction is None else args.train_fraction
+    args.particles_per_cell = 27.0 if args.particles_per_cell is None else args.particles_per_cell
     if getattr(args, "model", "mpm") == "spring-mass":
         return _identify_spring_mass(args)
     from empm_gym.sim import MaterialConfig  # noqa: F401  (import errors surface early)
@@ -146,10 +151,20 @@ def _identify(args) -> int:
         return 0
     F = max(2, int(round(args.train_fraction * T)))
     iters = args.iters if args.iters is not None else int(resume["iterations_requested"]) if resume else 30
+    ppc = args.particles_per_cell
+    try:
+        plan, scene = _plan(args, scene, obs, resume, F, iters, ppc)
+    except (ValueError, OSError) as exc:
+        print(f"empm identify: error: {exc}", file=sys.stderr)
+        return 2
+    if plan is not None:
+        F, iters, ppc = plan.fit_frames, (iters if resume else plan.iters), plan.particles_per_cell
     kw = dict(params=params, method=args.method, init=init or None, iters=iters, frames=F,
               progress=not args.quiet, popsize=args.popsize)
-    if args.lr:
-        kw["lr"] = args.lr
+    if args.lr or (plan is not None and plan.lr):
+        kw["lr"] = args.lr or plan.lr
+    if plan is not None:
+        kw["memory_budget_bytes"] = plan.memory_budget_bytes
     done0 = int(resume["iterations_done"]) if resume else 0
     what = f"iterations {done0 + 1}-{iters} of {iters}, resuming {out}" if resume else f"{iters} iterations"
     if not resume:
@@ -169,7 +184,9 @@ def _identify(args) -> int:
             print(f"empm identify: stopped at once by a second signal; {out} not written", file=sys.stderr)
             return stop.exit_code
         res.extra["dx"] = scene.dx
-        res.extra["particles_per_cell"] = args.particles_per_cell
+        res.extra["particles_per_cell"] = ppc
+        if plan is not None:
+            res.extra["plan"] = plan.to_dict()
         res.extra["recording"] = str(Path(args.rec_dir).resolve())
         if stop.is_set():  # save what there is, skip the plots
             return _save_interrupted(res, out, stop, done0)
@@ -182,8 +199,9 @@ def _identify(args) -> int:
                   file=sys.stderr)
         from .data import view_jackknife_bodies
 
-        others = view_jackknife_bodies(args.rec_dir, scene, particles_per_cell=args.particles_per_cell)
-        a = assess_fit(res, scene, obs, other_bodies=others, body_note=body_info.get("body_completion"))
+        others = view_jackknife_bodies(args.rec_dir, scene, particles_per_cell=ppc)
+        a = assess_fit(res, scene, obs, other_bodies=others, body_note=body_info.get("body_completion"),
+                       resample_bodies=2 if plan is None else plan.resample_bodies)
         res.extra.update(a)
         undetermined = [k for k, u in a["uncertainty"].items() if not u["determined"]]
     res.save(out)
@@ -204,6 +222,40 @@ def _identify(args) -> int:
               file=sys.stderr)
         return 3
     return 0
+
+
+def _plan(args, scene, obs, resume, F: int, iters: int, ppc: float):
+    """``(FitPlan or None, scene)``: the Adam fit's settings for the time budget (:mod:`.budget`), said on stderr
+    with the estimate; a resumed fit takes the plan recorded in the file it continues."""
+    import dataclasses
+
+    from .budget import FitPlan, default_budget_s, plan_fit
+    from .data import rebuilt_scene
+
+    if args.method != "adam":
+        return None, scene
+    if resume is not None:
+        rec = resume.get("plan")
+        if not isinstance(rec, dict):
+            return None, scene
+        plan = FitPlan(**{k: v for k, v in rec.items() if k in {f.name for f in dataclasses.fields(FitPlan)}})
+        if plan.motion_margin is not None:
+            scene = dataclasses.replace(scene, motion_margin=plan.motion_margin)
+        if plan.particles_per_cell != ppc:
+            scene = rebuilt_scene(args.rec_dir, scene, particles_per_cell=plan.particles_per_cell,
+                                  points=obs.points[0])
+        return plan, scene
+    budget = default_budget_s(args.device) if args.budget_min is None else 60.0 * args.budget_min
+    from empm_gym.perception.recording import Recording
+
+    cams = Recording(args.rec_dir).num_cameras
+    plan, scene = plan_fit(scene, scene.material, fit_frames=F, iters=iters, particles_per_cell=ppc, budget_s=budget,
+                           fixed=args.user_set, views=cams if cams > 1 else 0, lr=args.lr,
+                           rebuild_body=lambda sc, q: rebuilt_scene(args.rec_dir, sc, particles_per_cell=q,
+                                                                    points=obs.points[0]),
+                           uncertainty=not args.no_uncertainty)
+    print(f"empm identify: {plan.describe()}", file=sys.stderr)
+    return plan, scene
 
 
 def _print_uncertainty(extra: dict) -> None:
@@ -323,11 +375,15 @@ def register(subparsers) -> None:
                    "the same recording and options)")
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate in log-parameter space (default 0.15)")
     p.add_argument("--popsize", type=int, default=6, help="CMA-ES population = simulated worlds (default 6)")
-    p.add_argument("--train-fraction", type=float, default=0.7, help="leading fraction of frames fitted (0.7)")
+    p.add_argument("--train-fraction", type=float, default=None, help="leading fraction of frames fitted (0.7)")
     p.add_argument("--frames", type=int, default=None, help="use only the first N frames of the recording")
     p.add_argument("--dx", type=float, default=0.01, help="simulation grid cell in m (default 0.01)")
-    p.add_argument("--particles-per-cell", type=float, default=27,
+    p.add_argument("--particles-per-cell", type=float, default=None,
                    help="particles per grid cell filling the frame-0 body (default 27)")
+    p.add_argument("--budget-min", type=float, default=None,
+                   help="time budget of an Adam fit and its intervals, in minutes (default: 10 on the CPU, none on "
+                        "a GPU; 0: none): the fit's cost is measured first and, when over, the options not given "
+                        "are reduced (grid margin, particles per cell, iterations, fitted frames); said up front")
     p.add_argument("--online", action="store_true", help="stream the recording through the online identifier")
     p.add_argument("--horizon", type=int, default=10, help="online: look-ahead H in frames (default 10)")
     p.add_argument("--every", type=int, default=5, help="online: at most one update every k frames (default 5)")

@@ -191,38 +191,53 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
     return x0, vol, report
 
 
-def view_jackknife_bodies(rec_dir, scene, *, particles_per_cell: float, voxel_m: float = 0.003,
-                          complete_hidden: bool = True, ee_friction: float = 0.8) -> List[Tuple[str, object]]:
-    """The frame-0 body rebuilt with each camera of the recording left out in turn, as scenes that differ from
-    ``scene`` (made by :func:`load_recording` from the same recording) only in the body and in the closed
-    grippers grown to reach it: ``[(label, Scene), ...]``, one per camera, empty for a one-camera recording.
-    A subset whose views cannot close a body is skipped (its label says so: ``(label, None)``). How far a fit
-    moves on these bodies is the share of the body's reconstructed shape in its uncertainty
-    (:func:`empm_gym.identification.uncertainty.assess_fit`)."""
+def rebuilt_scene(rec_dir, scene, *, particles_per_cell: float, cameras: Optional[List[int]] = None,
+                  points: Optional[np.ndarray] = None, voxel_m: float = 0.003, complete_hidden: bool = True,
+                  ee_friction: float = 0.8):
+    """``scene`` (made by :func:`load_recording` from ``rec_dir``) with its frame-0 body built again: at another
+    fill (``particles_per_cell``), from the cameras ``cameras`` only (default all), from the fused frame-0
+    ``points`` when given; the closed grippers grown to reach the new body. ValueError when the views cannot
+    close a body."""
     from dataclasses import replace
 
     from empm_gym.perception.fusion import load_controls
     from empm_gym.perception.recording import Recording, controls_to_end_effectors
 
     rec = Recording(rec_dir)
-    if rec.num_cameras < 2:
-        return []
+    if cameras is not None:
+        rec = rec.with_cameras(cameras)
     plane = (np.array([0.0, 0.0, 1.0]), -float(scene.table.height)) if scene.table is not None else None
-    cfgs, pos, grip = controls_to_end_effectors(load_controls(rec), friction=ee_friction)
-    orient = load_controls(rec).get("orientations")
+    controls = load_controls(rec)
+    cfgs, pos, grip = controls_to_end_effectors(controls, friction=ee_friction)
+    x0, vol, _ = frame0_body(rec, plane, cfgs, pos, grip, controls.get("orientations"), dx=scene.dx,
+                             particles_per_cell=particles_per_cell, voxel_m=voxel_m, complete_hidden=complete_hidden,
+                             points=points)
+    grown, _ = attach_grippers(cfgs, pos, grip, x0, scene.dx)
+    return replace(scene, particles=x0, volumes=vol, ee_configs=grown)
+
+
+def view_jackknife_bodies(rec_dir, scene, *, particles_per_cell: float, voxel_m: float = 0.003,
+                          complete_hidden: bool = True, ee_friction: float = 0.8) -> List[Tuple[str, object]]:
+    """The frame-0 body rebuilt with each camera of the recording left out in turn (:func:`rebuilt_scene`), as
+    scenes that differ from ``scene`` (made by :func:`load_recording` from the same recording) only in the body
+    and in the closed grippers grown to reach it: ``[(label, Scene), ...]``, one per camera, empty for a
+    one-camera recording. A subset whose views cannot close a body gives ``(label saying why, None)``. How far
+    a fit moves on these bodies is the share of the body's reconstructed shape in its uncertainty
+    (:func:`empm_gym.identification.uncertainty.assess_fit`)."""
+    from empm_gym.perception.recording import Recording
+
+    rec = Recording(rec_dir)
     out = []
-    for c in range(rec.num_cameras):
-        keep = [i for i in range(rec.num_cameras) if i != c]
+    for c in range(rec.num_cameras if rec.num_cameras > 1 else 0):
         label = f"without camera {rec.camera_names[c]}"
         try:
-            x0, vol, _ = frame0_body(rec.with_cameras(keep), plane, cfgs, pos, grip, orient, dx=scene.dx,
-                                     particles_per_cell=particles_per_cell, voxel_m=voxel_m,
-                                     complete_hidden=complete_hidden)
+            sc = rebuilt_scene(rec_dir, scene, particles_per_cell=particles_per_cell,
+                               cameras=[i for i in range(rec.num_cameras) if i != c], voxel_m=voxel_m,
+                               complete_hidden=complete_hidden, ee_friction=ee_friction)
         except ValueError as exc:
             out.append((f"{label}: {exc}", None))
             continue
-        grown, _ = attach_grippers(cfgs, pos, grip, x0, scene.dx)
-        out.append((label, replace(scene, particles=x0, volumes=vol, ee_configs=grown)))
+        out.append((label, sc))
     return out
 
 
