@@ -176,7 +176,7 @@ def main(argv=None):
     for r in rows:
         if r.get("body_minima"):
             print(f"  {r['object']} {r['cameras']} cameras: minimum per body: "
-                  + ", ".join(f"{k} {v:.4g}" for k, v in r["body_minima"].items()))
+                  + ", ".join(f"{k} {'none' if v is None else f'{v:.4g}'}" for k, v in r["body_minima"].items()))
         for w in r["warnings"]:
             print(f"  {r['object']} {r['cameras']} cameras: {w}")
     out = Path(args.out_dir) / "results.json"

@@ -432,8 +432,9 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                               f"bodies)" if len(variants) > 1 + int(resample_bodies) else "")
                            + "; assumes the model is right up to stationary, weakly dependent noise"
                            + ("" if len(variants) > 1 + int(resample_bodies) else " and the frame-0 body's shape")),
-                "body_minima": ({lab: _from_z(space, names[0], z0[0] + (m["step"][0] if np.isfinite(m["step"][0])
-                                                                        else 0.0))
+                # per body: where the loss's local model puts the minimum (None: it has none, the loss runs on)
+                "body_minima": ({lab: (_from_z(space, names[0], z0[0] + m["step"][0]) if np.isfinite(m["step"][0])
+                                       else None)
                                  for lab, m in zip(labels, nbs)} if n == 1 else None),
                 "warnings": warnings, "combinations": combos, "correlation": corr, "resolution": resolution,
                 "curvature": nb["H"].tolist(), "quadratic_misfit": nb["residual"]}}
