@@ -381,7 +381,7 @@ def register(subparsers) -> None:
     p.add_argument("--particles-per-cell", type=float, default=None,
                    help="particles per grid cell filling the frame-0 body (default 27)")
     p.add_argument("--budget-min", type=float, default=None,
-                   help="time budget of an Adam fit and its intervals, in minutes (default: 10 on the CPU, none on "
+                   help="time budget of an Adam fit and its intervals, in minutes (default: 9 on the CPU, none on "
                         "a GPU; 0: none): the fit's cost is measured first and, when over, the options not given "
                         "are reduced (grid margin, particles per cell, iterations, fitted frames); said up front")
     p.add_argument("--online", action="store_true", help="stream the recording through the online identifier")

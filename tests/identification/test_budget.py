@@ -9,7 +9,7 @@ import pytest
 
 from empm_gym.cli import main
 from empm_gym.identification.budget import estimate_s, plan_fit
-from empm_gym.sim import sample_cylinder
+from empm_gym.sim import sample_box, sample_cylinder
 
 from . import scenes
 
@@ -39,19 +39,27 @@ def test_plan_changes_only_what_the_user_left_open(rope):
     plan, sc = plan_fit(rope, m, fit_frames=24, iters=30, particles_per_cell=27, budget_s=None, fixed=free, views=2,
                         rebuild_body=_thin_body)
     assert sc is rope and not plan.steps and plan.estimate_s == plan.default_estimate_s > 0
+    # a 4 cm rope at dx = 2 cm is under 2 cells thick (body_thickness: 1.7): its fill is kept, the rest reduced
     plan, sc = plan_fit(rope, m, fit_frames=24, iters=30, particles_per_cell=27, budget_s=1e-3, fixed=free, views=2,
                         rebuild_body=_thin_body)
-    assert (plan.particles_per_cell, plan.iters, plan.lr, plan.resample_bodies) == (8.0, 12, 0.3, 0)
+    assert (plan.particles_per_cell, plan.iters, plan.lr, plan.resample_bodies) == (27, 12, 0.3, 0)
     assert plan.fit_frames == 16 and plan.motion_margin == 0.0 and sc.motion_margin == 0.0
-    assert len(sc.particles) == len(_thin_body(rope, 8).particles) and plan.estimate_s < plan.default_estimate_s
+    assert sc.particles is rope.particles and plan.estimate_s < plan.default_estimate_s
+    assert "27 particles per cell kept: the body is 1.7 cells thick" in plan.describe()
     assert np.prod(np.subtract(sc.grid_config().upper, sc.grid_config().lower)) < \
         np.prod(np.subtract(rope.grid_config().upper, rope.grid_config().lower))
     assert "still over the budget" in plan.describe() and "--budget-min 0" in plan.describe()
+    # a 12 cm block is 6 cells thick: 8 particles per cell
+    x, v = sample_box((-0.06, -0.06, 0.0), (0.06, 0.06, 0.12), 0.02, 27)
+    block = dataclasses.replace(rope, particles=x, volumes=v)
+    plan, sc = plan_fit(block, m, fit_frames=24, iters=30, particles_per_cell=27, budget_s=1e-3, fixed=free, views=2,
+                        rebuild_body=_thin_body)
+    assert plan.particles_per_cell == 8.0 and len(sc.particles) == len(_thin_body(rope, 8).particles)
     fixed = dict(particles_per_cell=True, iters=True, lr=True, frames=True)
-    plan, sc = plan_fit(rope, m, fit_frames=24, iters=30, particles_per_cell=27, budget_s=1e-3, fixed=fixed, views=2,
+    plan, sc = plan_fit(block, m, fit_frames=24, iters=30, particles_per_cell=27, budget_s=1e-3, fixed=fixed, views=2,
                         rebuild_body=_thin_body, lr=0.2)
     assert (plan.particles_per_cell, plan.iters, plan.lr, plan.fit_frames) == (27, 30, 0.2, 24)
-    assert sc.particles is rope.particles
+    assert sc.particles is block.particles
 
 
 @pytest.fixture(scope="module")
@@ -67,15 +75,15 @@ def test_cli_says_the_estimate_and_records_the_plan(rec, tmp_path, capsys):
     assert main(["identify", str(rec), "--out", str(out), "--dx", "0.02", "--iters", "2", "--no-rrd", "--quiet",
                  "--no-uncertainty"]) == 0
     err = capsys.readouterr().err
-    assert "empm identify: estimated about" in err and "budget 10.0 min" in err
+    assert "empm identify: estimated about" in err and "budget 9.0 min" in err
     fit = json.loads(out.read_text())["fit"]
     assert fit["plan"]["steps"] == [] and fit["particles_per_cell"] == 27
     # a budget the defaults miss: the options not given are reduced, the given one (--iters) kept
     assert main(["identify", str(rec), "--out", str(out), "--dx", "0.02", "--iters", "2", "--no-rrd", "--quiet",
                  "--no-uncertainty", "--budget-min", "0.001"]) == 0
     err = capsys.readouterr().err
-    assert "over the budget of 0 s (--budget-min); planned instead:" in err and "8 particles per cell" in err
+    assert "over the budget of 0 s (--budget-min); planned instead:" in err and "particles per cell kept" in err
     assert "12 Adam iterations" not in err
     fit = json.loads(out.read_text())["fit"]
-    assert fit["plan"]["particles_per_cell"] == 8.0 and fit["particles_per_cell"] == 8.0
+    assert fit["plan"]["particles_per_cell"] == 27 and fit["particles_per_cell"] == 27
     assert fit["plan"]["motion_margin"] == 0.0 and fit["iterations_done"] == 2

@@ -307,8 +307,8 @@ def test_cli_sigterm_before_the_first_iteration_leaves_the_file(rec, tmp_path):
 
 
 def test_cli_resume_keeps_the_time_budget_plan(rec, tmp_path, capsys):
-    """A fit planned for a time budget (another body fill and grid) resumes on the same plan, read from the
-    file, whatever the budget and the machine's speed are when it resumes."""
+    """A fit planned for a time budget (here a tighter grid) resumes on the same plan, read from the file,
+    whatever the budget and the machine's speed are when it resumes."""
     out = tmp_path / "material.json"
     run = _Run([rec, "--out", out, "--iters", 30, "--dx", "0.02", "--no-rrd", "--budget-min", "0.001"], tmp_path,
                out)
@@ -316,11 +316,11 @@ def test_cli_resume_keeps_the_time_budget_plan(rec, tmp_path, capsys):
     run.wait_for(r"\b([1-9]\d*)/30\b")
     run.proc.send_signal(signal.SIGINT)
     assert run.finish() == 130, run.err[-3000:]
-    assert "planned instead" in run.err and "8 particles per cell" in run.err
+    assert "planned instead" in run.err and "a grid 4 cells beyond the observed motion" in run.err
     fit = json.loads(out.read_text())["fit"]
     n = fit["iterations_done"]
-    assert fit["plan"]["particles_per_cell"] == 8.0 and fit["complete"] is False
+    assert fit["plan"]["motion_margin"] == 0.0 and fit["complete"] is False
     assert main(["identify", str(rec), "--out", str(out), "--resume", "--iters", str(n + 1), "--dx", "0.02",
                  "--no-rrd", "--quiet", "--no-uncertainty"]) == 0, capsys.readouterr().err[-3000:]
     fit = json.loads(out.read_text())["fit"]
-    assert fit["complete"] is True and fit["iterations_done"] == n + 1 and fit["particles_per_cell"] == 8.0
+    assert fit["complete"] is True and fit["iterations_done"] == n + 1 and fit["plan"]["motion_margin"] == 0.0
