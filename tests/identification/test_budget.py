@@ -42,7 +42,7 @@ def test_plan_changes_only_what_the_user_left_open(rope):
     # a 4 cm rope at dx = 2 cm is under 2 cells thick (body_thickness: 1.7): its fill is kept, the rest reduced
     plan, sc = plan_fit(rope, m, fit_frames=24, iters=30, particles_per_cell=27, budget_s=1e-3, fixed=free, views=2,
                         rebuild_body=_thin_body)
-    assert (plan.particles_per_cell, plan.iters, plan.lr, plan.resample_bodies) == (27, 12, 0.3, 0)
+    assert (plan.particles_per_cell, plan.iters, plan.lr, plan.resample_bodies) == (27, 8, 0.3, 0)
     assert plan.fit_frames == 16 and plan.motion_margin == 0.0 and sc.motion_margin == 0.0
     assert sc.particles is rope.particles and plan.estimate_s < plan.default_estimate_s
     assert "27 particles per cell kept: the body is 1.7 cells thick" in plan.describe()
