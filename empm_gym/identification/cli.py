@@ -153,7 +153,7 @@ def _identify(args) -> int:
     iters = args.iters if args.iters is not None else int(resume["iterations_requested"]) if resume else 30
     ppc = args.particles_per_cell
     try:
-        plan, scene = _plan(args, scene, obs, resume, F, iters, ppc)
+        plan, scene = _plan(args, scene, obs, resume, F, iters, ppc, len(views.cameras))
     except (ValueError, OSError) as exc:
         print(f"empm identify: error: {exc}", file=sys.stderr)
         return 2
@@ -224,7 +224,7 @@ def _identify(args) -> int:
     return 0
 
 
-def _plan(args, scene, obs, resume, F: int, iters: int, ppc: float):
+def _plan(args, scene, obs, resume, F: int, iters: int, ppc: float, cams: int):
     """``(FitPlan or None, scene)``: the Adam fit's settings for the time budget (:mod:`.budget`), said on stderr
     with the estimate; a resumed fit takes the plan recorded in the file it continues."""
     import dataclasses
@@ -246,9 +246,6 @@ def _plan(args, scene, obs, resume, F: int, iters: int, ppc: float):
                                   points=obs.points[0])
         return plan, scene
     budget = default_budget_s(args.device) if args.budget_min is None else 60.0 * args.budget_min
-    from empm_gym.perception.recording import Recording
-
-    cams = Recording(args.rec_dir).num_cameras
     plan, scene = plan_fit(scene, scene.material, fit_frames=F, iters=iters, particles_per_cell=ppc, budget_s=budget,
                            fixed=args.user_set, views=cams if cams > 1 else 0, lr=args.lr,
                            rebuild_body=lambda sc, q: rebuilt_scene(args.rec_dir, sc, particles_per_cell=q,
