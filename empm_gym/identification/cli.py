@@ -110,6 +110,9 @@ def _identify(args) -> int:
         init = _parse_init(args.init)
         if not (0.0 < args.train_fraction <= 1.0):
             raise ValueError(f"--train-fraction must lie in (0, 1], got {args.train_fraction}")
+        if args.budget_min is not None and not args.budget_min >= 0.0:
+            raise ValueError(f"--budget-min must be 0 (no budget) or a positive number of minutes, got "
+                             f"{args.budget_min}")
         if args.resume:
             if args.online:
                 raise ValueError("--resume continues an interrupted offline fit; it does not apply to --online")
@@ -238,7 +241,10 @@ def _plan(args, scene, obs, resume, F: int, iters: int, ppc: float, cams: int):
         rec = resume.get("plan")
         if not isinstance(rec, dict):
             return None, scene
-        plan = FitPlan(**{k: v for k, v in rec.items() if k in {f.name for f in dataclasses.fields(FitPlan)}})
+        try:
+            plan = FitPlan(**{k: v for k, v in rec.items() if k in {f.name for f in dataclasses.fields(FitPlan)}})
+        except TypeError as exc:
+            raise ValueError(f"cannot resume from {args.out}: its fit.plan is incomplete ({exc})") from None
         if plan.motion_margin is not None:
             scene = dataclasses.replace(scene, motion_margin=plan.motion_margin)
         if plan.particles_per_cell != ppc:

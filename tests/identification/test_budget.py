@@ -87,3 +87,10 @@ def test_cli_says_the_estimate_and_records_the_plan(rec, tmp_path, capsys):
     fit = json.loads(out.read_text())["fit"]
     assert fit["plan"]["particles_per_cell"] == 27 and fit["particles_per_cell"] == 27
     assert fit["plan"]["motion_margin"] == 0.0 and fit["iterations_done"] == 2
+
+
+def test_cli_refuses_a_negative_budget(rec, tmp_path, capsys):
+    out = tmp_path / "m.json"
+    assert main(["identify", str(rec), "--out", str(out), "--budget-min", "-1"]) == 2
+    assert "--budget-min must be 0 (no budget) or a positive number of minutes, got -1.0" in capsys.readouterr().err
+    assert not out.exists()
