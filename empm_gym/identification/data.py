@@ -194,7 +194,8 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
 def rebuilt_scene(rec_dir, scene, *, particles_per_cell: float, cameras: Optional[List[int]] = None,
                   points: Optional[np.ndarray] = None, voxel_m: float = 0.003, complete_hidden: bool = True,
                   ee_friction: float = 0.8):
-    """``scene`` (made by :func:`load_recording` from ``rec_dir``) with its frame-0 body built again: at another
+    """``scene`` (made by :func:`load_recording` from ``rec_dir``, a path or an open Recording) with its frame-0
+    body built again: at another
     fill (``particles_per_cell``), from the cameras ``cameras`` only (default all), from the fused frame-0
     ``points`` when given; the closed grippers grown to reach the new body. ValueError when the views cannot
     close a body."""
@@ -203,7 +204,7 @@ def rebuilt_scene(rec_dir, scene, *, particles_per_cell: float, cameras: Optiona
     from empm_gym.perception.fusion import load_controls
     from empm_gym.perception.recording import Recording, controls_to_end_effectors
 
-    rec = Recording(rec_dir)
+    rec = rec_dir if isinstance(rec_dir, Recording) else Recording(rec_dir)
     if cameras is not None:
         rec = rec.with_cameras(cameras)
     plane = (np.array([0.0, 0.0, 1.0]), -float(scene.table.height)) if scene.table is not None else None
@@ -231,7 +232,7 @@ def view_jackknife_bodies(rec_dir, scene, *, particles_per_cell: float, voxel_m:
     for c in range(rec.num_cameras if rec.num_cameras > 1 else 0):
         label = f"without camera {rec.camera_names[c]}"
         try:
-            sc = rebuilt_scene(rec_dir, scene, particles_per_cell=particles_per_cell,
+            sc = rebuilt_scene(rec, scene, particles_per_cell=particles_per_cell,
                                cameras=[i for i in range(rec.num_cameras) if i != c], voxel_m=voxel_m,
                                complete_hidden=complete_hidden, ee_friction=ee_friction)
         except ValueError as exc:
