@@ -195,8 +195,7 @@ def rebuilt_scene(rec_dir, scene, *, particles_per_cell: float, cameras: Optiona
                   points: Optional[np.ndarray] = None, voxel_m: float = 0.003, complete_hidden: bool = True,
                   ee_friction: float = 0.8):
     """``scene`` (made by :func:`load_recording` from ``rec_dir``, a path or an open Recording) with its frame-0
-    body built again: at another
-    fill (``particles_per_cell``), from the cameras ``cameras`` only (default all), from the fused frame-0
+    body built again: at another fill (``particles_per_cell``), from the cameras ``cameras`` only (default all), from the fused frame-0
     ``points`` when given; the closed grippers grown to reach the new body. ValueError when the views cannot
     close a body."""
     from dataclasses import replace
