@@ -199,6 +199,42 @@ def _pull_apart(T: int, g: ObjectGeometry) -> ScriptResult:
     return ScriptResult(pos, grip, ees, (lo, hi))
 
 
+def _lift_end(T: int, g: ObjectGeometry) -> ScriptResult:
+    sx, sy, sz = g.size
+    start, ees, _ = _end_grippers(g)
+    # one end held where it lies; the other lifted by half the length and drawn outwards by a fifth of it,
+    # held there to the end: the body stretches and bends over the held end while its underside slides
+    # along the table towards the lifted end (as far as the table's friction lets it)
+    _, a, b, _ = _phases(T, [0.06, 0.4, 0.54])
+    t = np.arange(T, dtype=np.float64)
+    s = _ramp(t, a, b)
+    pos = np.repeat(start[None], T, axis=0)
+    pos[:, 1, 2] += 0.5 * sx * s
+    pos[:, 1, 0] += 0.2 * sx * s
+    grip = np.ones((T, 2), np.int32)
+    lo, hi = (-sx / 2, -sy / 2, 0.0), (sx / 2 + 0.2 * sx + 0.01, sy / 2, sz + 0.5 * sx)
+    return ScriptResult(pos, grip, ees, (lo, hi))
+
+
+def _drag(T: int, g: ObjectGeometry) -> ScriptResult:
+    sx, sy, sz = g.size
+    start, ees, _ = _end_grippers(g)
+    start, ees = start[:1], ees[:1]
+    # a closed gripper on the -x end drags the object 4 cm along +x over the table with constant acceleration,
+    # stops and opens: the object slides on by itself, out of the open gripper (as far as the table's friction
+    # lets it); the open gripper stays where it stopped
+    _, a, b, _ = _phases(T, [0.06, 0.34, 0.6])
+    t = np.arange(T, dtype=np.float64)
+    drag = 0.04
+    u = np.clip((t - a) / max(b - a, 1), 0.0, 1.0)
+    pos = np.repeat(start[None], T, axis=0)
+    pos[:, 0, 0] += drag * u**2
+    grip = np.zeros((T, 1), np.int32)
+    grip[:b] = 1
+    lo, hi = (-sx / 2, -sy / 2, 0.0), (sx / 2 + 0.15, sy / 2, sz)
+    return ScriptResult(pos, grip, ees, (lo, hi))
+
+
 def _squeeze_ring(T: int, g: ObjectGeometry) -> ScriptResult:
     sx, sy, sz = g.size
     hz = _THICK
@@ -223,6 +259,8 @@ SCRIPTS: Dict[str, Callable[[int, ObjectGeometry], ScriptResult]] = {
     "squeeze-lift": _squeeze_lift,
     "pull-apart": _pull_apart,
     "squeeze-ring": _squeeze_ring,
+    "lift-end": _lift_end,
+    "drag": _drag,
 }
 
 
