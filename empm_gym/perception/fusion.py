@@ -479,7 +479,8 @@ def complete_occluded(points: np.ndarray, rec: Recording, t: int, ee_configs, ee
             continue
         cand = cand[_hidden(cand, rec, t, front_m=0.5 * spacing_m)]
         if grip[k] and cfg.shape == "box" and len(cand):
-            cand = cand[_within_entry_half(cand, pts, pos[k], R, half, spacing_m, reach_m)]
+            cand = cand[_within_entry_half(cand, pts, pos[k], R, np.asarray(cfg.half_extents, float), spacing_m,
+                                           reach_m)]
         if end_effectors_only and len(cand):
             cand = cand[hidden_by_end_effectors(cand, rec.cameras, ee_configs, pos, ee_orientations)]
         if len(cand) == 0:
@@ -498,10 +499,10 @@ def complete_occluded(points: np.ndarray, rec: Recording, t: int, ee_configs, ee
     return np.concatenate(out) if out else np.zeros((0, 3))
 
 
-def _within_entry_half(cand: np.ndarray, pts: np.ndarray, centre: np.ndarray, R: np.ndarray, half: np.ndarray,
+def _within_entry_half(cand: np.ndarray, pts: np.ndarray, centre: np.ndarray, R: np.ndarray, hx: np.ndarray,
                        spacing_m: float, reach_m: float) -> np.ndarray:
-    """Mask of the hidden candidates [M, 3] that a closed box gripper (centre, rotation R, world half extents
-    ``half``) is taken to hold: those on the body's side of its centre plane across the horizontal box axis along
+    """Mask of the hidden candidates [M, 3] that a closed box gripper (centre, rotation R, half extents ``hx`` in
+    its own frame) is taken to hold: those on the body's side of its centre plane across the horizontal box axis along
     which the visible body ``pts`` enters it, and within the visible body's width across that axis (half a
     spacing around the visible points next to the box).
 
@@ -512,7 +513,6 @@ def _within_entry_half(cand: np.ndarray, pts: np.ndarray, centre: np.ndarray, R:
     box, every candidate is kept."""
     rel = pts - centre
     loc = rel @ R                                  # visible points in the box's frame
-    hx = np.abs(R).T @ half                        # the box's own half extents (x, y, z)
     outside = np.any(np.abs(loc) > hx + 0.5 * spacing_m, axis=1)
     nearby = outside & np.all(np.abs(loc) <= hx + reach_m, axis=1)
     if nearby.sum() < 10:

@@ -64,8 +64,8 @@ from .cameras import Camera, intrinsics_matrix, look_at, pixel_rays
 from .recording import RecordingError, RecordingWriter
 from .scripts import SCRIPTS, ObjectGeometry, _phases, _smooth, run_script
 
-__all__ = ["synthesize", "simulate", "effect_signature", "effect_material", "default_effect_params", "register", "OBJECT_DEFAULTS",
-           "DEFAULT_SCRIPT", "render_view", "add_depth_noise", "camera_ring", "SurfaceEmbedding"]
+__all__ = ["synthesize", "simulate", "effect_signature", "effect_material", "default_effect_params", "register",
+           "OBJECT_DEFAULTS", "DEFAULT_SCRIPT", "render_view", "add_depth_noise", "camera_ring", "SurfaceEmbedding"]
 
 #: Default material parameters per object (SI: Pa, -, kg/m^3, Pa). They are chosen so that the
 #: scripted motion shows them: a soft rubber rope (E / density sets how far the lifted, stretched rope
@@ -315,7 +315,6 @@ def simulate(object: str, material, *, script: str = "default", frames: int = 60
 # ----------------------------------------------------------------------------------------------
 
 
-
 def effect_signature(object: str, script: str, effect: str, *, frames: int = 30, held_out: float = 0.3,
                      effect_params: Optional[Dict[str, float]] = None, **kwargs) -> float:
     """How much a recording can show of ``effect``: the mean Chamfer distance [m], over the last ``held_out``
@@ -323,16 +322,14 @@ def effect_signature(object: str, script: str, effect: str, *, frames: int = 30,
     effect (its defaults, updated by ``effect_params``) and without it (``simulate`` kwargs pass on). Below the
     depth noise (about 1 mm) the effect is practically not in the recording. For benchmarks and tests: it
     needs the true material."""
-    from scipy.spatial import cKDTree
+    from empm_gym.identification.losses import chamfer_numpy
 
     if effect in (None, "none"):
         return 0.0
-    runs = [simulate(object, effect_material(object, e, p)[0], script=script, frames=frames, **kwargs)["particles"]
+    a, b = [simulate(object, effect_material(object, e, p)[0], script=script, frames=frames, **kwargs)["particles"]
             for e, p in (("none", None), (effect, effect_params))]
     first = min(frames - 1, int(round((1.0 - held_out) * frames)))
-    a, b = runs
-    return float(np.mean([0.5 * (cKDTree(a[t]).query(b[t])[0].mean() + cKDTree(b[t]).query(a[t])[0].mean())
-                          for t in range(first, frames)]))
+    return float(np.mean([chamfer_numpy(a[t], b[t]) for t in range(first, frames)]))
 
 
 def _rope_surface(spacing: float):
