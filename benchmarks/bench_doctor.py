@@ -107,13 +107,12 @@ def diagnose_all(problems: Path, args):
         res = diagnose(scene, prob["obs"], None, config=cfg, progress=False)
         wall = time.perf_counter() - t0
         truth, verdict = prob["truth"], res["effect"]
-        red = gap = float("nan")
+        red = float("nan")
         if truth != "none" and res.get("candidates"):
             c = next(c for c in res["candidates"] if c["effect"] == truth)
             red = 1.0 - c["heldout"]["chamfer_m"] / res["base"]["heldout"]["chamfer_m"]
-            gap = float("nan") if c["heldout"].get("gap_closed") is None else c["heldout"]["gap_closed"]
         row = {"recording": path.stem, "script": prob["script"], "truth": truth, "verdict": verdict,
-               "confidence": res.get("confidence", 0.0), "reduction": red, "gap_closed": gap,
+               "confidence": res.get("confidence", 0.0), "reduction": red,
                "signature_m": prob.get("signature_m"), "wall_s": wall}
         rows.append(row)
         if args.jsonl:
@@ -121,8 +120,8 @@ def diagnose_all(problems: Path, args):
                 f.write(json.dumps(row) + "\n")
         sig = float("nan") if row["signature_m"] is None else 1e3 * row["signature_m"]
         print(f"{path.stem:48s} truth {truth:24s} (signature {sig:5.2f} mm) verdict {verdict:24s} "
-              f"conf {row['confidence']:.2f} held-out Chamfer reduction (true effect) {100 * red:6.1f} %, "
-              f"gap closed {100 * gap:6.1f} %  {wall:6.1f} s", flush=True)
+              f"conf {row['confidence']:.2f} held-out Chamfer reduction (true effect) {100 * red:6.1f} %  "
+              f"{wall:6.1f} s", flush=True)
     summarise(rows)
 
 
@@ -169,10 +168,6 @@ def _table(rows):
           f"wall time per recording median {np.median(walls):.1f} s, max {np.max(walls):.1f} s")
     if natural:
         print(f"on each effect's natural script only: accuracy {100 * np.mean(natural):.1f} % of {len(natural)}")
-    gaps = [r["gap_closed"] for r in full if r["truth"] != "none" and r.get("gap_closed") is not None]
-    if gaps:
-        print(f"median share of the held-out Chamfer's excess over its frame-0 floor closed by the true effect "
-              f"{100 * np.nanmedian(gaps):.1f} %")
     # against what each recording shows: an effect whose held-out signature is below EXPRESSED_M is not in the
     # data, and `none` is then a right verdict as well
     known = [r for r in full if r.get("signature_m") is not None]
@@ -184,8 +179,7 @@ def _table(rows):
               f"{1e3 * EXPRESSED_M:g} mm may be called none): accuracy {100 * np.mean(ok):.1f} % of {len(known)}; "
               f"recordings that show their effect: {100 * np.mean([r['verdict'] == r['truth'] for r in shown]):.1f} % "
               f"of {len(shown)}; median Chamfer reduction on them "
-              f"{100 * np.nanmedian([r['reduction'] for r in shown if r['truth'] != 'none']):.1f} %, gap closed "
-              f"{100 * np.nanmedian([r.get('gap_closed', np.nan) for r in shown if r['truth'] != 'none']):.1f} %")
+              f"{100 * np.nanmedian([r['reduction'] for r in shown if r['truth'] != 'none']):.1f} %")
 
 
 def main(argv=None):

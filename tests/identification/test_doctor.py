@@ -106,8 +106,6 @@ def test_doctor_names_the_hidden_effect(tmp_path, effect, script):
     print(f"{effect} on {script}: verdict {res['effect']} ({res['confidence']:.2f}); base held-out "
           f"{1e3 * res['base']['heldout']['chamfer_m']:.2f} mm; {table}")
     assert res["effect"] == effect, res["reason"]
-    # the frame-0 floor (the rest body against its own points) lies under every held-out score
-    assert 0.0 < res["chamfer_floor_m"] < min(c["heldout"]["chamfer_m"] for c in [res["base"], *res["candidates"]])
     if effect != "none":
         best = next(c for c in res["candidates"] if c["effect"] == effect)
         assert best["heldout"]["loss"] < res["base"]["heldout"]["loss"]

@@ -304,16 +304,9 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     X = _simulate_fits(fits, T)
     per = [_per_frame_losses(objective, X[:, w]) for w in range(len(fits))]
     base_loss = per[0]["loss"][heldout]
-    # frame 0 is the rest body against the points it was built from, the same for every model: the Chamfer that
-    # the body's resolution and the depth noise leave, which no model can beat; "gap" is the excess over it
-    floor = float(per[0]["chamfer"][0])
-    base_gap = float(np.mean(per[0]["chamfer"][heldout])) - floor
     for f, pf in zip(fits, per):
-        ch = float(np.mean(pf["chamfer"][heldout]))
         f.heldout = {"loss": float(np.mean(pf["loss"][heldout])),
-                     "chamfer_m": ch,
-                     "chamfer_gap_m": ch - floor,
-                     "gap_closed": (base_gap - (ch - floor)) / base_gap if base_gap > 0 else None,
+                     "chamfer_m": float(np.mean(pf["chamfer"][heldout])),
                      "track_median_m": float(np.nanmean(pf["track_median"][heldout]))
                      if np.isfinite(pf["track_median"][heldout]).any() else None,
                      "track_rmse_m": float(np.sqrt(np.nanmean(pf["track_mse"][heldout])))
@@ -347,7 +340,6 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                    if winner else
                    "no effect of the catalogue lowers the held-out loss by more than frame-to-frame noise and "
                    "its parameter penalty explain"),
-        "chamfer_floor_m": floor,
         "base": _fit_dict(base_fit),
         "candidates": [_fit_dict(f) for f in ranked],
         "evidence": {"features": loc["features"], "signature_check": checks, "localisation": loc["where"]},
@@ -362,18 +354,6 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     result["wall_time_s"] = round(time.perf_counter() - t_start, 2)
     _write_outputs(result, winner or base_fit, (X, fits, per, loc, F), scene, obs, out_dir, views=views)
     return result
-
-
-def _gap_summary(result: dict) -> dict:
-    """The held-out Chamfer's excess over the floor, base model and named effect (report lines)."""
-    b = result["base"]["heldout"]
-    out = {"held-out Chamfer gap over the floor, base model [mm]": 1e3 * b["chamfer_gap_m"]}
-    best = next((c for c in result["candidates"] if c["effect"] == result["effect"]), None)
-    if best is not None:
-        out[f"... with {best['effect']} [mm]"] = 1e3 * best["heldout"]["chamfer_gap_m"]
-        if best["heldout"]["gap_closed"] is not None:
-            out["share of the gap closed [%]"] = 100 * best["heldout"]["gap_closed"]
-    return out
 
 
 def _nan_list(a) -> list:
@@ -510,8 +490,6 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
     where = result["evidence"]["localisation"]
     write_report_md(d / "report.md", {k: result[k] for k in ("effect", "confidence", "reason", "decidable")} |
                     {"base E [Pa]": result["base"]["params"]["E"], "noise sigma [mm]": 1e3 * result["noise_sigma_m"],
-                     "Chamfer floor (frame 0: the rest body against its own points) [mm]": 1e3 * result["chamfer_floor_m"],
-                     **_gap_summary(result),
                      "worst phase and region (base model)": where.get("worst_cell")},
                     figs, {"Candidates (held-out frames)": rows},
                     features=result["evidence"]["features"], feature_info=FEATURE_INFO, notes=result.get("notes"))
