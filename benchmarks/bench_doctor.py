@@ -47,7 +47,7 @@ EXPRESSED_M = 1.0e-3
 
 
 def make(args):
-    from empm_gym.identification.data import load_recording
+    from empm_gym.identification.data import load_recording, view_jackknife_bodies
     from empm_gym.perception.scripts import SCRIPTS
     from empm_gym.perception.synth import effect_signature, synthesize
     from empm_gym.sim.effects import EFFECTS
@@ -67,8 +67,14 @@ def make(args):
                 if (out / f"{name}.pkl").exists() and args.keep_existing:
                     with open(out / f"{name}.pkl", "rb") as f:
                         prob = pickle.load(f)
+                    changed = False
                     if "signature_m" not in prob:
                         prob["signature_m"] = effect_signature(args.object, script, effect, frames=args.frames, seed=seed)
+                        changed = True
+                    if args.view_bodies and "view_bodies" not in prob and rec.exists():
+                        prob["view_bodies"] = view_jackknife_bodies(rec, prob["scene"], particles_per_cell=args.ppc)
+                        changed = True
+                    if changed:
                         with open(out / f"{name}.pkl", "wb") as f:
                             pickle.dump(prob, f)
                     print(f"{name}: kept, held-out signature {1e3 * prob['signature_m']:.2f} mm", flush=True)
@@ -84,6 +90,8 @@ def make(args):
                 with open(out / f"{name}.pkl", "wb") as f:
                     pickle.dump({"scene": scene, "obs": obs, "truth": truth[0] if truth else "none",
                                  "script": script, "seed": seed,
+                                 **({"view_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc)}
+                                    if args.view_bodies else {}),
                                  "signature_m": effect_signature(args.object, script, effect, frames=args.frames, seed=seed)}, f)
                 print(f"{name}: {len(scene.particles)} particles, {obs.num_frames} frames "
                       f"({time.perf_counter() - t0:.1f} s)", flush=True)
@@ -95,17 +103,30 @@ def diagnose_all(problems: Path, args):
 
     from empm_gym.identification.doctor import DoctorConfig, diagnose
 
-    cfg = DoctorConfig(base_iters=args.iters, candidate_iters=args.iters, popsize=args.popsize)
+    cfg = DoctorConfig(base_iters=args.iters, candidate_iters=args.iters, popsize=args.popsize, variants=args.variants,
+                       robust_verdict=not args.no_robust)
     rows = []
     k, n = (int(v) for v in args.shard.split("/"))
     paths = sorted(Path(problems).glob("*.pkl"))[k::n]
     for path in paths:
+        if args.dump and (Path(args.dump) / f"{path.stem}.json").exists():
+            continue  # diagnosed by an earlier (interrupted) run
         with open(path, "rb") as f:
             prob = pickle.load(f)
         scene = dataclasses.replace(prob["scene"], device=args.device)
         t0 = time.perf_counter()
-        res = diagnose(scene, prob["obs"], None, config=cfg, progress=False)
+        others = [(label, None if sc is None else dataclasses.replace(sc, device=args.device))
+                  for label, sc in prob.get("view_bodies", ())] if args.view_bodies else ()
+        res = diagnose(scene, prob["obs"], None, config=cfg, progress=False, other_bodies=others)
         wall = time.perf_counter() - t0
+        if args.dump:
+            from empm_gym.identification.doctor.core import _jsonable
+
+            Path(args.dump).mkdir(parents=True, exist_ok=True)
+            (Path(args.dump) / f"{path.stem}.json").write_text(json.dumps(_jsonable(
+                {**res, "recording": path.stem, "truth": prob["truth"], "script": prob["script"],
+                 "signature_m": prob.get("signature_m"),
+                 "wall_s": wall})))
         truth, verdict = prob["truth"], res["effect"]
         red = float("nan")
         if truth != "none" and res.get("candidates"):
@@ -200,6 +221,12 @@ def main(argv=None):
     p.add_argument("--iters", type=int, default=8)
     p.add_argument("--popsize", type=int, default=8)
     p.add_argument("--device", default="cpu")
+    p.add_argument("--variants", type=int, default=2, help="discretisation variants a named effect must hold on")
+    p.add_argument("--no-robust", action="store_true", help="record the variants' gains, verdict without them")
+    p.add_argument("--view-bodies", action="store_true",
+                   help="with --make: pickle the frame-0 body rebuilt without each camera; when diagnosing: use them "
+                        "as variants too")
+    p.add_argument("--dump", default=None, help="write each recording's full doctor result (JSON) into this folder")
     p.add_argument("--only-make", action="store_true", help="stop after --make")
     p.add_argument("--keep-existing", action="store_true",
                    help="with --make: keep problems already pickled (adding their signature), make the others")

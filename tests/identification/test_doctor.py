@@ -87,7 +87,8 @@ HIDDEN = [
     ("none", "press-release"),
 ]
 
-_CPU = DoctorConfig(base_iters=3, candidate_iters=3, popsize=5, E_refit_factor=2.0, motion_margin=0.015)
+_CPU = DoctorConfig(base_iters=3, candidate_iters=3, popsize=5, E_refit_factor=2.0, motion_margin=0.015, variants=2,
+                   variant_iters=2, variant_top=1)
 
 
 @pytest.mark.slow
@@ -121,6 +122,32 @@ def test_doctor_cli_reports_bad_input(tmp_path, capsys):
     assert main(["effects"]) == 0
     out = capsys.readouterr().out
     assert all(name in out for name in EFFECTS)
+
+
+def test_variants_are_the_same_body_on_another_discretisation():
+    """The doctor's variants (a named effect must hold its gain on them): the grid moved sideways by part of a
+    cell, still covering the original box and keeping the node layer on the table; the particles moved by at
+    most half their spacing, same volumes, above the table; each variant different."""
+    from empm_gym.identification.doctor.core import _variant_scene
+
+    scene, _ = _still_scene()
+    g0 = scene.grid_config()
+    h = float(np.cbrt(np.median(scene.volumes)))
+    shifts = []
+    for k in range(3):
+        v = _variant_scene(scene, k)
+        g = v.grid_config()
+        assert g.dx == g0.dx and g.lower[2] == g0.lower[2]  # the table's node layer stays
+        assert np.all(np.asarray(g.lower) <= np.asarray(g0.lower) + 1e-12)
+        assert np.all(np.asarray(g.upper) >= np.asarray(g0.upper) - 1e-12)
+        frac = ((np.asarray(g0.lower[:2]) - np.asarray(g.lower[:2])) / g0.dx) % 1.0
+        assert np.any((frac > 0.1) & (frac < 0.9)), frac  # a new lattice of nodes, not a whole-cell move
+        shifts.append(tuple(np.round(frac, 3)))
+        d = np.abs(v.particles - scene.particles)
+        assert d.max() <= 0.5 * h + 1e-12 and d.max() > 0.05 * h
+        np.testing.assert_array_equal(v.volumes, scene.volumes)
+        assert v.particles[:, 2].min() >= scene.table.height
+    assert len(set(shifts)) == 3
 
 
 def test_each_fit_is_scored_with_its_own_substeps():

@@ -16,10 +16,15 @@ Pipeline (:func:`diagnose`):
    substep count, from the stiffest corners of its search box, and is scored with it.
 4. **Scores.** Base and candidates are simulated over all frames; the per-frame score on the held-out
    frames (Chamfer plus the median tracking error, metres) is compared pairwise with :func:`empm_gym.identification.uncertainty.paired_gain_test` (block
-   bootstrap over frames, a relative-gain penalty per added parameter). The verdict is the candidate
-   with the lowest held-out loss among those whose gain is significant, else ``none``; its confidence is
-   the fraction of bootstrap resamples in which it stays the best and significant.
-5. **Report.** ``doctor.json``, ``material.json`` (with the effect), ``report.md`` with figures, and a
+   bootstrap over frames, a relative-gain penalty per added parameter).
+5. **Variants.** The significant candidates (at most ``variant_top``) and the base model are fitted again on
+   other discretisations of the same body (the grid shifted by part of a cell, the particles on another
+   lattice) and, when given, on the frame-0 body rebuilt without each camera. A gain that a parameter owes to
+   how the body happens to be discretised or reconstructed does not survive them; a gain the effect earns
+   does (:func:`_check_variants`). The verdict is the candidate with the lowest held-out loss among those
+   whose gain is significant and holds on the variants, else ``none``; its confidence is the fraction of
+   bootstrap resamples in which it stays the best and significant, times the share of variants it holds on.
+6. **Report.** ``doctor.json``, ``material.json`` (with the effect), ``report.md`` with figures, and a
    rerun recording of the measured points against both simulations.
 
 Nothing here reads a synthesiser's answer file, file names or script timing: only what
@@ -86,6 +91,19 @@ class DoctorConfig:
     motion_margin: float = 0.02
     """Room [m] the simulation grid leaves around the observed motion (the scene's default is 3 cm; every
     candidate is simulated many times, and on the CPU empty grid nodes cost as much as particles)."""
+    variants: int = 2
+    """Discretisations of the same body (the grid shifted by part of a cell, the particles on another lattice)
+    on which the significant candidates and the base model are fitted again: an effect is named only if its
+    gain holds on every one (0: no such check)."""
+    variant_top: int = 2
+    """At most this many significant candidates (lowest held-out loss first) are checked on the variants."""
+    variant_iters: int = 4
+    """CMA-ES generations of a refit on a variant (it starts from the fit on the original discretisation)."""
+    variant_sigma0: float = 0.3
+    """CMA-ES initial step of a refit on a variant."""
+    robust_verdict: bool = True
+    """Name only an effect whose gain is significant on every variant (False: record the variants' gains
+    without letting them change the verdict)."""
     seed: int = 0
 
 
@@ -140,6 +158,8 @@ class _Fit:
     wall_s: float
     added: int = 0
     scene: Optional[Scene] = None
+    bounds: Dict[str, Tuple[float, float]] = field(default_factory=dict)
+    start_material: Optional[MaterialConfig] = None
     heldout: Dict[str, float] = field(default_factory=dict)
     test: Dict[str, float] = field(default_factory=dict)
 
@@ -191,14 +211,53 @@ def _per_frame_losses(objective: Objective, X: np.ndarray) -> Dict[str, np.ndarr
     return out
 
 
-def _fit(name, scene, obs, params, init, bounds, base_mat, frames, cfg, progress, iters) -> _Fit:
+def _fit(name, scene, obs, params, init, bounds, base_mat, frames, cfg, progress, iters, sigma0=None) -> _Fit:
     sc = scene.with_material(base_mat, table_friction=BASE_TABLE_FRICTION if "friction" not in params
                              else scene.table_friction)
     res = identify(obs, sc, params=params, method="cmaes", init=init, bounds=bounds, iters=iters, frames=frames,
-                   popsize=cfg.popsize, sigma0=cfg.sigma0, l_trk=cfg.l_trk, max_points=cfg.max_points,
-                   seed=cfg.seed, progress=progress)
+                   popsize=cfg.popsize, sigma0=cfg.sigma0 if sigma0 is None else sigma0, l_trk=cfg.l_trk,
+                   max_points=cfg.max_points, seed=cfg.seed, progress=progress)
     return _Fit(name=name, params=dict(res.params), material=res.material, friction=float(res.friction),
                 fit_loss=float(res.loss), wall_s=float(res.wall_time_s))
+
+
+def _fit_candidate(name: str, scene: Scene, obs: Observations, base_material: MaterialConfig, E_range, F: int,
+                   cfg: DoctorConfig, progress: bool, like: Optional["_Fit"] = None) -> "_Fit":
+    """Fit candidate ``name`` ("base": E alone) on ``scene``: E within ``E_range`` from ``base_material``'s E,
+    the effect's parameters from their registry start; or, with ``like`` (the same candidate fitted on another
+    discretisation), from ``like``'s optimum in ``like``'s box with a shorter, narrower search."""
+    ps = () if name == "base" else candidate_params(name)
+    if like is None:
+        Elo, Ehi = E_range
+        init = {"E": base_material.E, **{p: PARAMETERS[p].start for p in ps}}
+        bounds = {"E": (Elo, Ehi), **{p: _search_box(p, base_material.replace(E=Ehi), scene.dx) for p in ps}}
+        start_mat = base_material.replace(**({} if name == "base" else
+                                             {p: PARAMETERS[p].start for p in EFFECTS[name].param_names}))
+        iters, sigma0 = cfg.candidate_iters, None
+    else:
+        bounds, start_mat = like.bounds, like.start_material
+        init = {k: float(np.clip(v, *bounds[k])) for k, v in like.params.items()}
+        iters, sigma0 = cfg.variant_iters, cfg.variant_sigma0
+    sc = dataclasses.replace(scene.with_material(start_mat), dt_materials=_box_corners(start_mat, bounds))
+    f = _fit(name, sc, obs, ("E",) + ps, init, bounds, start_mat, F, cfg, progress, iters, sigma0=sigma0)
+    f.added, f.scene, f.bounds, f.start_material = len(ps), sc, bounds, start_mat
+    return f
+
+
+def _variant_scene(scene: Scene, k: int) -> Scene:
+    """The same recording on another discretisation: the grid shifted sideways by part of a cell (a different
+    fraction for each ``k``; the table keeps its node layer) and the particles moved to another lattice."""
+    from empm_gym.sim import GridConfig
+
+    from ..uncertainty import _resampled_body
+
+    g = scene.grid_config()
+    frac = ((0.5, 0.5), (0.25, 0.75), (0.75, 0.25), (0.5, 0.0))[k % 4]
+    shift = np.array([frac[0] * g.dx, frac[1] * g.dx, 0.0])
+    grid = GridConfig(lower=tuple(np.asarray(g.lower) - shift), upper=tuple(np.asarray(g.upper) - shift + [g.dx, g.dx, 0.0]),
+                      dx=g.dx)
+    moved = _resampled_body(scene, np.random.default_rng(1000 + k))
+    return dataclasses.replace(moved, grid=grid)
 
 
 def _box_corners(material: MaterialConfig, bounds: Dict[str, Tuple[float, float]]) -> Tuple[MaterialConfig, ...]:
@@ -229,13 +288,15 @@ def _simulate_fits(fits: List["_Fit"], T: int) -> np.ndarray:
 
 def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, base: Optional[MaterialConfig] = None,
              config: Optional[DoctorConfig] = None, out_dir=None, progress: bool = True,
-             effects: Optional[Sequence[str]] = None) -> dict:
+             effects: Optional[Sequence[str]] = None, other_bodies: Sequence = ()) -> dict:
     """Diagnose a loaded recording (see the module docstring); returns the ``doctor.json`` content.
 
     ``scene``, ``obs``, ``views`` come from :func:`empm_gym.identification.data.load_recording`; ``base``
     gives the base model's material (its E is then the start of the base fit; its effects count as part of
     the base model and are not candidates); ``effects`` restricts the candidates (default: the whole
-    catalogue less those in ``base``). With ``out_dir`` the report files are written there.
+    catalogue less those in ``base``). ``other_bodies`` (``[(label, Scene or None)]``, for instance
+    :func:`~empm_gym.identification.data.view_jackknife_bodies`) are further variants of the frame-0 body on
+    which a named effect must hold its gain. With ``out_dir`` the report files are written there.
     """
     from tqdm.auto import tqdm
 
@@ -279,19 +340,10 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     # candidate, the base model itself, which from here on is the base model: what a candidate gains from a
     # second search of E is then not credited to its effect. Each fit keeps one substep count throughout, from
     # the stiffest corners of its box (Scene.dt_materials), and is scored with it.
-    Elo, Ehi = max(lo, E_base / cfg.E_refit_factor), min(hi, E_base * cfg.E_refit_factor)
-    fits: List[_Fit] = []
-    for name in tqdm(["base"] + names, desc="doctor: candidates", disable=not progress, leave=False):
-        ps = () if name == "base" else candidate_params(name)
-        init = {"E": E_base, **{p: PARAMETERS[p].start for p in ps}}
-        bounds = {"E": (Elo, Ehi), **{p: _search_box(p, base_fit.material.replace(E=Ehi), scene.dx) for p in ps}}
-        start_mat = base_fit.material.replace(**({} if name == "base" else
-                                                 {p: PARAMETERS[p].start for p in EFFECTS[name].param_names}))
-        sc = dataclasses.replace(scene.with_material(start_mat), dt_materials=_box_corners(start_mat, bounds))
-        f = _fit(name, sc, obs, ("E",) + ps, init, bounds, start_mat, F, cfg, progress, cfg.candidate_iters)
-        f.added = len(ps)
-        f.scene = sc
-        fits.append(f)
+    E_range = (max(lo, E_base / cfg.E_refit_factor), min(hi, E_base * cfg.E_refit_factor))
+    fits: List[_Fit] = [_fit_candidate(name, scene, obs, base_fit.material, E_range, F, cfg, progress)
+                        for name in tqdm(["base"] + names, desc="doctor: candidates", disable=not progress,
+                                         leave=False)]
     fits[0].wall_s += base_fit.wall_s
     base_fit = fits[0]
     # the base model reported is the null candidate's refit: its E at the search box's edge is no measurement
@@ -317,10 +369,23 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
 
     # -- 4. verdict -------------------------------------------------------------------------------------------
     cands = fits[1:]
-    significant = [f for f in cands if f.test.get("significant")]
-    winner = min(significant, key=lambda f: f.heldout["loss"]) if significant else None
+    significant = sorted([f for f in cands if f.test.get("significant")], key=lambda f: f.heldout["loss"])
+    robustness = _check_variants(significant[:cfg.variant_top], scene, obs, base_fit, F, T, heldout, cfg, progress,
+                                 other_bodies)
+    unchecked = significant[0] if significant else None
+    if cfg.robust_verdict and robustness["variants"]:
+        # a candidate beyond variant_top was not checked: it cannot be named either
+        significant = [f for f in significant if robustness["candidates"].get(f.name, {}).get("robust")]
+    winner = significant[0] if significant else None
     confidence = _confidence(base_loss, [per[i + 1]["loss"][heldout] for i in range(len(cands))],
                              [f.added for f in cands], cfg, None if winner is None else cands.index(winner))
+    if unchecked is not None and robustness["variants"]:
+        # the variants are evidence too: the share of them that agree with the verdict
+        def share(name):
+            tests = robustness["candidates"].get(name, {}).get("tests", [])
+            return float(np.mean([t["holds"] for t in tests])) if tests else 0.0
+        confidence = (confidence * share(winner.name) if winner is not None else
+                      1.0 - max(share(n) for n in robustness["candidates"]))
 
     # -- 5. localisation and features ------------------------------------------------------------------------
     loc = _localise(scene, obs, objective, X[:, 0], X[:, fits.index(winner)] if winner else None, T)
@@ -338,15 +403,22 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                    f"(95 % interval {100 * winner.test['lower']:.1f} to {100 * winner.test['upper']:.1f} %, "
                    f"threshold {100 * winner.test['threshold']:.0f} % for {winner.added} added parameter(s))"
                    if winner else
-                   "no effect of the catalogue lowers the held-out loss by more than frame-to-frame noise and "
-                   "its parameter penalty explain"),
+                   (f"{unchecked.name} lowers the held-out loss beyond noise and its penalty, but its gain does not "
+                    f"hold on other discretisations and reconstructions of the body "
+                    f"({robustness['candidates'][unchecked.name]['why']}): it is not attributable to the effect"
+                    if unchecked is not None else
+                    "no effect of the catalogue lowers the held-out loss by more than frame-to-frame noise and "
+                    "its parameter penalty explain")),
+        "effect_before_variants": unchecked.name if unchecked else "none",
+        "variants": robustness,
         "base": _fit_dict(base_fit),
         "candidates": [_fit_dict(f) for f in ranked],
         "evidence": {"features": loc["features"], "signature_check": checks, "localisation": loc["where"]},
         "heldout_per_frame": {"frames": heldout,
                               "base": {k: _nan_list(v[heldout]) for k, v in per[0].items()},
                               **({"best": {k: _nan_list(v[heldout]) for k, v in per[fits.index(winner)].items()}}
-                                 if winner else {})},
+                                 if winner else {}),
+                              "loss_by_candidate": {f.name: _nan_list(pf["loss"][heldout]) for f, pf in zip(fits, per)}},
         "notes": warnings + ["density is not fitted: from motion alone only E / density is determined "
                              f"(assumed density {base_mat.density:g} kg/m^3)"],
         "wall_time_s": None,
@@ -354,6 +426,61 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     result["wall_time_s"] = round(time.perf_counter() - t_start, 2)
     _write_outputs(result, winner or base_fit, (X, fits, per, loc, F), scene, obs, out_dir, views=views)
     return result
+
+
+def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base_fit: "_Fit", F: int, T: int,
+                    heldout: List[int], cfg: DoctorConfig, progress: bool, other_bodies: Sequence = ()) -> dict:
+    """Fit the base model and each of ``checked`` again on other discretisations of the same body
+    (:func:`_variant_scene`) and on ``other_bodies`` (the frame-0 body rebuilt from fewer views), and compare
+    each candidate's held-out loss with the base model's on the same variant.
+
+    What this guards against: an added parameter, refitted, also soaks up misfit that has nothing to do with its
+    effect (how the grid happens to line up with the body, the particle lattice, the body's hidden side), and
+    on some scripts that gain is larger than the penalty and steady over the held-out frames, so the bootstrap
+    over frames cannot see it. Such a gain does not survive another, equally valid discretisation or a body
+    rebuilt from other views; a gain the effect earns does. ``robust``: the candidate's held-out gain exceeds
+    its penalty on every discretisation variant and on more than half of the rebuilt bodies (each of those
+    misses a camera, and a body completed from fewer views may fail on its own)."""
+    variants = [(f"grid shifted and particles resampled ({k + 1})", "discretisation", _variant_scene(scene, k))
+                for k in range(cfg.variants)]
+    variants += [(label, "body", dataclasses.replace(sc, motion_margin=scene.motion_margin, material=scene.material,
+                                                     table_friction=scene.table_friction))
+                 for label, sc in other_bodies if sc is not None]
+    out = {"variants": [label for label, _, _ in variants] if checked else [], "base": [], "candidates": {},
+           "rule": "the held-out gain exceeds the penalty on every discretisation variant and on more than half of "
+                   "the bodies rebuilt without one camera"}
+    if not checked or not variants:
+        return out
+    from tqdm.auto import tqdm
+
+    for label, kind, vs in tqdm(variants, desc="doctor: variants", disable=not progress, leave=False):
+        vfits = [_fit_candidate("base", vs, obs, base_fit.start_material, None, F, cfg, progress, like=base_fit)]
+        vfits += [_fit_candidate(f.name, vs, obs, base_fit.start_material, None, F, cfg, progress, like=f)
+                  for f in checked]
+        objective = Objective(vfits[0].scene, obs, T, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed)
+        X = _simulate_fits(vfits, T)
+        losses = [_per_frame_losses(objective, X[:, w])["loss"][heldout] for w in range(len(vfits))]
+        out["base"].append({"variant": label, "kind": kind, "params": vfits[0].params,
+                            "heldout_loss": float(np.mean(losses[0]))})
+        for f, vf, lv in zip(checked, vfits[1:], losses[1:]):
+            t = paired_gain_test(losses[0], lv, added_params=f.added, penalty_per_param=cfg.penalty_per_param,
+                                 level=cfg.level, seed=cfg.seed)
+            out["candidates"].setdefault(f.name, {"tests": []})["tests"].append(
+                {"variant": label, "kind": kind, "params": vf.params, "heldout_loss": float(np.mean(lv)), **t,
+                 "holds": bool(np.isfinite(t["gain"]) and t["gain"] > t["threshold"])})
+    for name, rec in out["candidates"].items():
+        disc = [t for t in rec["tests"] if t["kind"] == "discretisation"]
+        body = [t for t in rec["tests"] if t["kind"] == "body"]
+        failed_disc = [t for t in disc if not t["holds"]]
+        body_ok = sum(t["holds"] for t in body)
+        rec["robust"] = not failed_disc and (not body or body_ok > len(body) / 2)
+        rec["holds_on"] = f"{sum(t['holds'] for t in rec['tests'])} of {len(rec['tests'])} variants"
+        worst = failed_disc[0] if failed_disc else min(body, key=lambda t: np.nan_to_num(t["gain"], nan=-1e9),
+                                                        default=None)
+        rec["why"] = "" if rec["robust"] or worst is None else (
+            f"it holds on {rec['holds_on']}; on '{worst['variant']}' it gains {100 * worst['gain']:.1f} % against "
+            f"a threshold of {100 * worst['threshold']:.0f} %")
+    return out
 
 
 def _nan_list(a) -> list:
@@ -487,11 +614,18 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
              "significant": (c["gain"] or {}).get("significant")} for c in cands]
     from .features import FEATURE_INFO
 
+    tables = {"Candidates (held-out frames)": rows}
+    var = result.get("variants") or {}
+    vrows = [{"candidate": name, "variant": t["variant"], "fitted": ", ".join(f"{k}={v:.4g}" for k, v in t["params"].items()),
+              "held-out loss gain [%]": 100 * t["gain"], "threshold [%]": 100 * t["threshold"], "holds": t["holds"]}
+             for name, rec in var.get("candidates", {}).items() for t in rec["tests"]]
+    if vrows:
+        tables[f"The same candidates on other discretisations and bodies (named only if {var['rule']})"] = vrows
     where = result["evidence"]["localisation"]
     write_report_md(d / "report.md", {k: result[k] for k in ("effect", "confidence", "reason", "decidable")} |
                     {"base E [Pa]": result["base"]["params"]["E"], "noise sigma [mm]": 1e3 * result["noise_sigma_m"],
                      "worst phase and region (base model)": where.get("worst_cell")},
-                    figs, {"Candidates (held-out frames)": rows},
+                    figs, tables,
                     features=result["evidence"]["features"], feature_info=FEATURE_INFO, notes=result.get("notes"))
     return {"report": str(d / "report.md"), "rrd": str(d / "doctor.rrd"),
             **{k: str(d / v) for k, v in figs.items()}}

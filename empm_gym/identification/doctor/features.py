@@ -18,7 +18,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .phases import (CONTACT_PHASES, FREE_PHASES, Phase, backward_speed, contact_distances, ee_sizes,
+from .phases import (CONTACT_PHASES, FREE_PHASES, Phase, contact_distances, ee_sizes,
                      object_speed, phase_of_frames, surface_gap)
 
 __all__ = [

@@ -33,7 +33,6 @@ from dataclasses import dataclass
 from typing import List, Optional, Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 __all__ = [
     "PHASES",
