@@ -128,13 +128,8 @@ def diagnose_all(problems: Path, args):
                  "signature_m": prob.get("signature_m"),
                  "wall_s": wall})))
         truth, verdict = prob["truth"], res["effect"]
-        red = float("nan")
-        if truth != "none" and res.get("candidates"):
-            c = next(c for c in res["candidates"] if c["effect"] == truth)
-            red = 1.0 - c["heldout"]["chamfer_m"] / res["base"]["heldout"]["chamfer_m"]
-        row = {"recording": path.stem, "script": prob["script"], "truth": truth, "verdict": verdict,
-               "confidence": res.get("confidence", 0.0), "reduction": red,
-               "signature_m": prob.get("signature_m"), "wall_s": wall}
+        row = _row(res, truth, path.stem, prob["script"], prob.get("signature_m"), wall)
+        red = row["reduction"]
         rows.append(row)
         if args.jsonl:
             with open(args.jsonl, "a") as f:
@@ -144,6 +139,38 @@ def diagnose_all(problems: Path, args):
               f"conf {row['confidence']:.2f} held-out Chamfer reduction (true effect) {100 * red:6.1f} %  "
               f"{wall:6.1f} s", flush=True)
     summarise(rows)
+
+
+def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: float) -> dict:
+    """One result row of a doctor result (``diagnose``'s return value or a ``--dump`` line)."""
+    red = float("nan")
+    if truth != "none" and res.get("candidates"):
+        c = next(c for c in res["candidates"] if c["effect"] == truth)
+        red = 1.0 - c["heldout"]["chamfer_m"] / res["base"]["heldout"]["chamfer_m"]
+    return {"recording": name, "script": script, "truth": truth, "verdict": res["effect"],
+            "confidence": res.get("confidence", 0.0), "reduction": red,
+            "before_variants": res.get("effect_before_variants", res["effect"]), "signature_m": signature_m,
+            "wall_s": wall_s}
+
+
+def rescore(paths):
+    """Rows of ``--dump`` files with the verdict taken again by the doctor's rule
+    (:func:`empm_gym.identification.doctor.core.select_verdict`) from the fits and variant tests they hold: a
+    dump written by an earlier version of the rule (or with ``--no-robust``) scores as the current doctor would
+    on the same fits."""
+    from empm_gym.identification.doctor.core import select_verdict
+
+    rows = []
+    for path in paths:
+        for line in Path(path).read_text().splitlines():
+            if not line.strip():
+                continue
+            res = json.loads(line)
+            if res.get("candidates"):
+                win, first, _ = select_verdict(res["candidates"], res.get("variants"))
+                res = {**res, "effect": win or "none", "effect_before_variants": first or "none"}
+            rows.append(_row(res, res["truth"], res["recording"], res["script"], res.get("signature_m"), res["wall_s"]))
+    return rows
 
 
 def summarise(rows):
@@ -189,6 +216,11 @@ def _table(rows):
           f"wall time per recording median {np.median(walls):.1f} s, max {np.max(walls):.1f} s")
     if natural:
         print(f"on each effect's natural script only: accuracy {100 * np.mean(natural):.1f} % of {len(natural)}")
+    before = [(r["truth"], r["before_variants"]) for r in full if "before_variants" in r]
+    if before:
+        print(f"without the variants check: accuracy {100 * np.mean([t == v for t, v in before]):.1f} %, false effects "
+              f"on none {sum(v != 'none' for t, v in before if t == 'none')} of {sum(t == 'none' for t, _ in before)}; "
+              f"verdicts the check changed: {sum(r['before_variants'] != r['verdict'] for r in full if 'before_variants' in r)}")
     # against what each recording shows: an effect whose held-out signature is below EXPRESSED_M is not in the
     # data, and `none` is then a right verdict as well
     known = [r for r in full if r.get("signature_m") is not None]
@@ -233,7 +265,13 @@ def main(argv=None):
     p.add_argument("--shard", default="0/1", help="K/N: diagnose every N-th recording from the K-th (split runs)")
     p.add_argument("--jsonl", default=None, help="append one JSON line per recording to this file")
     p.add_argument("--summarise", nargs="*", default=None, help="print the tables of these --jsonl files and stop")
+    p.add_argument("--rescore", nargs="*", default=None,
+                   help="print the tables of these --dump files (one JSON result per line), the verdict taken again "
+                        "by the doctor's current rule, and stop")
     args = p.parse_args(argv)
+    if args.rescore is not None:
+        summarise(rescore(args.rescore))
+        return 0
     if args.summarise is not None:
         summarise([json.loads(line) for f in args.summarise for line in Path(f).read_text().splitlines() if line])
         return 0

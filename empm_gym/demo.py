@@ -282,7 +282,7 @@ def run_doctor_demo(out: Path, *, device: str = "cpu", effect: str = "gripper_sl
           "--width", "320", "--height", "180", "--seed", "3", "--device", device, "--overwrite", "--quiet"]),
         ("diagnose it: empm doctor",
          ["doctor", str(rec), "--out", str(out / "doctor"), "--iters", "4", "--popsize", "5", "--dx", "0.0125",
-          "--particles-per-cell", "4", "--device", device]),
+          "--particles-per-cell", "4", "--variant-iters", "2", "--device", device]),
     ]
     for what, argv in steps:
         t0 = time.time()

@@ -63,6 +63,10 @@ def test_paired_gain_test_separates_a_real_gain_from_noise():
     slight = 0.95 * base
     assert paired_gain_test(base, slight, added_params=1, penalty_per_param=0.04)["significant"]
     assert not paired_gain_test(base, slight, added_params=3, penalty_per_param=0.04)["significant"]
+    # a 5 % gain on average whose interval reaches below the 4 % penalty does not pay for the parameter
+    wobbly = base * (0.95 + 0.06 * np.random.default_rng(0).standard_normal(30))
+    t = paired_gain_test(base, wobbly, added_params=1, penalty_per_param=0.04)
+    assert t["gain"] > 0.04 and 0.0 < t["lower"] < 0.04 and not t["significant"], t
 
 
 def test_every_effect_is_a_candidate():
@@ -79,21 +83,32 @@ def test_every_effect_is_a_candidate():
 # runs. At this scale viscosity (squeeze-ring), heterogeneous stiffness and fracture (pull-apart) are not
 # named reliably (their held-out gains sit near the 4 % penalty); they are measured at full resolution by
 # benchmarks/bench_doctor.py (benchmarks/RESULTS.md), and the CI time (the whole suite within 45 minutes)
-# leaves room for four doctor runs.
+# leaves room for five doctor runs.
 HIDDEN = [
     ("plasticity", "press-release"),
-    ("table_friction", "push-slide"),
     ("gripper_slip", "squeeze-lift"),
     ("none", "press-release"),
 ]
+#: run from test_doctor_e2e.py, a file of its own, so that the two CI workers (pytest-xdist, --dist loadfile)
+#: share the doctor's end-to-end runs
+HIDDEN_2 = [
+    ("table_friction", "push-slide"),
+    # at this scale the viscous candidate gains 10.8 % here on the elastic dough (the bootstrap over frames calls
+    # it significant), but loses on the body rebuilt without camera 0 or 1: only the variants check says none
+    ("none", "squeeze-ring"),
+]
 
-_CPU = DoctorConfig(base_iters=3, candidate_iters=3, popsize=5, E_refit_factor=2.0, motion_margin=0.015, variants=2,
+_CPU = DoctorConfig(base_iters=3, candidate_iters=3, popsize=5, E_refit_factor=2.0, motion_margin=0.015, variants=1,
                    variant_iters=2, variant_top=1)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("effect,script", HIDDEN, ids=[f"{e}-{s}" for e, s in HIDDEN])
 def test_doctor_names_the_hidden_effect(tmp_path, effect, script):
+    doctor_names_the_hidden_effect(tmp_path, effect, script)
+
+
+def doctor_names_the_hidden_effect(tmp_path, effect, script):
     from empm_gym.identification.doctor import diagnose_recording
     from empm_gym.perception.synth import synthesize
 

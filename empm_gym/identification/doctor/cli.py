@@ -12,7 +12,7 @@ def _doctor(args) -> int:
     from . import DoctorConfig, DoctorError, diagnose_recording
 
     cfg = DoctorConfig(train_fraction=args.train_fraction, base_iters=args.iters, candidate_iters=args.iters,
-                       popsize=args.popsize)
+                       popsize=args.popsize, variants=args.variants, variant_iters=args.variant_iters)
     effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
     try:
         res = diagnose_recording(args.rec_dir, out_dir=args.out, base=args.base, config=cfg, dx=args.dx,
@@ -64,6 +64,10 @@ def register(subparsers) -> None:
     p.add_argument("--dx", type=float, default=0.01, help="simulation grid cell in m (default 0.01)")
     p.add_argument("--particles-per-cell", type=float, default=8, help="particles per cell of the body (8)")
     p.add_argument("--device", default=None, help="Warp device (cpu, cuda:0)")
+    p.add_argument("--variants", type=int, default=2,
+                   help="other discretisations of the body (grid shifted, particles resampled) a named effect must "
+                        "hold its gain on (default 2; 0: no such check)")
+    p.add_argument("--variant-iters", type=int, default=4, help="CMA-ES generations of a refit on a variant (4)")
     p.add_argument("--no-view-bodies", action="store_true",
                    help="do not check a named effect on the body rebuilt without each camera (faster; the check on "
                         "other discretisations stays)")

@@ -49,9 +49,9 @@ from empm_gym.sim.effects import BASE_TABLE_FRICTION, EFFECTS, PARAMETERS
 from ..losses import chamfer_numpy
 from ..offline import Objective, identify
 from ..problem import Observations, Scene, Views, _ForwardSim
-from ..uncertainty import block_bootstrap_indices, measurement_noise, paired_gain_test
+from ..uncertainty import block_bootstrap_indices, gain_is_significant, measurement_noise, paired_gain_test
 
-__all__ = ["DoctorConfig", "DoctorError", "diagnose", "candidate_params", "SIGNATURE_FEATURES"]
+__all__ = ["DoctorConfig", "DoctorError", "diagnose", "candidate_params", "select_verdict", "SIGNATURE_FEATURES"]
 
 
 class DoctorError(ValueError):
@@ -369,14 +369,21 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
 
     # -- 4. verdict -------------------------------------------------------------------------------------------
     cands = fits[1:]
-    significant = sorted([f for f in cands if f.test.get("significant")], key=lambda f: f.heldout["loss"])
-    robustness = _check_variants(significant[:cfg.variant_top], scene, obs, base_fit, F, T, heldout, cfg, progress,
-                                 other_bodies)
-    unchecked = significant[0] if significant else None
-    if cfg.robust_verdict and robustness["variants"]:
-        # a candidate beyond variant_top was not checked: it cannot be named either
-        significant = [f for f in significant if robustness["candidates"].get(f.name, {}).get("robust")]
-    winner = significant[0] if significant else None
+    by_name = {f.name: f for f in cands}
+    as_dicts = [{"effect": f.name, "heldout": f.heldout, "gain": f.test} for f in cands]
+    to_check = [by_name[n] for n in select_verdict(as_dicts, None)[2][:cfg.variant_top]]
+    robustness = _check_variants(to_check, scene, obs, base_fit, F, T, heldout, cfg, progress, other_bodies)
+    win, unchecked, passing = select_verdict(as_dicts, robustness if cfg.robust_verdict else None)
+    winner, unchecked = by_name.get(win), by_name.get(unchecked)
+    significant = [by_name[n] for n in passing]
+    # other candidates that pass as well and predict the held-out frames about as well: the data do not tell
+    # them apart from the winner (its lower loss is within the frame-to-frame noise)
+    rivals = []
+    for f in significant[1:]:
+        t = paired_gain_test(per[fits.index(f)]["loss"][heldout], per[fits.index(winner)]["loss"][heldout],
+                             added_params=0, level=cfg.level, seed=cfg.seed)
+        if not t["significant"]:
+            rivals.append(f.name)
     confidence = _confidence(base_loss, [per[i + 1]["loss"][heldout] for i in range(len(cands))],
                              [f.added for f in cands], cfg, None if winner is None else cands.index(winner))
     if unchecked is not None and robustness["variants"]:
@@ -402,6 +409,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         "reason": (f"{winner.name} lowers the held-out loss by {100 * winner.test['gain']:.1f} % "
                    f"(95 % interval {100 * winner.test['lower']:.1f} to {100 * winner.test['upper']:.1f} %, "
                    f"threshold {100 * winner.test['threshold']:.0f} % for {winner.added} added parameter(s))"
+                   + (f"; {' and '.join(rivals)} explain(s) the held-out frames about as well: the data do not tell "
+                      f"them apart" if rivals else "")
                    if winner else
                    (f"{unchecked.name} lowers the held-out loss beyond noise and its penalty, but its gain does not "
                     f"hold on other discretisations and reconstructions of the body "
@@ -410,6 +419,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                     "no effect of the catalogue lowers the held-out loss by more than frame-to-frame noise and "
                     "its parameter penalty explain")),
         "effect_before_variants": unchecked.name if unchecked else "none",
+        "indistinguishable_from": rivals,
         "variants": robustness,
         "base": _fit_dict(base_fit),
         "candidates": [_fit_dict(f) for f in ranked],
@@ -467,20 +477,46 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
                                  level=cfg.level, seed=cfg.seed)
             out["candidates"].setdefault(f.name, {"tests": []})["tests"].append(
                 {"variant": label, "kind": kind, "params": vf.params, "heldout_loss": float(np.mean(lv)), **t,
-                 "holds": bool(np.isfinite(t["gain"]) and t["gain"] > t["threshold"])})
-    for name, rec in out["candidates"].items():
-        disc = [t for t in rec["tests"] if t["kind"] == "discretisation"]
-        body = [t for t in rec["tests"] if t["kind"] == "body"]
-        failed_disc = [t for t in disc if not t["holds"]]
-        body_ok = sum(t["holds"] for t in body)
-        rec["robust"] = not failed_disc and (not body or body_ok > len(body) / 2)
-        rec["holds_on"] = f"{sum(t['holds'] for t in rec['tests'])} of {len(rec['tests'])} variants"
-        worst = failed_disc[0] if failed_disc else min(body, key=lambda t: np.nan_to_num(t["gain"], nan=-1e9),
-                                                        default=None)
-        rec["why"] = "" if rec["robust"] or worst is None else (
-            f"it holds on {rec['holds_on']}; on '{worst['variant']}' it gains {100 * worst['gain']:.1f} % against "
-            f"a threshold of {100 * worst['threshold']:.0f} %")
+                 "holds": _holds(t)})
+    for rec in out["candidates"].values():
+        rec.update(_robust(rec["tests"]))
     return out
+
+
+def _holds(t: dict) -> bool:
+    return bool(np.isfinite(t["gain"]) and t["gain"] > t["threshold"])
+
+
+def _robust(tests: List[dict]) -> dict:
+    """The variants' verdict on one candidate (see :func:`_check_variants`): ``robust``, ``holds_on``, ``why``."""
+    kind = [t.get("kind") or ("discretisation" if t["variant"].startswith("grid") else "body") for t in tests]
+    disc = [t for t, k in zip(tests, kind) if k == "discretisation"]
+    body = [t for t, k in zip(tests, kind) if k == "body"]
+    failed_disc = [t for t in disc if not _holds(t)]
+    robust = not failed_disc and (not body or sum(map(_holds, body)) > len(body) / 2)
+    holds_on = f"{sum(map(_holds, tests))} of {len(tests)} variants"
+    worst = failed_disc[0] if failed_disc else min(body, key=lambda t: np.nan_to_num(t["gain"], nan=-1e9), default=None)
+    why = "" if robust or worst is None else (
+        f"it holds on {holds_on}; on '{worst['variant']}' it gains {100 * worst['gain']:.1f} % against a threshold "
+        f"of {100 * worst['threshold']:.0f} %")
+    return {"robust": robust, "holds_on": holds_on, "why": why}
+
+
+def select_verdict(candidates: Sequence[dict], variants: Optional[dict]) -> Tuple[Optional[str], Optional[str], List[str]]:
+    """The doctor's verdict from its candidates (``doctor.json``'s ``candidates``: ``effect``, ``heldout.loss``
+    and the gain test ``gain``) and ``variants`` (``doctor.json``'s ``variants``; None: without that check).
+
+    Returns ``(winner or None, the best candidate before the variants check or None, names that pass, best
+    first)``. A candidate passes when its held-out gain is significant (:func:`gain_is_significant`: the whole
+    interval above its penalty) and, with variants, holds on them (:func:`_robust`); a significant candidate
+    the variants did not check does not pass."""
+    ranked = sorted(candidates, key=lambda c: c["heldout"]["loss"])
+    sig = [c["effect"] for c in ranked if c.get("gain") and gain_is_significant(c["gain"])]
+    passing = sig
+    if variants and variants.get("variants"):
+        checked = variants.get("candidates", {})
+        passing = [n for n in sig if n in checked and _robust(checked[n]["tests"])["robust"]]
+    return (passing[0] if passing else None), (sig[0] if sig else None), passing
 
 
 def _nan_list(a) -> list:
