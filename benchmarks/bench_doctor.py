@@ -60,7 +60,7 @@ def make(args):
         if effect == "none":
             scripts = list(SCRIPTS)  # an invented effect may hide on any script: none runs on all of them
         for script in scripts:
-            for seed in range(args.seeds):
+            for seed in range(args.first_seed, args.first_seed + args.seeds):
                 name = f"{args.object}-{script}-{seed}-{effect}"
                 rec = Path(args.make) / name
                 t0 = time.perf_counter()
@@ -243,6 +243,7 @@ def main(argv=None):
     p.add_argument("--effects", default="all", help="comma-separated effects (and none), default all")
     p.add_argument("--scripts", type=int, default=2, help="scripts per effect: its natural one, then another")
     p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--first-seed", type=int, default=0, help="seeds --first-seed ... --first-seed + --seeds - 1")
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--cameras", type=int, default=3)
     p.add_argument("--width", type=int, default=848)
