@@ -30,6 +30,7 @@ def diagnose_recording(rec_dir, *, out_dir=None, base=None, config=None, dx: flo
         base = read_material(base).material
     scene, obs, views = load_recording(rec_dir, dx=dx, particles_per_cell=particles_per_cell, device=device,
                                        progress=progress)
-    others = view_jackknife_bodies(rec_dir, scene, particles_per_cell=particles_per_cell) if view_bodies else ()
+    others = ((lambda: view_jackknife_bodies(rec_dir, scene, particles_per_cell=particles_per_cell)) if view_bodies
+              else ())
     return diagnose(scene, obs, views, base=base, config=config, out_dir=out_dir, progress=progress, effects=effects,
                     other_bodies=others)

@@ -102,8 +102,8 @@ class DoctorConfig:
     variant_sigma0: float = 0.3
     """CMA-ES initial step of a refit on a variant."""
     robust_verdict: bool = True
-    """Name only an effect whose gain is significant on every variant (False: record the variants' gains
-    without letting them change the verdict)."""
+    """Name only an effect whose gain holds on the variants (see :func:`_check_variants`; False: record the
+    variants' gains without letting them change the verdict)."""
     seed: int = 0
 
 
@@ -169,6 +169,9 @@ def _check_inputs(scene: Scene, obs: Observations, cfg: DoctorConfig) -> Tuple[i
     if not scene.ee_configs:
         raise DoctorError("the recording has no end-effector controls (controls.npz or controller masks): the "
                           "doctor replays the recorded manipulation and cannot judge a model without it")
+    for name, least in (("variants", 0), ("variant_top", 0), ("variant_iters", 1)):
+        if int(getattr(cfg, name)) < least:
+            raise DoctorError(f"DoctorConfig.{name} must be >= {least}, got {getattr(cfg, name)!r}")
     if not (0.0 < cfg.train_fraction < 1.0):
         raise DoctorError(f"train_fraction must lie in (0, 1), got {cfg.train_fraction}")
     F = int(round(cfg.train_fraction * T))
@@ -295,7 +298,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     gives the base model's material (its E is then the start of the base fit; its effects count as part of
     the base model and are not candidates); ``effects`` restricts the candidates (default: the whole
     catalogue less those in ``base``). ``other_bodies`` (``[(label, Scene or None)]``, for instance
-    :func:`~empm_gym.identification.data.view_jackknife_bodies`) are further variants of the frame-0 body on
+    :func:`~empm_gym.identification.data.view_jackknife_bodies`, or a callable returning them, called only when
+    a candidate is to be checked) are further variants of the frame-0 body on
     which a named effect must hold its gain. With ``out_dir`` the report files are written there.
     """
     from tqdm.auto import tqdm
@@ -451,6 +455,8 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
     rebuilt from other views; a gain the effect earns does. ``robust``: the candidate's held-out gain exceeds
     its penalty on every discretisation variant and on more than half of the rebuilt bodies (each of those
     misses a camera, and a body completed from fewer views may fail on its own)."""
+    if callable(other_bodies):  # built only when a candidate needs checking (perception takes seconds)
+        other_bodies = other_bodies() if checked else ()
     variants = [(f"grid shifted and particles resampled ({k + 1})", "discretisation", _variant_scene(scene, k))
                 for k in range(cfg.variants)]
     variants += [(label, "body", dataclasses.replace(sc, motion_margin=scene.motion_margin, material=scene.material,
