@@ -14,7 +14,7 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 
-__all__ = ["SB3VecEnv", "make_sb3_vec_env"]
+__all__ = ["SB3VecEnv", "make_sb3_vec_env", "evaluate_policy", "train_and_report"]
 
 
 class SB3VecEnv(VecEnv):
@@ -87,15 +87,29 @@ def make_sb3_vec_env(env_id: str, num_envs: int, seed: Optional[int] = None, **k
     return venv
 
 
-def evaluate_returns(venv: SB3VecEnv, policy, episodes: int, seed: int = 0) -> np.ndarray:
-    """Returns of the first ``episodes`` finished episodes of ``policy(obs) -> actions`` on ``venv``."""
+def evaluate_policy(venv: SB3VecEnv, policy, episodes: int, seed: int = 0):
+    """(returns, success flags) of the first ``episodes`` finished episodes of ``policy(obs) -> actions`` on
+    ``venv`` (a success: the task's Chamfer threshold reached during the episode)."""
     venv.seed(seed)
     obs = venv.reset()
-    out: List[float] = []
-    while len(out) < episodes:
+    returns: List[float] = []
+    success: List[bool] = []
+    while len(returns) < episodes:
         obs, _, done, infos = venv.step(policy(obs))
-        out += [info["episode"]["r"] for info, d in zip(infos, done) if d]
-    return np.asarray(out[:episodes])
+        for info, d in zip(infos, done):
+            if d:
+                returns.append(info["episode"]["r"])
+                success.append(bool(info["is_success"]))
+    return np.asarray(returns[:episodes]), np.asarray(success[:episodes])
+
+
+def _last_fraction_rate(steps, success, fraction: float = 0.1) -> Optional[float]:
+    """Success rate of the training episodes that ended in the last ``fraction`` of the environment steps."""
+    if not steps:
+        return None
+    steps = np.asarray(steps)
+    keep = steps >= steps.max() - fraction * steps.max()
+    return float(np.asarray(success, float)[keep].mean())
 
 
 def train_and_report(args, make_model, *, algo_name: str) -> dict:
@@ -103,8 +117,9 @@ def train_and_report(args, make_model, *, algo_name: str) -> dict:
 
     ``args`` needs: env_id, num_envs, total_steps, seed, device, env_kwargs (JSON str), out,
     baseline_episodes, strip_frames. ``make_model(venv)`` builds the SB3 model. Writes ``model.zip``,
-    ``learning_curve.png`` (episode returns against the zero-action and random-action baselines),
-    ``strip.png`` (a rollout of the trained policy) and ``summary.json`` into ``args.out``.
+    ``learning_curve.png`` (episode returns and success rates against the zero-action and random-action
+    baselines), ``curve.npz`` (every training episode's end step, return and success), ``strip.png`` (a
+    rollout of the trained policy) and ``summary.json`` into ``args.out``.
     """
     import json
     import os
@@ -123,13 +138,14 @@ def train_and_report(args, make_model, *, algo_name: str) -> dict:
     class Curve(BaseCallback):
         def __init__(self):
             super().__init__()
-            self.steps, self.returns = [], []
+            self.steps, self.returns, self.success = [], [], []
 
         def _on_step(self):
             for info in self.locals.get("infos", []):
                 if "episode" in info:
                     self.steps.append(self.num_timesteps)
                     self.returns.append(info["episode"]["r"])
+                    self.success.append(bool(info["is_success"]))
             return True
 
     model = make_model(venv)
@@ -145,17 +161,21 @@ def train_and_report(args, make_model, *, algo_name: str) -> dict:
 
     A = venv.action_space.shape[0]
     rng = np.random.default_rng(args.seed)
-    baselines = {}
+    baselines, success_rates = {}, {}
     if args.baseline_episodes > 0:
-        baselines["zero action"] = float(evaluate_returns(
-            venv, lambda o: np.zeros((venv.num_envs, A), np.float32), args.baseline_episodes, args.seed).mean())
-        baselines["random action"] = float(evaluate_returns(
-            venv, lambda o: rng.uniform(-1, 1, (venv.num_envs, A)).astype(np.float32), args.baseline_episodes,
-            args.seed).mean())
-        baselines["trained (eval)"] = float(evaluate_returns(
-            venv, lambda o: model.predict(o, deterministic=True)[0], args.baseline_episodes, args.seed).mean())
+        policies = {
+            "zero action": lambda o: np.zeros((venv.num_envs, A), np.float32),
+            "random action": lambda o: rng.uniform(-1, 1, (venv.num_envs, A)).astype(np.float32),
+            "trained (eval)": lambda o: model.predict(o, deterministic=True)[0],
+        }
+        for name, policy in policies.items():
+            r, ok = evaluate_policy(venv, policy, args.baseline_episodes, args.seed)
+            baselines[name], success_rates[name] = float(r.mean()), float(ok.mean())
     plot_learning_curve(os.path.join(args.out, "learning_curve.png"), curve.steps, curve.returns,
-                        baselines=baselines, title=f"{algo_name} on {args.env_id} ({args.num_envs} envs)")
+                        baselines=baselines, successes=curve.success, baseline_success=success_rates,
+                        title=f"{algo_name} on {args.env_id} ({args.num_envs} envs)")
+    np.savez(os.path.join(args.out, "curve.npz"), steps=np.asarray(curve.steps, np.int64),
+             returns=np.asarray(curve.returns), success=np.asarray(curve.success, bool))
 
     env = gym.make(args.env_id, render_mode="rgb_array", **kwargs)
     obs, info = env.reset(seed=args.seed)
@@ -172,7 +192,8 @@ def train_and_report(args, make_model, *, algo_name: str) -> dict:
     summary = {"algo": algo_name, "env_id": args.env_id, "num_envs": args.num_envs, "total_steps": args.total_steps,
                "wall_s": wall, "steps_per_s": args.total_steps / max(wall, 1e-9), "episodes": len(curve.returns),
                "final_mean_return": float(np.mean(curve.returns[-20:])) if curve.returns else None,
-               "baselines": baselines}
+               "final_success_rate": _last_fraction_rate(curve.steps, curve.success),
+               "baselines": baselines, "success_rates": success_rates}
     with open(os.path.join(args.out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=2)
     venv.close()

@@ -9,33 +9,64 @@ import numpy as np
 __all__ = ["plot_learning_curve", "save_rollout_strip", "save_transfer_chart"]
 
 
+def _bin_means(steps: np.ndarray, values: np.ndarray, bins: int = 25):
+    """(bin centres, mean of ``values`` per bin) over bins of environment steps that hold an episode."""
+    edges = np.linspace(steps.min(), steps.max() + 1e-9, min(bins, max(2, len(np.unique(steps)))) + 1)
+    idx = np.clip(np.digitize(steps, edges) - 1, 0, len(edges) - 2)
+    have = np.array([np.any(idx == b) for b in range(len(edges) - 1)])
+    means = np.array([values[idx == b].mean() if have[b] else np.nan for b in range(len(edges) - 1)])
+    return 0.5 * (edges[:-1] + edges[1:])[have], means[have]
+
+
 def plot_learning_curve(path: str, steps: Sequence[float], returns: Sequence[float], *,
-                        baselines: Optional[Mapping[str, float]] = None, title: str = "") -> None:
-    """Episode return against environment steps, smoothed, with horizontal baseline lines; saved to ``path``."""
+                        baselines: Optional[Mapping[str, float]] = None, title: str = "",
+                        successes: Optional[Sequence[bool]] = None,
+                        baseline_success: Optional[Mapping[str, float]] = None) -> None:
+    """Episode return against environment steps, smoothed, with horizontal baseline lines; saved to ``path``.
+
+    With ``successes`` (one flag per episode) a second panel shows the success rate per bin of environment
+    steps, with ``baseline_success`` (name -> rate in [0, 1]) as horizontal lines.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+    panels = 2 if successes is not None else 1
+    fig, axes = plt.subplots(1, panels, figsize=(6 * panels, 4), dpi=100, squeeze=False)
+    ax = axes[0, 0]
     steps, returns = np.asarray(steps, float), np.asarray(returns, float)
     if len(returns):
         ax.plot(steps, returns, ".", alpha=0.15, color="C0", markersize=3, label="episodes")
         # mean return per bin of environment steps: batched envs finish many episodes at once, so a
         # running mean over episodes would mostly trace single batches
-        edges = np.linspace(steps.min(), steps.max() + 1e-9, min(25, max(2, len(np.unique(steps)))) + 1)
-        idx = np.clip(np.digitize(steps, edges) - 1, 0, len(edges) - 2)
-        have = np.array([np.any(idx == b) for b in range(len(edges) - 1)])
-        means = np.array([returns[idx == b].mean() if have[b] else np.nan for b in range(len(edges) - 1)])
-        centres = 0.5 * (edges[:-1] + edges[1:])
-        ax.plot(centres[have], means[have], "-o", color="C0", lw=2.5, markersize=4, label="mean per step bin")
+        centres, means = _bin_means(steps, returns)
+        ax.plot(centres, means, "-o", color="C0", lw=2.5, markersize=4, label="mean per step bin")
     for i, (name, value) in enumerate((baselines or {}).items()):
         ax.axhline(value, color=f"C{i + 1}", ls="--", label=f"{name} ({value:.3f})")
     ax.set_xlabel("environment steps")
     ax.set_ylabel("episode return")
-    ax.set_title(title)
+    ax.set_title(title if panels == 1 else "episode return")
     ax.legend(loc="best", fontsize=8)
     ax.grid(alpha=0.3)
+    if successes is not None:
+        ax = axes[0, 1]
+        flags = np.asarray(successes, float)
+        if len(flags) != len(steps):
+            raise ValueError(f"plot_learning_curve: {len(flags)} success flags for {len(steps)} episodes")
+        if len(flags):
+            centres, rates = _bin_means(steps, flags)
+            ax.plot(centres, 100.0 * rates, "-o", color="C0", lw=2.5, markersize=4,
+                    label="training episodes, per step bin")
+        for i, (name, value) in enumerate((baseline_success or {}).items()):
+            ax.axhline(100.0 * value, color=f"C{i + 1}", ls="--", label=f"{name} ({100.0 * value:.0f} %)")
+        ax.set_ylim(-3, 103)
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel("success rate [%]")
+        ax.set_title("success rate (Chamfer below the task's threshold)")
+        ax.legend(loc="best", fontsize=8)
+        ax.grid(alpha=0.3)
+        fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

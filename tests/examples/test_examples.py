@@ -4,6 +4,7 @@ import importlib.util
 import json
 import pathlib
 
+import numpy as np
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[2] / "examples"
@@ -31,6 +32,22 @@ def test_train_scripts(tmp_path, name, extra):
         assert (out / f).stat().st_size > 0, f
     assert s["episodes"] >= 2  # 4-step episodes: the curve has points
     assert set(s["baselines"]) == {"zero action", "random action", "trained (eval)"}
+    assert set(s["success_rates"]) == set(s["baselines"])
+    curve = np.load(out / "curve.npz")
+    assert len(curve["steps"]) == len(curve["returns"]) == len(curve["success"]) == s["episodes"]
+
+
+@pytest.mark.parametrize("threshold,expect", [(1.0, True), (0.0, False)])
+def test_success_flags_follow_the_task_threshold(threshold, expect):
+    """A Chamfer threshold of 1 m is met at the first step (every episode a success, ended after one step); one
+    of 0 m never is (every episode runs to its time limit and fails)."""
+    from empm_gym.envs.sb3 import evaluate_policy, make_sb3_vec_env
+
+    kw = json.loads(ROPE)
+    venv = make_sb3_vec_env("EMPM/RopeReshape-v0", 2, seed=0, device="cpu", task_options={"success_chamfer": threshold},
+                            **kw)
+    returns, ok = evaluate_policy(venv, lambda o: np.zeros((2, venv.action_space.shape[0]), np.float32), 3)
+    assert len(returns) == 3 and ok.tolist() == [expect] * 3
 
 
 def test_args_reject_unknown_flag():
