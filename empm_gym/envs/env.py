@@ -22,6 +22,7 @@ from .core import BatchedCore
 __all__ = [
     "EMPMEnv", "EMPMVectorEnv", "RopeReshapeEnv", "RopeReshapeVectorEnv", "DoughFlattenEnv",
     "DoughFlattenVectorEnv", "DoughFlattenV1Env", "DoughFlattenV1VectorEnv", "DoughShapeEnv", "DoughShapeVectorEnv",
+    "DoughShapeV1Env", "DoughShapeV1VectorEnv",
     "make_spaces",
 ]
 
@@ -218,7 +219,7 @@ _COMMON_ARGS = """
     | `particles_per_cell` | 8 | particle sampling density |
     | `control_dt` | 0.05 | control period [s] |
     | `obs_particles`, `points_count`, `obs_target_points` | 64, 256, 64 | points in observations |
-    | `chamfer_points` | task's (128; DoughFlatten-v1 1024) | particle / target points of the reward's Chamfer distance |
+    | `chamfer_points` | task's (128; DoughFlatten-v1, DoughShape-v1: 1024) | particle / target points of the reward's Chamfer distance |
     | `depth_resolution` | 64 | side of the depth image [px] |
     | `device` | Warp default | `"cpu"`, `"cuda:0"`, ... |
     | `render_mode` | `None` | `"rgb_array"` (top and side views) or `"rerun"` (streams every step; `rerun_path=` saves an .rrd, else kept in memory) |
@@ -375,8 +376,46 @@ class DoughShapeEnv(EMPMEnv):
     {_COMMON_ARGS}
     ## Version History
     - v0: initial release.
+    - v1 (:class:`DoughShapeV1Env`): two plates squeeze the lump into a bar; v0's spheres cannot shape it
+      into its targets.
     """
     TASK = "DoughShape"
+
+
+class DoughShapeV1Env(EMPMEnv):
+    __doc__ = f"""Squeeze an elastoplastic dough lump between two plates into a bar (DoughShape-v1).
+
+    ## Description
+    The DoughFlatten lump (6 x 6 x 4 cm, von Mises: E = 30 kPa, nu = 0.3, 1000 kg/m^3, yield stress
+    1 kPa; table friction 0.6) stands between two vertical plates (3 cm thick, 10 cm long along y, 6 cm
+    tall, friction 0.3), 5 mm from its sides along x. At reset a target is drawn: a bar along y of the
+    dough's volume, 3.4-4.0 cm wide, its height the one a squeeze to that width leaves (5.0-4.8 cm), its
+    centre line shifted by up to 1 cm in x. How far to squeeze, and how the dough bulges and springs
+    back, depend on the material. dx = 1 cm.
+
+    ## Action Space
+    `Box(-1, 1, (6,), float32)`: the velocities (x, y, z) of both plates times 0.1 m/s. Plate centres
+    stay inside x in [-0.1, 0.1] m, y in [-0.02, 0.02] m, z = 0.025 m (the plates stand on the table; z
+    commands have no effect). Control period 0.05 s.
+
+    ## Observation Space
+    {_COMMON_OBS}
+    ## Rewards
+    {_COMMON_REWARD}
+    Success: `chamfer < 0.0035` m on 1024 points (a scripted squeeze to the right gap ends 2.8-3.0 mm
+    from its target; the lump at rest starts 4.3-6.0 mm away).
+
+    ## Episode End
+    {_COMMON_END}
+    ## Arguments
+    {_COMMON_ARGS}
+    ## Version History
+    - v1: replaces v0's two spheres and its bar / L / ring targets of any orientation (out of reach of
+      spheres, which only push holes into the dough) by two plates and bar targets of a width and
+      position a squeeze can reach; the reward's Chamfer on 1024 points (v0: 128, floor about 6 mm);
+      30 steps.
+    """
+    TASK = "DoughShape-v1"
 
 
 class RopeReshapeVectorEnv(EMPMVectorEnv):
@@ -392,6 +431,11 @@ class DoughFlattenVectorEnv(EMPMVectorEnv):
 class DoughFlattenV1VectorEnv(EMPMVectorEnv):
     __doc__ = "DoughFlatten-v1 with ``num_envs`` worlds in one simulation; see :class:`DoughFlattenV1Env`.\n\n" + EMPMVectorEnv.__doc__
     TASK = "DoughFlatten-v1"
+
+
+class DoughShapeV1VectorEnv(EMPMVectorEnv):
+    __doc__ = "DoughShape-v1 with ``num_envs`` worlds in one simulation; see :class:`DoughShapeV1Env`.\n\n" + EMPMVectorEnv.__doc__
+    TASK = "DoughShape-v1"
 
 
 class DoughShapeVectorEnv(EMPMVectorEnv):

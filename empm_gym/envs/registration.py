@@ -15,6 +15,7 @@ _SPECS = {
     "EMPM/DoughFlatten-v0": ("DoughFlatten", 50),
     "EMPM/DoughFlatten-v1": ("DoughFlattenV1", 30),
     "EMPM/DoughShape-v0": ("DoughShape", 100),
+    "EMPM/DoughShape-v1": ("DoughShapeV1", 30),
 }
 ENV_IDS = tuple(_SPECS)
 

@@ -14,7 +14,8 @@ import numpy as np
 
 from ..sim import EndEffectorConfig, GridConfig, sample_box, sample_cylinder
 
-__all__ = ["Task", "RopeReshapeTask", "DoughFlattenTask", "DoughFlattenV1Task", "DoughShapeTask", "TASKS"]
+__all__ = ["Task", "RopeReshapeTask", "DoughFlattenTask", "DoughFlattenV1Task", "DoughShapeTask", "DoughShapeV1Task",
+           "TASKS"]
 
 
 def _exact_count(rng: np.random.Generator, lower, upper, inside, count: int) -> np.ndarray:
@@ -337,6 +338,63 @@ class DoughShapeTask(_DoughTask):
         return pts @ _rot_z(ang).T + np.append(rng.uniform(-0.01, 0.01, 2), 0.0)
 
 
+@dataclass
+class DoughShapeV1Task(_DoughTask):
+    """DoughShape, version 1: squeeze the lump between two plates into a bar of a given width and position.
+
+    Why v0 was unsolvable: its two spheres (3 cm across) push a hole into the dough where they touch and
+    the dough flows around them, so no sequence of pushes turns the lump into v0's bars, Ls and rings of
+    any orientation (MPC closed 10-35 % of the distance, never reaching its 6 mm threshold, and 128
+    Chamfer points have a sampling floor of about 6 mm for this volume). Here two vertical plates (3 cm
+    thick, 10 cm long, 6 cm tall, touching the table) stand on either side of the lump along x and move
+    in x and y. A squeeze to a gap g leaves a bar along y whose sides bulge and whose top rises; the target
+    is the box that a squeeze to g leaves (fitted to the squeezed dough at dx 1 cm with the default
+    material: width w = g + 1.0-1.4 cm, height 5.0 cm at w = 3.4 cm falling to 4.8 cm at w = 4.0 cm,
+    the length from the volume), with w in [3.4, 4.0] cm (gaps of about 2-3 cm) and its centre line
+    shifted by up to 1 cm in x, which a squeeze that moves both plates the same way can reach.
+
+    The plates reach 5 mm below the table plane so that they also push the grid's table layer: with a
+    bottom above it, the lowest half-cell of dough stays stuck to the table (friction 0.6) and spreads
+    under the plates. Measured at dx 1 cm with the default dough: a scripted squeeze and release ends
+    2.8-3.0 mm (Chamfer, 1024 points) from the box fitted to it; the lump at rest starts 4.3-6.0 mm from
+    the targets. Success is below 3.5 mm.
+    """
+
+    name: str = "DoughShape-v1"
+    chamfer_points: int = 1024
+    ee_lower: Tuple[float, float, float] = (-0.1, -0.02, 0.025)
+    ee_upper: Tuple[float, float, float] = (0.1, 0.02, 0.025)
+    max_speed: float = 0.1
+    grip_control: bool = False
+    default_grip: Tuple[int, ...] = (0, 0)
+    max_episode_steps: int = 30
+    success_chamfer: float = 0.0035
+    plate_half_extents: Tuple[float, float, float] = (0.015, 0.05, 0.03)
+    """Half sizes [m] of the two plates (x: thickness, y: length, z: height)."""
+    widths: Tuple[float, float] = (0.034, 0.040)
+    """Range [m] of the target bar's width (along x)."""
+    height_at_widths: Tuple[float, float] = (0.050, 0.048)
+    """Target height [m] at the two ends of ``widths`` (linear in between)."""
+    target_shift: float = 0.01
+    """Largest x shift [m] of the target's centre line."""
+
+    def end_effectors(self):
+        hx, _, hz = self.plate_half_extents
+        cfg = EndEffectorConfig(shape="box", half_extents=self.plate_half_extents, friction=0.3)
+        x = 0.5 * self.size[0] + hx + 0.005
+        z = hz - 0.005  # the bottom 5 mm below the table: the plates push the table's node layer too
+        return [(cfg, (-x, 0.0, z)), (cfg, (x, 0.0, z))]
+
+    def sample_target(self, rng):
+        (w0, w1), (h0, h1) = self.widths, self.height_at_widths
+        w = rng.uniform(w0, w1)
+        h = h0 + (h1 - h0) * (w - w0) / (w1 - w0) if w1 > w0 else h0
+        L = self.volume / (w * h)
+        c = rng.uniform(-self.target_shift, self.target_shift)
+        return _exact_count(rng, (c - w / 2, -L / 2, 0.0), (c + w / 2, L / 2, h), lambda p: np.ones(len(p), bool),
+                            self.target_points)
+
+
 #: task name -> class. A version after v0 is part of the name ("DoughFlatten-v1"), as in the env id.
 TASKS = {"RopeReshape": RopeReshapeTask, "DoughFlatten": DoughFlattenTask, "DoughFlatten-v1": DoughFlattenV1Task,
-         "DoughShape": DoughShapeTask}
+         "DoughShape": DoughShapeTask, "DoughShape-v1": DoughShapeV1Task}

@@ -11,6 +11,7 @@ SMALL = {
     "EMPM/DoughFlatten-v0": dict(device="cpu", dx=0.02, particles_per_cell=2, material={"E": 5e3, "yield_stress": 300}),
     "EMPM/DoughFlatten-v1": dict(device="cpu", dx=0.02, particles_per_cell=2, material={"E": 5e3, "yield_stress": 300}),
     "EMPM/DoughShape-v0": dict(device="cpu", dx=0.02, particles_per_cell=2, material={"E": 5e3, "yield_stress": 300}),
+    "EMPM/DoughShape-v1": dict(device="cpu", dx=0.02, particles_per_cell=2, material={"E": 5e3, "yield_stress": 300}),
 }
 
 
