@@ -50,6 +50,8 @@ class Args:
     """Episodes for each of the zero-action, random-action and trained evaluations (0 skips them)."""
     strip_frames: int = 5
     """Frames in the rollout image strip."""
+    max_wall_s: Optional[float] = None
+    """Stop training after this many seconds of wall time (the report then says how many steps ran)."""
 
 
 def main(argv=None):

@@ -141,6 +141,8 @@ def train_and_report(args, make_model, *, algo_name: str) -> dict:
             self.steps, self.returns, self.success = [], [], []
 
         def _on_step(self):
+            if max_wall is not None and time.time() - t0 > max_wall:
+                return False  # SB3 stops learning; the report covers the steps done
             for info in self.locals.get("infos", []):
                 if "episode" in info:
                     self.steps.append(self.num_timesteps)
@@ -151,12 +153,17 @@ def train_and_report(args, make_model, *, algo_name: str) -> dict:
     model = make_model(venv)
     from stable_baselines3.common.logger import configure
 
+    max_wall = getattr(args, "max_wall_s", None)
+    if max_wall is not None and not max_wall > 0:
+        raise ValueError(f"max_wall_s must be a positive number of seconds, got {max_wall!r}")
+
     # SB3's training statistics go next to the other outputs (its default is a new folder in /tmp per run)
     model.set_logger(configure(os.path.join(args.out, "sb3_log"), ["csv"]))
     curve = Curve()
     t0 = time.time()
     model.learn(total_timesteps=args.total_steps, callback=curve)
     wall = time.time() - t0
+    steps_done = int(model.num_timesteps)
     model.save(os.path.join(args.out, "model"))
 
     A = venv.action_space.shape[0]
@@ -190,7 +197,8 @@ def train_and_report(args, make_model, *, algo_name: str) -> dict:
                        view_upper=hi, max_frames=args.strip_frames,
                        title=f"{algo_name} on {args.env_id}: one episode of the trained policy (seed {args.seed})")
     summary = {"algo": algo_name, "env_id": args.env_id, "num_envs": args.num_envs, "total_steps": args.total_steps,
-               "wall_s": wall, "steps_per_s": args.total_steps / max(wall, 1e-9), "episodes": len(curve.returns),
+               "steps_done": steps_done, "stopped_by_wall_time": steps_done < args.total_steps,
+               "wall_s": wall, "steps_per_s": steps_done / max(wall, 1e-9), "episodes": len(curve.returns),
                "final_mean_return": float(np.mean(curve.returns[-20:])) if curve.returns else None,
                "final_success_rate": _last_fraction_rate(curve.steps, curve.success),
                "baselines": baselines, "success_rates": success_rates}

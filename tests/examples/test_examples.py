@@ -50,6 +50,13 @@ def test_success_flags_follow_the_task_threshold(threshold, expect):
     assert len(returns) == 3 and ok.tolist() == [expect] * 3
 
 
+def test_training_stops_at_its_wall_time_budget(tmp_path):
+    s = _load("train_ppo").main(["--num-envs", "2", "--total-steps", "100000", "--device", "cpu", "--torch-device", "cpu",
+                                 "--env-kwargs", ROPE, "--baseline-episodes", "0", "--n-steps", "8", "--batch-size", "8",
+                                 "--max-wall-s", "1e-6", "--out", str(tmp_path)])
+    assert s["stopped_by_wall_time"] and 0 < s["steps_done"] < 100 and s["total_steps"] == 100000
+
+
 def test_args_reject_unknown_flag():
     with pytest.raises(SystemExit):
         _load("train_ppo").main(["--total-step", "5", "--out", "/nonexistent"])
