@@ -88,18 +88,27 @@ def make_sb3_vec_env(env_id: str, num_envs: int, seed: Optional[int] = None, **k
 
 
 def evaluate_policy(venv: SB3VecEnv, policy, episodes: int, seed: int = 0):
-    """(returns, success flags) of the first ``episodes`` finished episodes of ``policy(obs) -> actions`` on
-    ``venv`` (a success: the task's Chamfer threshold reached during the episode)."""
+    """(returns, success flags) of ``episodes`` episodes of ``policy(obs) -> actions`` on ``venv`` (a success:
+    the task's Chamfer threshold reached during the episode).
+
+    The episodes are the first one of each world, in world order, over as many rounds of ``num_envs`` as
+    needed. Taking the first episodes to finish instead would favour the short ones, and episodes end early
+    on success: with 1024 rope worlds that counted 100 % where one episode per world gives far less.
+    """
     venv.seed(seed)
     obs = venv.reset()
+    N = venv.num_envs
     returns: List[float] = []
     success: List[bool] = []
     while len(returns) < episodes:
-        obs, _, done, infos = venv.step(policy(obs))
-        for info, d in zip(infos, done):
-            if d:
-                returns.append(info["episode"]["r"])
-                success.append(bool(info["is_success"]))
+        r_round, ok_round = np.full(N, np.nan), np.zeros(N, bool)
+        while np.isnan(r_round).any():
+            obs, _, done, infos = venv.step(policy(obs))
+            for i in np.flatnonzero(done & np.isnan(r_round)):
+                r_round[i] = infos[i]["episode"]["r"]
+                ok_round[i] = bool(infos[i]["is_success"])
+        returns += r_round.tolist()
+        success += ok_round.tolist()
     return np.asarray(returns[:episodes]), np.asarray(success[:episodes])
 
 

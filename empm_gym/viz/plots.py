@@ -37,11 +37,14 @@ def plot_learning_curve(path: str, steps: Sequence[float], returns: Sequence[flo
     ax = axes[0, 0]
     steps, returns = np.asarray(steps, float), np.asarray(returns, float)
     if len(returns):
-        ax.plot(steps, returns, ".", alpha=0.15, color="C0", markersize=3, label="episodes")
+        # at most 5000 episodes drawn (a long run ends hundreds of thousands), every one in the means
+        shown = np.random.default_rng(0).permutation(len(returns))[:5000]
+        ax.plot(steps[shown], returns[shown], ".", alpha=0.15, color="C0", markersize=3,
+                label="episodes" if len(shown) == len(returns) else f"episodes ({len(shown)} of {len(returns)})")
         # mean return per bin of environment steps: batched envs finish many episodes at once, so a
         # running mean over episodes would mostly trace single batches
         centres, means = _bin_means(steps, returns)
-        ax.plot(centres, means, "-o", color="C0", lw=2.5, markersize=4, label="mean per step bin")
+        ax.plot(centres, means, "-o", color="k", lw=2.5, markersize=4, label="mean per step bin")
     for i, (name, value) in enumerate((baselines or {}).items()):
         ax.axhline(value, color=f"C{i + 1}", ls="--", label=f"{name} ({value:.3f})")
     ax.set_xlabel("environment steps")
@@ -56,7 +59,7 @@ def plot_learning_curve(path: str, steps: Sequence[float], returns: Sequence[flo
             raise ValueError(f"plot_learning_curve: {len(flags)} success flags for {len(steps)} episodes")
         if len(flags):
             centres, rates = _bin_means(steps, flags)
-            ax.plot(centres, 100.0 * rates, "-o", color="C0", lw=2.5, markersize=4,
+            ax.plot(centres, 100.0 * rates, "-o", color="k", lw=2.5, markersize=4,
                     label="training episodes, per step bin")
         for i, (name, value) in enumerate((baseline_success or {}).items()):
             ax.axhline(100.0 * value, color=f"C{i + 1}", ls="--", label=f"{name} ({100.0 * value:.0f} %)")
