@@ -1,14 +1,16 @@
 """Gymnasium environments (single and natively batched) for rope and dough tasks with geometry targets.
 
-``import empm_gym`` registers the ids (``EMPM/RopeReshape-v0``, ``EMPM/DoughFlatten-v0``,
-``EMPM/DoughFlatten-v1``, ``EMPM/DoughShape-v0``, ``EMPM/DoughShape-v1``); the classes are importable from here without loading Warp kernels.
+``import empm_gym`` registers the ids (``EMPM/RopeReshape-v0``, ``EMPM/RopeReshape-v1``,
+``EMPM/DoughFlatten-v0``, ``EMPM/DoughFlatten-v1``, ``EMPM/DoughShape-v0``, ``EMPM/DoughShape-v1``); the
+classes are importable from here without loading Warp kernels.
 """
 
 from .registration import ENV_IDS
 
-__all__ = ["ENV_IDS", "BatchedCore", "EMPMEnv", "EMPMVectorEnv", "RopeReshapeEnv", "DoughFlattenEnv",
-           "DoughFlattenV1Env", "DoughShapeEnv", "DoughShapeV1Env", "RopeReshapeVectorEnv", "DoughFlattenVectorEnv",
-           "DoughFlattenV1VectorEnv", "DoughShapeVectorEnv", "DoughShapeV1VectorEnv"]
+__all__ = ["ENV_IDS", "BatchedCore", "EMPMEnv", "EMPMVectorEnv", "RopeReshapeEnv", "RopeReshapeV1Env",
+           "DoughFlattenEnv", "DoughFlattenV1Env", "DoughShapeEnv", "DoughShapeV1Env", "RopeReshapeVectorEnv",
+           "RopeReshapeV1VectorEnv", "DoughFlattenVectorEnv", "DoughFlattenV1VectorEnv", "DoughShapeVectorEnv",
+           "DoughShapeV1VectorEnv"]
 
 
 def __getattr__(name):

@@ -210,6 +210,10 @@ class BatchedCore:
         G = max(self.chamfer_points, self.obs_particles, self.points_count if obs_mode == "points" else 0)
         self.gather_count = G
         perm = np.random.default_rng(12345).permutation(self.P)[:G]
+        key = task.observed_particle_key(x)
+        if key is not None:  # the observed particles in the task's order (a set, not its order, enters the reward)
+            head = perm[: self.obs_particles]
+            perm[: self.obs_particles] = head[np.argsort(np.asarray(key)[head], kind="stable")]
         idx = np.stack([model.world_particle_start[w] + perm for w in range(W)]).astype(np.int32)
         self._gather_idx = wp.array(idx, dtype=int, device=self.device)
         self._gathered = wp.zeros((W, G), dtype=wp.vec3, device=self.device)
@@ -300,10 +304,14 @@ class BatchedCore:
     def _set_target(self, w: int, target):
         """World w's target point cloud [m], with everything derived from it (device copies, voxels, observation)."""
         self.targets[w] = np.asarray(target, np.float32)
-        self._target_dev[w].assign(self.targets[w, : self.chamfer_target_points])
+        self._target_dev[w].assign(self.target_subset(w, self.chamfer_target_points))
         self._occ_target[w].assign(voxelize(self.targets[w], self.occ_origin, self.occ_voxel, self.occ_res))
         # the target part of the observation changes only here, so it is clipped once, not every step
-        self._target_obs[w] = self._clip_points(self.targets[w, : self.obs_target_points])
+        self._target_obs[w] = self._clip_points(self.target_subset(w, self.obs_target_points))
+
+    def target_subset(self, w: int, count: int) -> np.ndarray:
+        """The ``count`` points of world w's target that the reward (Chamfer) or the observation uses."""
+        return self.targets[w, self.task.target_subset_indices(count)]
 
     def reset(self, worlds: Optional[Sequence[int]] = None, seeds: Optional[Sequence[Optional[int]]] = None):
         """Reset the given worlds (default all); ``seeds[i]`` (None keeps the world's generator) reseeds them."""

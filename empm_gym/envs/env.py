@@ -20,7 +20,8 @@ from gymnasium.vector.utils import batch_space
 from .core import BatchedCore
 
 __all__ = [
-    "EMPMEnv", "EMPMVectorEnv", "RopeReshapeEnv", "RopeReshapeVectorEnv", "DoughFlattenEnv",
+    "EMPMEnv", "EMPMVectorEnv", "RopeReshapeEnv", "RopeReshapeVectorEnv", "RopeReshapeV1Env", "RopeReshapeV1VectorEnv",
+    "DoughFlattenEnv",
     "DoughFlattenVectorEnv", "DoughFlattenV1Env", "DoughFlattenV1VectorEnv", "DoughShapeEnv", "DoughShapeVectorEnv",
     "DoughShapeV1Env", "DoughShapeV1VectorEnv",
     "make_spaces",
@@ -281,8 +282,40 @@ class RopeReshapeEnv(EMPMEnv):
     {_COMMON_ARGS}
     ## Version History
     - v0: initial release.
+    - v1 (:class:`RopeReshapeV1Env`): ordered observations (rope particles from end to end, target points
+      along the target curve).
     """
     TASK = "RopeReshape"
+
+
+class RopeReshapeV1Env(EMPMEnv):
+    __doc__ = f"""Reshape an elastic rope with two grippers, observing rope and target in order (RopeReshape-v1).
+
+    ## Description
+    v0's rope, grippers, targets, reward and success (see :class:`RopeReshapeEnv`). What changes is the
+    "state" and "points" observations' order: the observed rope particles run from the rope's end at
+    x < 0 (at rest) to the other, and the observed target points run along the target curve, evenly
+    strided in arc length, from the end on the first gripper's side. v0 observes both in random order;
+    a policy then has to match two unordered clouds.
+
+    ## Action Space
+    `Box(-1, 1, (6,), float32)`: as v0.
+
+    ## Observation Space
+    {_COMMON_OBS}
+    ## Rewards
+    {_COMMON_REWARD}
+    The reward's Chamfer uses target points evenly strided along the curve (v0: a random sample).
+    Success: `chamfer < 0.012` m.
+
+    ## Episode End
+    {_COMMON_END}
+    ## Arguments
+    {_COMMON_ARGS}
+    ## Version History
+    - v1: observations in order along the rope and along the target curve.
+    """
+    TASK = "RopeReshape-v1"
 
 
 class DoughFlattenEnv(EMPMEnv):
@@ -431,6 +464,11 @@ class DoughFlattenVectorEnv(EMPMVectorEnv):
 class DoughFlattenV1VectorEnv(EMPMVectorEnv):
     __doc__ = "DoughFlatten-v1 with ``num_envs`` worlds in one simulation; see :class:`DoughFlattenV1Env`.\n\n" + EMPMVectorEnv.__doc__
     TASK = "DoughFlatten-v1"
+
+
+class RopeReshapeV1VectorEnv(EMPMVectorEnv):
+    __doc__ = "RopeReshape-v1 with ``num_envs`` worlds in one simulation; see :class:`RopeReshapeV1Env`.\n\n" + EMPMVectorEnv.__doc__
+    TASK = "RopeReshape-v1"
 
 
 class DoughShapeV1VectorEnv(EMPMVectorEnv):

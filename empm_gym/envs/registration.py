@@ -12,6 +12,7 @@ __all__ = ["ENV_IDS", "register_envs"]
 #: id -> (task / class prefix, max_episode_steps)
 _SPECS = {
     "EMPM/RopeReshape-v0": ("RopeReshape", 100),
+    "EMPM/RopeReshape-v1": ("RopeReshapeV1", 100),
     "EMPM/DoughFlatten-v0": ("DoughFlatten", 50),
     "EMPM/DoughFlatten-v1": ("DoughFlattenV1", 30),
     "EMPM/DoughShape-v0": ("DoughShape", 100),

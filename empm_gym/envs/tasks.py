@@ -14,7 +14,7 @@ import numpy as np
 
 from ..sim import EndEffectorConfig, GridConfig, sample_box, sample_cylinder
 
-__all__ = ["Task", "RopeReshapeTask", "DoughFlattenTask", "DoughFlattenV1Task", "DoughShapeTask", "DoughShapeV1Task",
+__all__ = ["Task", "RopeReshapeTask", "RopeReshapeV1Task", "DoughFlattenTask", "DoughFlattenV1Task", "DoughShapeTask", "DoughShapeV1Task",
            "TASKS"]
 
 
@@ -92,6 +92,16 @@ class Task:
         upper = (self.grid_upper[0], self.grid_upper[1], max(self.grid_upper[2], 9.0 * dx))
         return GridConfig(lower=lower, upper=upper, dx=dx)
 
+    def target_subset_indices(self, count: int) -> np.ndarray:
+        """Indices of the ``count`` target points the reward's Chamfer distance and the observation use: the
+        first ``count`` (targets are i.i.d. samples of the shape unless a task orders them)."""
+        return np.arange(min(int(count), self.target_points))
+
+    def observed_particle_key(self, rest_positions: np.ndarray) -> Optional[np.ndarray]:
+        """A sort key [n] of the object's particles at rest that orders the "state" observation's particles, or
+        None (a fixed random order)."""
+        return None
+
     @property
     def ee_count(self) -> int:
         return len(self.end_effectors())
@@ -129,6 +139,8 @@ class RopeReshapeTask(Task):
     """Radius [m] of the two spherical grippers."""
     shapes: Tuple[str, ...] = ROPE_SHAPES
     """Target family drawn from at reset."""
+    ordered_targets: bool = False
+    """Store the target's points in the order of arc length along its curve (v1); v0's are in random order."""
 
     def end_effectors(self):
         cfg = EndEffectorConfig(shape="sphere", radius=self.gripper_radius, friction=0.8)
@@ -189,6 +201,8 @@ class RopeReshapeTask(Task):
         seg = np.diff(c, axis=0)
         cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(seg, axis=1))])
         u = rng.uniform(0.0, cum[-1], self.target_points)
+        if self.ordered_targets:
+            u = np.sort(u)
         k = np.clip(np.searchsorted(cum, u) - 1, 0, len(seg) - 1)
         f = ((u - cum[k]) / np.maximum(cum[k + 1] - cum[k], 1e-12))[:, None]
         centre = c[k] + f * seg[k]
@@ -199,6 +213,32 @@ class RopeReshapeTask(Task):
         xy = centre + (r * np.cos(a))[:, None] * nrm
         z = self.radius + r * np.sin(a)
         return np.concatenate([xy, z[:, None]], 1)
+
+
+@dataclass
+class RopeReshapeV1Task(RopeReshapeTask):
+    """RopeReshape, version 1: the same rope, grippers, targets and reward, with ordered observations.
+
+    v0 observes 64 rope particles in a fixed random order and 64 target points drawn at random along the
+    target curve, in random order: a policy has to compare two unordered clouds, and PPO stayed at 22 %
+    success after 3 M steps (benchmarks/RESULTS.md). Here the observed particles run from one end of the
+    rope to the other (sorted by their position along the rope at rest), and the target points are
+    stored in the order of arc length along the target curve, so that the observed target points (and the
+    reward's Chamfer subset) are evenly strided along it, from the end nearest the first gripper's side
+    (x < 0 before the rotation) to the other. The shapes the task asks for and how success is scored are
+    v0's.
+    """
+
+    name: str = "RopeReshape-v1"
+
+    ordered_targets: bool = True
+
+    def target_subset_indices(self, count: int) -> np.ndarray:
+        n = min(int(count), self.target_points)
+        return np.unique(np.linspace(0, self.target_points - 1, n).round().astype(int)) if n > 1 else np.arange(n)
+
+    def observed_particle_key(self, rest_positions):
+        return np.asarray(rest_positions)[:, 0]
 
 
 # ---------------------------------------------------------------------------- dough
@@ -396,5 +436,5 @@ class DoughShapeV1Task(_DoughTask):
 
 
 #: task name -> class. A version after v0 is part of the name ("DoughFlatten-v1"), as in the env id.
-TASKS = {"RopeReshape": RopeReshapeTask, "DoughFlatten": DoughFlattenTask, "DoughFlatten-v1": DoughFlattenV1Task,
-         "DoughShape": DoughShapeTask, "DoughShape-v1": DoughShapeV1Task}
+TASKS = {"RopeReshape": RopeReshapeTask, "RopeReshape-v1": RopeReshapeV1Task, "DoughFlatten": DoughFlattenTask,
+         "DoughFlatten-v1": DoughFlattenV1Task, "DoughShape": DoughShapeTask, "DoughShape-v1": DoughShapeV1Task}

@@ -71,7 +71,7 @@ class GradientPlanner(Planner):
         init = self._init(init, H, self.action_dim)
         u = torch.tensor(np.arctanh(np.clip(init[:, : 3 * K], -0.95, 0.95)), dtype=torch.float32, requires_grad=True)
         opt = torch.optim.Adam([u], lr=self.lr)
-        target = torch.tensor(c.targets[0, : c.chamfer_target_points], dtype=torch.float32)
+        target = torch.tensor(c.target_subset(0, c.chamfer_target_points), dtype=torch.float32)
         ee0 = torch.tensor(state["sim"]["ee_pos"], dtype=torch.float32)
         lo, hi = torch.tensor(c.ee_lower), torch.tensor(c.ee_upper)
         s0 = c.state
