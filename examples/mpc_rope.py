@@ -20,12 +20,14 @@ import numpy as np
 import empm_gym  # noqa: F401  (registers the ids)
 from empm_gym.envs.script_args import parse_args
 from empm_gym.planning import CEMPlanner, MPPIPlanner
+
+ENV_ID = "EMPM/RopeReshape-v1"
 from empm_gym.viz import save_rollout_strip
 
 
 @dataclass
 class Args:
-    """MPPI / CEM model-predictive control on EMPM/RopeReshape-v0."""
+    """MPPI / CEM model-predictive control on EMPM/RopeReshape-v1."""
 
     planner: str = "mppi"
     """"mppi" or "cem"."""
@@ -69,9 +71,9 @@ def main(argv=None):
     kwargs = json.loads(args.env_kwargs)
     if args.device:
         kwargs["device"] = args.device
-    env = gym.make("EMPM/RopeReshape-v0", render_mode="rgb_array", **kwargs)
+    env = gym.make(ENV_ID, render_mode="rgb_array", **kwargs)
     Planner = MPPIPlanner if args.planner == "mppi" else CEMPlanner
-    planner = Planner("RopeReshape", samples=args.samples, iterations=args.iterations, noise=args.noise,
+    planner = Planner(ENV_ID, samples=args.samples, iterations=args.iterations, noise=args.noise,
                       env_kwargs=kwargs, seed=args.seed)
     run_episode.seed = args.seed
     A = env.action_space.shape[0]
@@ -92,7 +94,7 @@ def main(argv=None):
     lo, hi = env.unwrapped.view_box()
     save_rollout_strip(os.path.join(args.out, "strip.png"),
                        {f"MPC ({args.planner.upper()})": frames, "zero action": zero_frames}, view_lower=lo,
-                       view_upper=hi, title=f"EMPM/RopeReshape-v0: {args.planner.upper()} ({args.samples} samples, "
+                       view_upper=hi, title=f"{ENV_ID}: {args.planner.upper()} ({args.samples} samples, "
                                             f"horizon {args.horizon}) against zero action")
     summary = {"planner": args.planner, "steps": len(frames) - 1, "wall_s": wall, "chamfer": cd, "iou": iou,
                "zero_action_chamfer": zero_cd, "zero_action_iou": zero_iou}

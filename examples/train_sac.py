@@ -18,7 +18,7 @@ from empm_gym.envs.script_args import parse_args
 class Args:
     """SAC on a batched EMPM environment."""
 
-    env_id: str = "EMPM/RopeReshape-v0"
+    env_id: str = "EMPM/RopeReshape-v1"
     """Registered environment id."""
     num_envs: int = 16
     """Number of environments (worlds of one batched simulation)."""
