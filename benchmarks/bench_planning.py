@@ -64,6 +64,7 @@ def main(argv=None):
     p.add_argument("--env-ids", default=",".join(ENV_IDS), help="comma-separated environment ids")
     p.add_argument("--planners", default="mppi,cem", help="comma-separated: mppi, cem")
     p.add_argument("--seeds", type=int, default=3, help="episodes (targets) per policy")
+    p.add_argument("--first-seed", type=int, default=0, help="seed of the first episode (seeds first-seed ... first-seed + seeds - 1)")
     p.add_argument("--steps", type=int, default=30, help="control steps per episode")
     p.add_argument("--samples", type=int, default=32, help="planner samples (batched worlds)")
     p.add_argument("--iterations", type=int, default=3, help="planner iterations per control step")
@@ -95,7 +96,7 @@ def main(argv=None):
         rows = {}
         for pname, pol in policies.items():
             res = []
-            for seed in tqdm(range(args.seeds), desc=f"{env_id}: {pname}", leave=False):
+            for seed in tqdm(range(args.first_seed, args.first_seed + args.seeds), desc=f"{env_id}: {pname}", leave=False):
                 if hasattr(pol, "reset"):
                     pol.reset()
                 r = episode(env, pol, args.steps, seed)
