@@ -50,7 +50,8 @@ def plot_learning_curve(path: str, steps: Sequence[float], returns: Sequence[flo
     ax.set_xlabel("environment steps")
     ax.set_ylabel("episode return")
     ax.set_title(title if panels == 1 else "episode return")
-    ax.legend(loc="best", fontsize=8)
+    if ax.get_legend_handles_labels()[0]:  # nothing to list before the first episode ends
+        ax.legend(loc="best", fontsize=8)
     ax.grid(alpha=0.3)
     if successes is not None:
         ax = axes[0, 1]
@@ -67,7 +68,8 @@ def plot_learning_curve(path: str, steps: Sequence[float], returns: Sequence[flo
         ax.set_xlabel("environment steps")
         ax.set_ylabel("success rate [%]")
         ax.set_title("success rate (Chamfer below the task's threshold)")
-        ax.legend(loc="best", fontsize=8)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(loc="best", fontsize=8)
         ax.grid(alpha=0.3)
         fig.suptitle(title)
     fig.tight_layout()

@@ -44,7 +44,7 @@ def test_success_flags_follow_the_task_threshold(threshold, expect):
     from empm_gym.envs.sb3 import evaluate_policy, make_sb3_vec_env
 
     kw = json.loads(ROPE)
-    venv = make_sb3_vec_env("EMPM/RopeReshape-v0", 2, seed=0, device="cpu", task_options={"success_chamfer": threshold},
+    venv = make_sb3_vec_env("EMPM/RopeReshape-v1", 2, seed=0, device="cpu", task_options={"success_chamfer": threshold},
                             **kw)
     returns, ok = evaluate_policy(venv, lambda o: np.zeros((2, venv.action_space.shape[0]), np.float32), 3)
     assert len(returns) == 3 and ok.tolist() == [expect] * 3
