@@ -138,6 +138,9 @@ def train_and_report(args, make_model, *, algo_name: str) -> dict:
 
     from ..viz.plots import plot_learning_curve, save_rollout_strip
 
+    max_wall = getattr(args, "max_wall_s", None)
+    if max_wall is not None and not max_wall > 0:  # checked before the environments and the model are built
+        raise ValueError(f"max_wall_s must be a positive number of seconds, got {max_wall!r}")
     os.makedirs(args.out, exist_ok=True)
     kwargs = json.loads(args.env_kwargs) if isinstance(args.env_kwargs, str) else dict(args.env_kwargs)
     if args.device:
@@ -162,9 +165,6 @@ def train_and_report(args, make_model, *, algo_name: str) -> dict:
     model = make_model(venv)
     from stable_baselines3.common.logger import configure
 
-    max_wall = getattr(args, "max_wall_s", None)
-    if max_wall is not None and not max_wall > 0:
-        raise ValueError(f"max_wall_s must be a positive number of seconds, got {max_wall!r}")
 
     # SB3's training statistics go next to the other outputs (its default is a new folder in /tmp per run)
     model.set_logger(configure(os.path.join(args.out, "sb3_log"), ["csv"]))

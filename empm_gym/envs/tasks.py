@@ -14,8 +14,8 @@ import numpy as np
 
 from ..sim import EndEffectorConfig, GridConfig, sample_box, sample_cylinder
 
-__all__ = ["Task", "RopeReshapeTask", "RopeReshapeV1Task", "DoughFlattenTask", "DoughFlattenV1Task", "DoughShapeTask", "DoughShapeV1Task",
-           "TASKS"]
+__all__ = ["Task", "RopeReshapeTask", "RopeReshapeV1Task", "DoughFlattenTask", "DoughFlattenV1Task", "DoughShapeTask",
+           "DoughShapeV1Task", "TASKS"]
 
 
 def _exact_count(rng: np.random.Generator, lower, upper, inside, count: int) -> np.ndarray:
