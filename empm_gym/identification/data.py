@@ -191,13 +191,22 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
     return x0, vol, report
 
 
+#: Views whose widest unseen azimuth lies within this range (degrees) of half a turn (two cameras on opposite
+#: sides) support two completions of the frame-0 body equally: the fill of the surfaces seen from both sides,
+#: or the half-turn prior (:func:`frame0_body` takes the second above 180 degrees). What neither camera sees
+#: (the faces behind two plates, say) decides between them, so both enter the interval
+#: (:func:`view_jackknife_bodies`). Measured on ``empm synth``'s two-camera dough (two plates hide its x faces
+#: from both cameras, 424 x 240): 0.83 of the true volume by the prior, 1.10 by the fill.
+AMBIGUOUS_GAP_DEG = (150.0, 210.0)
+
+
 def rebuilt_scene(rec_dir, scene, *, particles_per_cell: float, cameras: Optional[List[int]] = None,
                   points: Optional[np.ndarray] = None, voxel_m: float = 0.003, complete_hidden: bool = True,
-                  ee_friction: float = 0.8):
+                  ee_friction: float = 0.8, single_view: Optional[bool] = None):
     """``scene`` (made by :func:`load_recording` from ``rec_dir``, a path or an open Recording) with its frame-0
     body built again: at another fill (``particles_per_cell``), from the cameras ``cameras`` only (default all), from the fused frame-0
-    ``points`` when given; the closed grippers grown to reach the new body. ValueError when the views cannot
-    close a body."""
+    ``points`` when given, with the completion ``single_view`` (None: as :func:`frame0_body` decides); the
+    closed grippers grown to reach the new body. ValueError when the views cannot close a body."""
     from dataclasses import replace
 
     from empm_gym.perception.fusion import load_controls
@@ -211,33 +220,45 @@ def rebuilt_scene(rec_dir, scene, *, particles_per_cell: float, cameras: Optiona
     cfgs, pos, grip = controls_to_end_effectors(controls, friction=ee_friction)
     x0, vol, _ = frame0_body(rec, plane, cfgs, pos, grip, controls.get("orientations"), dx=scene.dx,
                              particles_per_cell=particles_per_cell, voxel_m=voxel_m, complete_hidden=complete_hidden,
-                             points=points)
+                             points=points, single_view=single_view)
     grown, _ = attach_grippers(cfgs, pos, grip, x0, scene.dx)
     return replace(scene, particles=x0, volumes=vol, ee_configs=grown)
 
 
 def view_jackknife_bodies(rec_dir, scene, *, particles_per_cell: float, voxel_m: float = 0.003,
-                          complete_hidden: bool = True, ee_friction: float = 0.8) -> List[Tuple[str, object]]:
+                          complete_hidden: bool = True, ee_friction: float = 0.8,
+                          other_completion: bool = True) -> List[Tuple[str, object]]:
     """The frame-0 body rebuilt with each camera of the recording left out in turn (:func:`rebuilt_scene`), as
     scenes that differ from ``scene`` (made by :func:`load_recording` from the same recording) only in the body
     and in the closed grippers grown to reach it: ``[(label, Scene), ...]``, one per camera, empty for a
-    one-camera recording. A subset whose views cannot close a body gives ``(label saying why, None)``. How far
-    a fit moves on these bodies is the share of the body's reconstructed shape in its uncertainty
-    (:func:`empm_gym.identification.uncertainty.assess_fit`)."""
+    one-camera recording. With ``other_completion``, where the views leave the completion open (their widest
+    unseen azimuth within :data:`AMBIGUOUS_GAP_DEG`: two cameras on opposite sides), also the body built by
+    the other completion (the half-turn prior where the fill of both sides was used, and the reverse). A body
+    that cannot be closed gives ``(label saying why, None)``. How far a fit moves on these bodies is the share of
+    the body's reconstructed shape in its uncertainty (:func:`empm_gym.identification.uncertainty.assess_fit`)."""
+    from empm_gym.perception.fusion import view_gap_deg
     from empm_gym.perception.recording import Recording
 
     rec = Recording(rec_dir)
     out = []
-    for c in range(rec.num_cameras if rec.num_cameras > 1 else 0):
-        label = f"without camera {rec.camera_names[c]}"
+
+    def rebuild(label, **kw):
         try:
-            sc = rebuilt_scene(rec, scene, particles_per_cell=particles_per_cell,
-                               cameras=[i for i in range(rec.num_cameras) if i != c], voxel_m=voxel_m,
-                               complete_hidden=complete_hidden, ee_friction=ee_friction)
+            sc = rebuilt_scene(rec, scene, particles_per_cell=particles_per_cell, voxel_m=voxel_m,
+                               complete_hidden=complete_hidden, ee_friction=ee_friction, **kw)
         except ValueError as exc:
             out.append((f"{label}: {exc}", None))
-            continue
+            return
         out.append((label, sc))
+
+    for c in range(rec.num_cameras if rec.num_cameras > 1 else 0):
+        rebuild(f"without camera {rec.camera_names[c]}", cameras=[i for i in range(rec.num_cameras) if i != c])
+    if other_completion and rec.num_cameras > 1:
+        gap = view_gap_deg(rec.cameras, np.asarray(scene.particles).mean(0))
+        if AMBIGUOUS_GAP_DEG[0] <= gap <= AMBIGUOUS_GAP_DEG[1]:
+            prior = gap <= 180.0  # frame0_body filled both sides: the other completion is the half-turn prior
+            rebuild(f"completed by {'the half-turn prior' if prior else 'the fill of both sides'} "
+                    f"(views {gap:.0f} deg apart leave it open)", single_view=prior)
     return out
 
 
