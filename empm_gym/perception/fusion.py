@@ -429,9 +429,12 @@ def complete_occluded(points: np.ndarray, rec: Recording, t: int, ee_configs, ee
     surface in front of them (the end-effector or the object: hidden), they lie outside the end-effector unless it is closed
     (a closed gripper carries the material inside it) and they connect to the visible object. With
     ``grip`` [K] (1 = closed) and ``ee_orientations`` [K, 4] (x, y, z, w) for the same frame.
-    With ``end_effectors_only`` a point must moreover be hidden by an end-effector
-    (:func:`hidden_by_end_effectors`), not by the object itself: for views from one side, whose object-hidden
-    far side is left to :func:`complete_by_symmetry`. ``connected=False`` keeps the hidden points that do not
+    With ``end_effectors_only`` a point must moreover be hidden by an end-effector from at least one camera
+    (:func:`hidden_by_end_effectors`), not by the object itself from all: for views from one side, whose
+    object-hidden far side is left to :func:`complete_by_symmetry`. (From one camera: hidden by an
+    end-effector. From two on opposite sides of a body between two plates, each plate hides the face behind
+    it from the camera on its side while the body hides that face from the other: with "every camera" both
+    faces were left out, and the body came out 17 % small.) ``connected=False`` keeps the hidden points that do not
     connect to the visible object too.
     """
     from scipy import ndimage
@@ -482,7 +485,8 @@ def complete_occluded(points: np.ndarray, rec: Recording, t: int, ee_configs, ee
             cand = cand[_within_entry_half(cand, pts, pos[k], R, np.asarray(cfg.half_extents, float), spacing_m,
                                            reach_m)]
         if end_effectors_only and len(cand):
-            cand = cand[hidden_by_end_effectors(cand, rec.cameras, ee_configs, pos, ee_orientations)]
+            cand = cand[hidden_by_end_effectors(cand, rec.cameras, ee_configs, pos, ee_orientations,
+                                                every_camera=False)]
         if len(cand) == 0:
             continue
         if not connected:
@@ -597,16 +601,16 @@ def inside_open_end_effectors(x: np.ndarray, ee_configs, ee_positions, grip=None
 
 
 def hidden_by_end_effectors(x: np.ndarray, cameras: Sequence[Camera], ee_configs, ee_positions,
-                            ee_orientations=None, *, samples: int = 24) -> np.ndarray:
-    """True for world points [N, 3] (m) that an end-effector hides from every camera whose image they fall in:
-    the segment from the point to that camera's optical centre passes through an end-effector (tested at
-    ``samples`` points along the part of the segment within the end-effector's bounding sphere).
-    Points that no camera images are False."""
+                            ee_orientations=None, *, samples: int = 24, every_camera: bool = True) -> np.ndarray:
+    """True for world points [N, 3] (m) that an end-effector hides from every camera whose image they fall in
+    (with ``every_camera=False``: from at least one of them): the segment from the point to that camera's
+    optical centre passes through an end-effector (tested at ``samples`` points along the part of the segment
+    within the end-effector's bounding sphere). Points that no camera images are False."""
     x = np.asarray(x, float).reshape(-1, 3)
     if len(ee_configs) == 0 or len(x) == 0:
         return np.zeros(len(x), bool)
     pos, quats = _ee_frames(ee_configs, ee_positions, ee_orientations)
-    out = np.ones(len(x), bool)
+    out = np.full(len(x), bool(every_camera))
     imaged = np.zeros(len(x), bool)
     s = (np.arange(samples) + 0.5) / samples
     for cam in cameras:
@@ -632,7 +636,10 @@ def hidden_by_end_effectors(x: np.ndarray, cameras: Sequence[Camera], ee_configs
             q = x[near, None, :] + t[..., None] * u[near, None, :]
             sd = end_effector_sdf(q.reshape(-1, 3), cfg, pos[k], quats[k]).reshape(len(near), samples)
             hid[near] |= (sd < 0.0).any(1)
-        out &= hid | ~inside
+        if every_camera:
+            out &= hid | ~inside
+        else:
+            out |= hid & inside
     return out & imaged
 
 

@@ -237,11 +237,14 @@ def test_dough_E_from_one_camera_is_found_or_flagged(dough_one_camera):
     assert abs(res.params["E"] / m["E"] - 1.0) < 0.15 or (not u["determined"] and lo <= m["E"] <= hi), (res.params, u)
 
 
-def test_two_opposite_cameras_carry_both_completions_into_the_interval(tmp_path):
-    """Two cameras half a turn apart, whose plates hide the dough's x faces from both: the half-turn prior
-    (what the body is built with) makes it too small, the fill of both sides too large. Neither is refuted
-    by the views, so the shape variants for the interval hold the other completion, and the two bracket the
-    true volume (the -38 % confident yield stress of issue 14 came from the first alone)."""
+def test_two_opposite_cameras_body_and_both_completions(tmp_path):
+    """Two cameras half a turn apart, the dough between two plates that hide its x faces from both (each
+    plate from the camera on its side, the dough itself from the other). The body is built by the half-turn
+    prior with what the plates hide filled up to them: its volume within 8 % of the true box, its x faces
+    within 3 mm (they came out 5 mm short, the body 17 % small, when a point had to be hidden by a plate
+    from every camera: the -38 % confident yield stress of issue 14). The views leave the completion open,
+    so the shape variants for the interval hold the other completion, the fill of both sides; three cameras
+    around the dough leave nothing open and get none."""
     from empm_gym.cli import main
     from empm_gym.identification.data import view_jackknife_bodies
 
@@ -249,17 +252,18 @@ def test_two_opposite_cameras_carry_both_completions_into_the_interval(tmp_path)
     assert main(["synth", str(rec), "--object", "dough", "--cameras", "2", "--frames", "3",
                  "--width", "424", "--height", "240", "--quiet"]) == 0
     geo = json.loads((rec / "ground_truth.json").read_text())["scene"]["object_geometry"]
-    true_vol = float(np.prod(geo["size_m"]))
     info = {}
     scene, _, _ = load_recording(rec, particles_per_cell=27, info=info, progress=False)
     assert info["single_view"] and 150.0 <= info["view_gap_deg"] <= 210.0, info
+    assert abs(scene.volumes.sum() / np.prod(geo["size_m"]) - 1.0) < 0.08
+    spacing = 0.01 / 3.0  # 27 particles per cell: the outer particles lie half a spacing inside the faces
+    lo, hi = np.array(geo["lower"]), np.array(geo["lower"]) + np.array(geo["size_m"])
+    assert abs(scene.particles[:, 0].min() - (lo[0] + spacing / 2)) < 0.003
+    assert abs(scene.particles[:, 0].max() - (hi[0] - spacing / 2)) < 0.003
     bodies = dict(view_jackknife_bodies(rec, scene, particles_per_cell=27))
     assert len(bodies) == 3, list(bodies)  # each camera left out, and the other completion
     other = [sc for label, sc in bodies.items() if "fill of both sides" in label]
-    assert len(other) == 1 and other[0] is not None
-    vols = sorted([float(scene.volumes.sum()), float(other[0].volumes.sum())])
-    assert vols[0] < true_vol < vols[1], (vols, true_vol)
-    # three cameras around the dough leave nothing open: no other completion
+    assert len(other) == 1 and other[0] is not None and len(other[0].particles) != len(scene.particles)
     rec3 = tmp_path / "dough3"
     assert main(["synth", str(rec3), "--object", "dough", "--cameras", "3", "--frames", "3",
                  "--width", "424", "--height", "240", "--quiet"]) == 0
