@@ -247,7 +247,8 @@ def controls_to_end_effectors(controls: dict, friction: float = 0.8):
     """Simulator end-effectors from a controls mapping (``controls.npz`` or :func:`validate_controls`).
 
     Returns ``(configs, positions [T, K, 3] m, grip [T, K] int)`` where ``configs`` is one
-    :class:`empm_gym.sim.EndEffectorConfig` per end-effector (``friction`` [-] for all). To replay the
+    :class:`empm_gym.sim.EndEffectorConfig` per end-effector (``friction`` [-] for all; a ``gripper`` where its
+    grip closes in some frame, a tool otherwise). To replay the
     recording, add end-effector k at ``positions[0, k]`` and command during frame interval t -> t+1
     the velocity ``end_effector_velocities(positions, fps)[t]`` (m/s) and the grip ``grip[t]``.
     """
@@ -259,7 +260,7 @@ def controls_to_end_effectors(controls: dict, friction: float = 0.8):
         configs.append(EndEffectorConfig(
             shape=str(c["shape"][k]), radius=float(c["radius"][k]),
             half_height=float(c["half_height"][k]), half_extents=tuple(float(v) for v in c["half_extents"][k]),
-            friction=friction))
+            friction=friction, gripper=bool(np.any(c["grip"][:, k]))))
     return configs, c["positions"], c["grip"]
 
 

@@ -289,7 +289,8 @@ def simulate(object: str, material, *, script: str = "default", frames: int = 60
     pos, grip, ee_kw, grid_box = _script(object, script, T, dx)
     model, ee_cfgs, grid = _build(object, material, dx=dx, ppc=particles_per_cell, table_friction=table_friction,
                                   ee_friction=gripper_friction, seed=seed, device=device, controls_pos=pos,
-                                  ee_kwargs=ee_kw, grid_box=grid_box)
+                                  ee_kwargs=[dict(kw, gripper=bool(np.any(grip[:, k]))) for k, kw in enumerate(ee_kw)],
+                                  grid_box=grid_box)
     solver = SolverMPM(model)
     vel = np.diff(pos, axis=0) * fps
     vmax = float(np.max(np.linalg.norm(vel, axis=-1))) if len(vel) else 0.0

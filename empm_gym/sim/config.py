@@ -252,6 +252,12 @@ class EndEffectorConfig:
     """Half sizes [m] of a box along its local axes."""
     friction: float = 0.8
     """Coulomb friction coefficient [-] between object and end-effector when not gripping; >= 0."""
+    gripper: bool = False
+    """Whether the end-effector is a gripper's jaws, which close on the object and open again. Open, a gripper
+    acts only on the grid nodes within half a cell of its surface: what it held lies free inside once it
+    opens, and is left behind when it moves on or up. A tool (False: a pusher, a plate, a hand that never
+    lets go) pushes everything it covers out through its nearest face; an opened box gripper did the same to
+    the material it had held, which then rode along on its bottom face (issue 9)."""
 
     def __post_init__(self):
         if self.shape not in SHAPE_IDS:
@@ -264,6 +270,9 @@ class EndEffectorConfig:
         if len(he) != 3 or (self.shape == "box" and min(he) <= 0):
             raise ValueError(f"EndEffectorConfig.half_extents must be 3 positive lengths, got {self.half_extents!r}")
         object.__setattr__(self, "half_extents", he)
+        if self.gripper not in (True, False):
+            raise ValueError(f"EndEffectorConfig.gripper must be True or False, got {self.gripper!r}")
+        object.__setattr__(self, "gripper", bool(self.gripper))
 
 
 @dataclass

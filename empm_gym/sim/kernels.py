@@ -276,6 +276,7 @@ def make_grid_update_kernel(ee_count: int):
         ee_half_height: wp.array(dtype=float),
         ee_half_extents: wp.array(dtype=wp.vec3),
         ee_friction: wp.array(dtype=float),
+        ee_gripper: wp.array(dtype=int),
         ee_pos: wp.array(dtype=wp.vec3),
         ee_rot: wp.array(dtype=wp.quat),
         ee_vel: wp.array(dtype=wp.vec3),
@@ -315,7 +316,9 @@ def make_grid_update_kernel(ee_count: int):
                             # Dirichlet grip when that is large)
                             limit = wp.min(world_grip_friction[w] * 9.81 * dt, 1.0e10)
                             vel = v_ee + grip_hold(vel - v_ee, limit)
-                        else:
+                        elif ee_gripper[s] == 0 or d > -0.5 * dx:
+                            # a tool pushes what it covers out through its nearest face; an open gripper
+                            # only within half a cell of its surface (what it held lies free inside)
                             vel = v_ee + coulomb_project(vel - v_ee, n, ee_friction[s])
             if has_table != 0:
                 # the node layer nearest the table plane (and any below) carries the table, so the table

@@ -321,6 +321,7 @@ class Model:
         hh = np.zeros(n, np.float32)
         he = np.zeros((n, 3), np.float32)
         fr = np.zeros(n, np.float32)
+        jaws = np.zeros(n, np.int32)
         self._ee_pos0 = np.zeros((n, 3), np.float32)
         self._ee_rot0 = np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1))
         self.ee_configs: List[List[EndEffectorConfig]] = []
@@ -333,6 +334,7 @@ class Model:
                 hh[s] = cfg.half_height
                 he[s] = cfg.half_extents
                 fr[s] = cfg.friction
+                jaws[s] = int(cfg.gripper)
                 self._ee_pos0[s] = p
                 self._ee_rot0[s] = q
         self.ee_shape = _arr(shape, int, d)
@@ -340,6 +342,7 @@ class Model:
         self.ee_half_height = _arr(hh, float, d)
         self.ee_half_extents = _arr(he, wp.vec3, d)
         self.ee_friction = _arr(fr, float, d, requires_grad)
+        self.ee_gripper = _arr(jaws, int, d)
 
     # -- materials ---------------------------------------------------------
     def set_materials(self, materials: Sequence[MaterialConfig]):

@@ -167,7 +167,7 @@ class SolverMPM:
                 g.m, g.mv, origin, m.dx, res, dt, wp.vec3(*m.gravity), m.grid.boundary_cells,
                 has_table, table_z, m.world_table_friction,
                 m.ee_shape, m.ee_radius, m.ee_half_height, m.ee_half_extents, m.ee_friction,
-                state_in.ee_pos, state_in.ee_rot, control.ee_vel, control.ee_omega, control.ee_grip,
+                m.ee_gripper, state_in.ee_pos, state_in.ee_rot, control.ee_vel, control.ee_omega, control.ee_grip,
                 m.world_grip_friction, int(fused),
             ],
             outputs=[g.v],
