@@ -59,6 +59,8 @@ def make(args):
         scripts = list(dict.fromkeys([NATURAL[effect], OTHER[effect], FIRST_OTHER[effect]]))[: args.scripts]
         if effect == "none":
             scripts = list(SCRIPTS)  # an invented effect may hide on any script: none runs on all of them
+        if args.only_scripts:
+            scripts = [s for s in scripts if s in args.only_scripts.split(",")]
         for script in scripts:
             for seed in range(args.first_seed, args.first_seed + args.seeds):
                 name = f"{args.object}-{script}-{seed}-{effect}"
@@ -242,6 +244,9 @@ def main(argv=None):
     p.add_argument("--object", default="dough", choices=("dough", "block", "rope"))
     p.add_argument("--effects", default="all", help="comma-separated effects (and none), default all")
     p.add_argument("--scripts", type=int, default=2, help="scripts per effect: its natural one, then another")
+    p.add_argument("--only-scripts", default=None,
+                   help="with --make: only these scripts (comma-separated) of those --scripts picks, e.g. the ones "
+                        "whose grippers close, to rerun after a change to the grippers")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--first-seed", type=int, default=0, help="seeds --first-seed ... --first-seed + --seeds - 1")
     p.add_argument("--frames", type=int, default=30)
