@@ -70,6 +70,8 @@ def main(argv=None):
     p.add_argument("--iterations", type=int, default=3, help="planner iterations per control step")
     p.add_argument("--horizon", type=int, default=5, help="planning horizon [control steps]")
     p.add_argument("--noise", type=float, default=0.5, help="std of the action perturbations (action units)")
+    p.add_argument("--noise-beta", type=float, default=0.0,
+                   help="colour of the perturbations along the horizon: 0 white, 2 brown (smooth sweeps)")
     p.add_argument("--device", default=None, help='Warp device ("cpu", "cuda:0")')
     p.add_argument("--dx", type=float, default=None, help="grid cell [m] (default: the task's)")
     p.add_argument("--ppc", type=float, default=8, help="particles per cell")
@@ -91,7 +93,7 @@ def main(argv=None):
                     "random": lambda e: rng.uniform(-1, 1, A).astype(np.float32)}
         for name in args.planners.split(","):
             planner = planners[name](env_id, samples=args.samples, iterations=args.iterations, noise=args.noise,
-                                     env_kwargs=kwargs, seed=0)
+                                     env_kwargs=kwargs, seed=0, noise_beta=args.noise_beta)
             policies[f"MPC {name.upper()}"] = mpc_policy(planner, args.horizon)
         rows = {}
         for pname, pol in policies.items():
@@ -103,10 +105,12 @@ def main(argv=None):
                 res.append(r)
                 if args.jsonl:
                     with open(args.jsonl, "a") as f:
-                        f.write(json.dumps({"env": env_id, "policy": pname, "seed": seed, **r}) + "\n")
+                        f.write(json.dumps({"env": env_id, "policy": pname, "seed": seed, "noise_beta": args.noise_beta,
+                                            "samples": args.samples, "horizon": args.horizon,
+                                            "iterations": args.iterations, **r}) + "\n")
             rows[pname] = res
         print(f"\n{env_id}: {args.seeds} targets, {args.steps} steps; MPC with {args.samples} samples, "
-              f"{args.iterations} iterations, horizon {args.horizon}, noise {args.noise}")
+              f"{args.iterations} iterations, horizon {args.horizon}, noise {args.noise} (beta {args.noise_beta})")
         print(f"| policy | Chamfer start [mm] | Chamfer end [mm] | end / start | success | return | s / episode |")
         print("|---|---:|---:|---:|---:|---:|---:|")
         for pname, res in rows.items():

@@ -41,6 +41,8 @@ class Args:
     """Closed-loop control steps (the budget)."""
     noise: float = 0.5
     """Std of the action perturbations (action units)."""
+    noise_beta: float = 0.0
+    """Colour of the perturbations along the horizon: 0 white, 2 brown (smooth sweeps; see benchmarks/RESULTS.md)."""
     seed: int = 0
     """Seed of the environment (target) and planner."""
     device: Optional[str] = None
@@ -74,7 +76,7 @@ def main(argv=None):
     env = gym.make(ENV_ID, render_mode="rgb_array", **kwargs)
     Planner = MPPIPlanner if args.planner == "mppi" else CEMPlanner
     planner = Planner(ENV_ID, samples=args.samples, iterations=args.iterations, noise=args.noise,
-                      env_kwargs=kwargs, seed=args.seed)
+                      env_kwargs=kwargs, seed=args.seed, noise_beta=args.noise_beta)
     run_episode.seed = args.seed
     A = env.action_space.shape[0]
 

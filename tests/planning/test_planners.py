@@ -36,8 +36,9 @@ def start():
 @pytest.mark.parametrize("make", [
     lambda: CEMPlanner(ENV_ID, samples=16, iterations=3, env_kwargs=KW, seed=0),
     lambda: MPPIPlanner(ENV_ID, samples=16, iterations=3, env_kwargs=KW, seed=0),
+    lambda: MPPIPlanner(ENV_ID, samples=16, iterations=3, env_kwargs=KW, seed=0, noise_beta=2.0),
     lambda: GradientPlanner(ENV_ID, iterations=8, lr=0.3, env_kwargs=KW),
-], ids=["cem", "mppi", "gradient"])
+], ids=["cem", "mppi", "mppi-brown", "gradient"])
 def test_planner_beats_doing_nothing(start, make):
     env, state, zero_cd = start
     planner = make()
@@ -84,6 +85,26 @@ def test_planner_input_validation(start):
         p.plan(state, 3, init=np.zeros((2, 6)))
     with pytest.raises(ValueError, match="samples"):
         MPPIPlanner(ENV_ID, samples=1, env_kwargs=KW)
+    with pytest.raises(ValueError, match="noise_beta"):
+        MPPIPlanner(ENV_ID, samples=4, env_kwargs=KW, noise_beta=-1.0)
+
+
+@pytest.mark.parametrize("H", [2, 7, 12])
+def test_colored_noise_has_unit_variance_and_its_smoothness_grows_with_beta(H):
+    """Every step has unit variance whatever the colour; white noise has no correlation between steps, and the
+    correlation of neighbouring steps grows with beta (brown noise, beta 2, near a random walk's)."""
+    from empm_gym.planning.sampling import colored_noise
+
+    rng = np.random.default_rng(0)
+    lag1 = []
+    for beta in (0.0, 1.0, 2.0, 3.0):
+        x = colored_noise(rng, (40000, H, 2), beta)
+        assert x.shape == (40000, H, 2)
+        np.testing.assert_allclose(x.std(axis=0), 1.0, atol=0.03)
+        lag1.append(float(np.mean(x[:, 1:] * x[:, :-1])))
+    assert abs(lag1[0]) < 0.02
+    if H > 3:
+        assert lag1[0] < lag1[1] < lag1[2] < lag1[3] and lag1[2] > 0.5, lag1
 
 
 #: env id -> (task options, control steps, planner samples, horizon, the fraction of the better of zero and random
