@@ -1,7 +1,7 @@
 """Closed-loop planners against zero and random actions in every registered environment.
 
     python benchmarks/bench_planning.py --device cuda:0 --seeds 5 --steps 40 --samples 64 --horizon 6
-    python benchmarks/bench_planning.py --env-ids EMPM/DoughShape-v0 --task-options '{"shapes": ["bar"]}'
+    python benchmarks/bench_planning.py --env-ids EMPM/RopeReshape-v1 --planners mppi --samples 256 --horizon 20 --noise-beta 2
 
 For each environment id and seed (the seed draws the target), one episode per policy: zero action, uniform
 random actions, and MPC with each planner of ``--planners`` (re-planned every step, warm-started from the

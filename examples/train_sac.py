@@ -2,7 +2,7 @@
 
 Same outputs as train_ppo.py: model.zip, learning_curve.png, strip.png, summary.json in ``--out``.
 
-    python examples/train_sac.py --env-id EMPM/DoughFlatten-v0 --num-envs 64 --total-steps 200000 --device cuda:0
+    python examples/train_sac.py --env-id EMPM/DoughFlatten-v1 --num-envs 64 --total-steps 200000 --device cuda:0
 """
 
 from dataclasses import dataclass

@@ -1,5 +1,6 @@
-"""Gradient trajectory optimisation on DoughShape: Adam on the action sequence through the
-differentiable simulator (empm_gym.autograd.simulate), then the plan is executed in the environment.
+"""Gradient trajectory optimisation on DoughShape-v1: Adam on the two plates' action sequence through the
+differentiable simulator (empm_gym.autograd.simulate), then the plan is executed in the environment. The
+gradient is zero until a plate touches the dough, so a short horizon may leave the plan where it started.
 
 Writes loss.png (Chamfer distance per Adam iteration), strip.png and summary.json into ``--out``.
 
@@ -24,7 +25,7 @@ from empm_gym.viz.plots import plot_learning_curve
 
 @dataclass
 class Args:
-    """Gradient trajectory optimisation on EMPM/DoughShape-v0."""
+    """Gradient trajectory optimisation on EMPM/DoughShape-v1."""
 
     horizon: int = 20
     """Length of the optimised action sequence [control steps]."""
@@ -32,8 +33,6 @@ class Args:
     """Adam iterations (the budget)."""
     lr: float = 0.3
     """Adam learning rate on the pre-tanh action parameters."""
-    grip: bool = False
-    """Close both grippers for the whole sequence (else they push)."""
     seed: int = 0
     """Seed of the environment (target)."""
     device: Optional[str] = None
@@ -50,13 +49,10 @@ def main(argv=None):
     kwargs = json.loads(args.env_kwargs)
     if args.device:
         kwargs["device"] = args.device
-    env = gym.make("EMPM/DoughShape-v0", render_mode="rgb_array", **kwargs)
+    env = gym.make("EMPM/DoughShape-v1", render_mode="rgb_array", **kwargs)
     _, info0 = env.reset(seed=args.seed)
     state = env.unwrapped.get_state()
     A = env.action_space.shape[0]
-    K = env.unwrapped.core.K
-    if args.grip:
-        state["grip"] = np.ones(K, np.int32)
 
     def execute(actions):
         env.unwrapped.set_state(state)
@@ -69,7 +65,7 @@ def main(argv=None):
         return frames, info
 
     zero_frames, zero = execute(np.zeros((args.horizon, A), np.float32))
-    planner = GradientPlanner("DoughShape", iterations=args.iterations, lr=args.lr, env_kwargs=kwargs)
+    planner = GradientPlanner("DoughShape-v1", iterations=args.iterations, lr=args.lr, env_kwargs=kwargs)
     t0 = time.time()
     actions = planner.plan(state, args.horizon)
     wall = time.time() - t0
@@ -77,10 +73,10 @@ def main(argv=None):
     lo, hi = env.unwrapped.view_box()
     save_rollout_strip(os.path.join(args.out, "strip.png"), {"gradient trajectory": frames, "zero action": zero_frames},
                        view_lower=lo, view_upper=hi,
-                       title=f"EMPM/DoughShape-v0: gradient trajectory optimisation ({args.iterations} iterations, "
+                       title=f"EMPM/DoughShape-v1: gradient trajectory optimisation ({args.iterations} iterations, "
                              f"horizon {args.horizon}) against zero action")
     plot_learning_curve(os.path.join(args.out, "loss.png"), np.arange(len(planner.history)), planner.history,
-                        baselines={"zero action": zero["chamfer"]}, title="DoughShape trajopt: Chamfer [m]")
+                        baselines={"zero action": zero["chamfer"]}, title="DoughShape-v1 trajopt: Chamfer [m]")
     summary = {"iterations": len(planner.history), "wall_s": wall, "initial_chamfer": info0["chamfer"],
                "optimised_chamfer": info["chamfer"], "optimised_iou": info["iou"],
                "zero_action_chamfer": zero["chamfer"], "loss_history": planner.history}

@@ -1,8 +1,8 @@
 """Gymnasium environments (single and natively batched) for rope and dough tasks with geometry targets.
 
 ``import empm_gym`` registers the ids (``EMPM/RopeReshape-v0``, ``EMPM/RopeReshape-v1``,
-``EMPM/DoughFlatten-v0``, ``EMPM/DoughFlatten-v1``, ``EMPM/DoughShape-v0``, ``EMPM/DoughShape-v1``); the
-classes are importable from here without loading Warp kernels.
+``EMPM/DoughFlatten-v1``, ``EMPM/DoughShape-v1``; ``DoughFlatten-v0`` and ``DoughShape-v0`` are withdrawn,
+see :data:`~.registration.WITHDRAWN`); the classes are importable from here without loading Warp kernels.
 """
 
 from .registration import ENV_IDS

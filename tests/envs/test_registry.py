@@ -16,10 +16,20 @@ from empm_gym.envs.env import EMPMEnv, EMPMVectorEnv
 def test_registry_lists_every_empm_id():
     ids = {k for k in gym.registry if k.startswith("EMPM/")}
     assert ids == set(ENV_IDS)
-    assert {"EMPM/RopeReshape-v0", "EMPM/DoughFlatten-v0", "EMPM/DoughShape-v0"} <= ids
+    assert {"EMPM/RopeReshape-v0", "EMPM/RopeReshape-v1", "EMPM/DoughFlatten-v1", "EMPM/DoughShape-v1"} <= ids
     for i in ids:
         spec = gym.spec(i)
         assert spec.max_episode_steps and spec.vector_entry_point
+
+
+@pytest.mark.parametrize("env_id", ["EMPM/DoughFlatten-v0", "EMPM/DoughShape-v0"])
+def test_withdrawn_versions_name_their_successor(env_id):
+    """A withdrawn version is not registered: gym.make says it is deprecated and names the version to use."""
+    from empm_gym.envs.registration import WITHDRAWN
+
+    assert env_id in WITHDRAWN and env_id not in gym.registry
+    with pytest.raises(gym.error.DeprecatedEnv, match=env_id.replace("-v0", "-v1")):
+        gym.make(env_id)
 
 
 def _obs_equal(a, b):

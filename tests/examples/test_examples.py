@@ -70,7 +70,7 @@ def test_mpc_rope(tmp_path):
 
 
 def test_trajopt_dough(tmp_path):
-    s = _load("trajopt_dough").main(["--horizon", "3", "--iterations", "3", "--grip", "true", "--device", "cpu",
+    s = _load("trajopt_dough").main(["--horizon", "3", "--iterations", "3", "--device", "cpu",
                                      "--env-kwargs", DOUGH, "--out", str(tmp_path)])
     assert (tmp_path / "loss.png").exists() and (tmp_path / "strip.png").exists()
     assert s["iterations"] == 3 and min(s["loss_history"]) <= s["loss_history"][0]

@@ -116,9 +116,7 @@ def test_colored_noise_has_unit_variance_and_its_smoothness_grows_with_beta(H):
 CLOSED_LOOP = {
     "EMPM/RopeReshape-v0": (None, 10, 8, 4, 0.30),
     "EMPM/RopeReshape-v1": (None, 10, 8, 4, 0.30),
-    "EMPM/DoughFlatten-v0": (None, 8, 8, 4, 0.10),
     "EMPM/DoughFlatten-v1": (None, 8, 8, 4, 0.10),
-    "EMPM/DoughShape-v0": ({"shapes": ("bar",)}, 20, 8, 4, 0.02),
     "EMPM/DoughShape-v1": (None, 12, 8, 4, 0.10),
 }
 
