@@ -166,10 +166,14 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
             for s_up in (0.25, 0.5, 0.75, 1.0):
                 over &= ~inside_end_effectors(hidden + [0.0, 0.0, s_up * dx], cfgs, pos[0], orient0,
                                               select=grip[0] == 0)
-            _, sym_h = complete_by_symmetry(hidden, rec, 0, axis=report["symmetry"]["axis_m"], **ee0)
-            hidden = hidden[(sym_h["kept"] & over) | held]
-            turned_h, _ = complete_by_symmetry(hidden, rec, 0, axis=report["symmetry"]["axis_m"], **ee0)
-            hidden = np.concatenate([hidden, turned_h])
+            # (under 10 samples, a few stray voxels, are too few to turn: only the footprint bounds them)
+            kept = np.ones(len(hidden), bool)
+            if len(hidden) >= 10:
+                kept = complete_by_symmetry(hidden, rec, 0, axis=report["symmetry"]["axis_m"], **ee0)[1]["kept"]
+            hidden = hidden[(kept & over) | held]
+            if len(hidden) >= 10:
+                turned_h, _ = complete_by_symmetry(hidden, rec, 0, axis=report["symmetry"]["axis_m"], **ee0)
+                hidden = np.concatenate([hidden, turned_h])
         body = np.concatenate([body, hidden])
     try:
         x0, vol = initial_particles(body, dx=dx, particles_per_cell=particles_per_cell, table_plane=plane,
