@@ -169,3 +169,25 @@ def test_coarse_grid_makes_every_parameter_undetermined():
     fine = Scene(x, v, fps=30.0, dx=0.005)
     res, problem, note = grid_resolution(fine)
     assert res["cells_across"] > 3.5 and problem is None and note is None
+
+
+def test_a_marginal_grid_gets_a_finer_grid_variant():
+    """The grid's share: a body 2.2 cells thick, filled at 27 particles per cell, gets a variant on the grid
+    that puts three cells across it; a well-resolved body, a body too coarse to measure at all, and one whose
+    particles would fill the finer cells at fewer than 8 per cell get none."""
+    from empm_gym.identification.uncertainty import MARGINAL_CELLS_ACROSS, _finer_grid_scene, grid_resolution
+
+    def rope(radius, dx, ppc):
+        x, v = sample_cylinder((-0.12, 0, radius), (0.12, 0, radius), radius, dx, ppc, seed=0)
+        return Scene(x, v, fps=30.0, material=MaterialConfig(E=E_TRUE, nu=0.3, density=1000.0), dx=dx)
+
+    marginal = rope(0.011, 0.01, 27)
+    cells = grid_resolution(marginal)[0]["cells_across"]
+    assert 1.5 < cells < MARGINAL_CELLS_ACROSS
+    fine = _finer_grid_scene(marginal)
+    assert fine is not None and fine.particles is marginal.particles
+    assert grid_resolution(fine)[0]["cells_across"] == pytest.approx(MARGINAL_CELLS_ACROSS, rel=0.02)
+    assert fine.grid_config().dx < 0.01
+    assert _finer_grid_scene(rope(0.011, 0.01, 8)) is None      # 8 per cell would become about 3
+    assert _finer_grid_scene(rope(0.02, 0.01, 27)) is None      # 4 cells across: resolved
+    assert _finer_grid_scene(rope(0.006, 0.01, 27)) is None     # about 1.2 cells: not a measurement at all
