@@ -105,7 +105,7 @@ def test_other_bodies_put_the_shape_into_the_interval(exact_fits):
     assert lo <= lo0 * 1.01 and hi > hi0
     w = " ".join(both["identifiability"]["warnings"])
     assert "could not be rebuilt without camera 2" in w
-    assert "rebuilt without each camera in turn (1 bodies)" in both["identifiability"]["method"]
+    assert "rebuilt from other views or completions (1 bodies)" in both["identifiability"]["method"]
     note = assess_fit(r, p.scene, p.obs, resample_bodies=0, body_note="single-view (1 camera(s), ...)")
     assert "shape is taken as given (single-view (1 camera(s), ...))" in " ".join(
         note["identifiability"]["warnings"])
