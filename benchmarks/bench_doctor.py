@@ -55,6 +55,9 @@ def make(args):
     out = Path(args.problems) if args.problems else Path(args.make) / "problems"
     out.mkdir(parents=True, exist_ok=True)
     effects = ["none", *EFFECTS] if args.effects == "all" else args.effects.split(",")
+    unknown = sorted(set((args.only_scripts or "").split(",")) - set(SCRIPTS) - {""})
+    if unknown:
+        raise SystemExit(f"--only-scripts: unknown script(s) {unknown}; known: {', '.join(SCRIPTS)}")
     for effect in effects:
         scripts = list(dict.fromkeys([NATURAL[effect], OTHER[effect], FIRST_OTHER[effect]]))[: args.scripts]
         if effect == "none":
