@@ -55,15 +55,16 @@ def make(args):
     out = Path(args.problems) if args.problems else Path(args.make) / "problems"
     out.mkdir(parents=True, exist_ok=True)
     effects = ["none", *EFFECTS] if args.effects == "all" else args.effects.split(",")
-    unknown = sorted(set((args.only_scripts or "").split(",")) - set(SCRIPTS) - {""})
+    only = set(args.only_scripts.split(",")) if args.only_scripts else None
+    unknown = sorted((only or set()) - set(SCRIPTS))
     if unknown:
         raise SystemExit(f"--only-scripts: unknown script(s) {unknown}; known: {', '.join(SCRIPTS)}")
     for effect in effects:
         scripts = list(dict.fromkeys([NATURAL[effect], OTHER[effect], FIRST_OTHER[effect]]))[: args.scripts]
         if effect == "none":
             scripts = list(SCRIPTS)  # an invented effect may hide on any script: none runs on all of them
-        if args.only_scripts:
-            scripts = [s for s in scripts if s in args.only_scripts.split(",")]
+        if only:
+            scripts = [s for s in scripts if s in only]
         for script in scripts:
             for seed in range(args.first_seed, args.first_seed + args.seeds):
                 name = f"{args.object}-{script}-{seed}-{effect}"

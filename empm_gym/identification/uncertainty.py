@@ -352,7 +352,7 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     nb = nbs[0]
     pooled = np.concatenate(draws_all)
     shape_note = None
-    n_shape = len(variants) - 1 - int(resample_bodies) - (finer is not None)  # bodies rebuilt from other views
+    n_shape = len(other_bodies) - len(skipped)  # bodies rebuilt from other views or completions
     if n_shape == 0 and body_note:
         shape_note = (f"the frame-0 body's shape is taken as given ({body_note}): the interval does not include "
                       f"an error in its shape")

@@ -485,8 +485,7 @@ def complete_occluded(points: np.ndarray, rec: Recording, t: int, ee_configs, ee
             cand = cand[_within_entry_half(cand, pts, pos[k], R, np.asarray(cfg.half_extents, float), spacing_m,
                                            reach_m)]
         if end_effectors_only and len(cand):
-            cand = cand[hidden_by_end_effectors(cand, rec.cameras, ee_configs, pos, ee_orientations,
-                                                every_camera=False)]
+            cand = cand[hidden_by_end_effectors(cand, rec.cameras, ee_configs, pos, ee_orientations)]
         if len(cand) == 0:
             continue
         if not connected:
@@ -601,23 +600,21 @@ def inside_open_end_effectors(x: np.ndarray, ee_configs, ee_positions, grip=None
 
 
 def hidden_by_end_effectors(x: np.ndarray, cameras: Sequence[Camera], ee_configs, ee_positions,
-                            ee_orientations=None, *, samples: int = 24, every_camera: bool = True) -> np.ndarray:
-    """True for world points [N, 3] (m) that an end-effector hides from every camera whose image they fall in
-    (with ``every_camera=False``: from at least one of them): the segment from the point to that camera's
-    optical centre passes through an end-effector (tested at ``samples`` points along the part of the segment
-    within the end-effector's bounding sphere). Points that no camera images are False."""
+                            ee_orientations=None, *, samples: int = 24) -> np.ndarray:
+    """True for world points [N, 3] (m) that an end-effector hides from at least one camera whose image they
+    fall in: the segment from the point to that camera's optical centre passes through an end-effector (tested
+    at ``samples`` points along the part of the segment within the end-effector's bounding sphere). Points
+    that no camera images are False."""
     x = np.asarray(x, float).reshape(-1, 3)
     if len(ee_configs) == 0 or len(x) == 0:
         return np.zeros(len(x), bool)
     pos, quats = _ee_frames(ee_configs, ee_positions, ee_orientations)
-    out = np.full(len(x), bool(every_camera))
-    imaged = np.zeros(len(x), bool)
+    out = np.zeros(len(x), bool)
     s = (np.arange(samples) + 0.5) / samples
     for cam in cameras:
         rc, z = cam.project(x)
         inside = (z > 0) & (rc[:, 0] >= -0.5) & (rc[:, 0] < cam.height - 0.5) & (rc[:, 1] >= -0.5) & \
             (rc[:, 1] < cam.width - 0.5)
-        imaged |= inside
         seg = cam.position - x
         length = np.linalg.norm(seg, axis=1)
         u = seg / np.maximum(length, 1e-12)[:, None]
@@ -636,11 +633,8 @@ def hidden_by_end_effectors(x: np.ndarray, cameras: Sequence[Camera], ee_configs
             q = x[near, None, :] + t[..., None] * u[near, None, :]
             sd = end_effector_sdf(q.reshape(-1, 3), cfg, pos[k], quats[k]).reshape(len(near), samples)
             hid[near] |= (sd < 0.0).any(1)
-        if every_camera:
-            out &= hid | ~inside
-        else:
-            out |= hid & inside
-    return out & imaged
+        out |= hid & inside
+    return out
 
 
 def within_footprint(x: np.ndarray, points: np.ndarray, cell_m: float, margin_m: float) -> np.ndarray:
