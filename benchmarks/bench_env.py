@@ -16,6 +16,32 @@ import numpy as np
 import empm_gym  # noqa: F401
 
 
+def profile(env_id, n, steps, kwargs):
+    """Per-kernel GPU time and the host's share over ``steps`` vector steps of ``n`` environments."""
+    import warp as wp
+
+    venv = gym.make_vec(env_id, num_envs=n, **kwargs)
+    venv.reset(seed=0)
+    venv.unwrapped.core._graph = False  # launch kernels one by one, so that each is timed
+    acts = np.random.default_rng(0).uniform(-1, 1, (steps + 3, *venv.action_space.shape)).astype(np.float32)
+    for t in range(3):
+        venv.step(acts[t])
+    wp.synchronize()
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMSET | wp.TIMING_MEMCPY | wp.TIMING_GRAPH)
+    t0 = time.perf_counter()
+    for t in range(3, steps + 3):
+        venv.step(acts[t])
+    wp.synchronize()
+    wall = time.perf_counter() - t0
+    totals = {}
+    for r in wp.timing_end():
+        totals[r.name] = totals.get(r.name, 0.0) + r.elapsed
+    print(f"{env_id}, {n} envs, {steps} vector steps: {wall * 1e3 / steps:.2f} ms wall per vector step; "
+          f"GPU time per vector step (ms):")
+    for name, ms in sorted(totals.items(), key=lambda kv: -kv[1])[:15]:
+        print(f"  {ms / steps:9.3f}  {name}")
+
+
 def bench(env_id, n, steps, warmup, kwargs):
     venv = gym.make_vec(env_id, num_envs=n, **kwargs)
     venv.reset(seed=0)
@@ -42,10 +68,15 @@ def main(argv=None):
     p.add_argument("--warmup", type=int, default=3, help="untimed vector steps first (compile, graph capture)")
     p.add_argument("--env-kwargs", default="{}", help="JSON dict of extra environment arguments")
     p.add_argument("--json", default=None, help="also write the rows to this JSON file")
+    p.add_argument("--profile", type=int, default=0,
+                   help="CUDA: per-kernel GPU time per vector step at this many environments, instead of the table")
     a = p.parse_args(argv)
     kwargs = json.loads(a.env_kwargs)
     if a.device:
         kwargs["device"] = a.device
+    if a.profile:
+        profile(a.env_id, a.profile, a.steps, kwargs)
+        return []
     rows = []
     print(f"{a.env_id} on {a.device or 'default device'}")
     print(f"{'envs':>6} {'P/world':>8} {'substeps':>8} {'vec steps/s':>12} {'env steps/s':>12} {'particle-substeps/s':>20}")

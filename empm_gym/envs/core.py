@@ -391,8 +391,9 @@ class BatchedCore:
 
     def _substeps(self):
         a, b = self.state, self._next
-        for _ in range(self.substeps):
-            self.solver.step(a, b, self.control, self.dt, guards=False)
+        for i in range(self.substeps):
+            # the graph replays these substeps: re-sort P2G's particle order once per replay
+            self.solver.step(a, b, self.control, self.dt, guards=False, sort=i == 0)
             a, b = b, a
 
     def step(self, actions: np.ndarray):

@@ -290,12 +290,17 @@ class SolverConfig:
     deterministic: bool = False
     """Bit-identical runs on CUDA: switches the MPM kernel module (for every solver in the process) to
     Warp's run-to-run deterministic atomics, at some speed cost. CPU runs are always deterministic."""
+    sort_every: int = 16
+    """On CUDA, re-sort P2G's particle order by grid cell every this many steps [-] (0: never sort, and
+    scatter with one atomic per component as on the CPU). The order changes speed only, not results."""
 
     def __post_init__(self):
         if not (0 < self.cfl <= 1.0):
             raise ValueError(f"SolverConfig.cfl must lie in (0, 1], got {self.cfl!r}")
         if self.check_every < 0:
             raise ValueError(f"SolverConfig.check_every must be >= 0, got {self.check_every!r}")
+        if self.sort_every < 0:
+            raise ValueError(f"SolverConfig.sort_every must be >= 0, got {self.sort_every!r}")
 
 
 def stable_dt(materials: Sequence[MaterialConfig], dx: float, cfl: float, max_speed: float = 0.0,

@@ -208,6 +208,49 @@ def cell_base(x: wp.vec3, origin: wp.vec3, inv_dx: float, res: wp.vec3i):
     return base, fx
 
 
+@wp.func
+def p2g_particle(
+    p: int,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    damage: wp.array(dtype=float),
+    particle_vol: wp.array(dtype=float),
+    particle_E: wp.array(dtype=float),
+    particle_nu: wp.array(dtype=float),
+    particle_density: wp.array(dtype=float),
+    particle_viscosity: wp.array(dtype=float),
+    origin: wp.vec3,
+    inv_dx: float,
+    res: wp.vec3i,
+    dt: float,
+):
+    """What particle p scatters (MLS-MPM / APIC): momentum [kg m/s], the affine matrix (stress impulse and
+    APIC's mass * C) [kg/s], mass [kg], the stencil's base node and the particle's offset from it [cells]."""
+    vol = particle_vol[p]
+    mass = particle_density[p] * vol
+    mu, lam = lame_parameters(particle_E[p], particle_nu[p])
+    Fp = F[p]
+    Cp = C[p]
+    tau = damaged_kirchhoff(Fp, mu, lam, damage[p])
+    # Kelvin-Voigt viscous stress (zero when eta = 0); APIC's C is the velocity gradient, so
+    # tau_v = J eta (C + C^T). No branch: a data-dependent branch here slows the adjoint kernel.
+    tau = tau + (particle_viscosity[p] * wp.determinant(Fp)) * (Cp + wp.transpose(Cp))
+    affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * Cp
+    base, fx = cell_base(x[p], origin, inv_dx, res)
+    return mass * v[p], affine, mass, base, fx
+
+
+@wp.func
+def mark_columns(columns: wp.array3d(dtype=int), w: int, base: wp.vec3i):
+    """Flag the 3 x 3 grid columns (w, i, j) that a stencil with this base node reaches, so that the grid
+    update skips the columns no particle reached."""
+    for i in range(3):
+        for j in range(3):
+            columns[w, base[0] + i, base[1] + j] = 1
+
+
 @wp.kernel
 def p2g_kernel(
     x: wp.array(dtype=wp.vec3),
@@ -226,32 +269,232 @@ def p2g_kernel(
     inv_dx: float,
     res: wp.vec3i,
     dt: float,
-    grid_m: wp.array4d(dtype=float),
-    grid_mv: wp.array4d(dtype=wp.vec3),
+    grid_mvm: wp.array4d(dtype=wp.vec4),
+    columns: wp.array3d(dtype=int),
 ):
-    """Scatter particle mass, momentum and stress impulse to the grid (MLS-MPM / APIC)."""
+    """Scatter particle momentum and mass to the grid (xyz: momentum, w: mass), one particle per thread,
+    one float atomic per component: the CPU path, and CUDA's with deterministic atomics."""
     p = wp.tid()
     w = particle_world[p]
-    vol = particle_vol[p]
-    mass = particle_density[p] * vol
-    mu, lam = lame_parameters(particle_E[p], particle_nu[p])
-    Fp = F[p]
-    Cp = C[p]
-    tau = damaged_kirchhoff(Fp, mu, lam, damage[p])
-    # Kelvin-Voigt viscous stress (zero when eta = 0); APIC's C is the velocity gradient, so
-    # tau_v = J eta (C + C^T). No branch: a data-dependent branch here slows the adjoint kernel.
-    tau = tau + (particle_viscosity[p] * wp.determinant(Fp)) * (Cp + wp.transpose(Cp))
-    affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * Cp
-    mv = mass * v[p]
-    base, fx = cell_base(x[p], origin, inv_dx, res)
+    mv, affine, mass, base, fx = p2g_particle(p, x, v, C, F, damage, particle_vol, particle_E, particle_nu,
+                                              particle_density, particle_viscosity, origin, inv_dx, res, dt)
+    mark_columns(columns, w, base)
     W = bspline_weights(fx)
     for i in range(3):
         for j in range(3):
             for k in range(3):
                 weight = W[i, 0] * W[j, 1] * W[k, 2]
                 dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
-                wp.atomic_add(grid_mv, w, base[0] + i, base[1] + j, base[2] + k, weight * (mv + affine * dpos))
-                wp.atomic_add(grid_m, w, base[0] + i, base[1] + j, base[2] + k, weight * mass)
+                m = weight * (mv + affine * dpos)
+                wp.atomic_add(grid_mvm, w, base[0] + i, base[1] + j, base[2] + k, wp.vec4(m[0], m[1], m[2], weight * mass))
+
+
+# -- P2G on CUDA: particles visited in cell order, each warp sums what its threads give one node before a
+# single atomic per node (one 16-byte atomic on sm_90 and later). Thread t handles particle order[t]; the
+# lanes of a warp whose particles share a stencil base (the same key) form a segment, whose first lane
+# adds the segment's sum. The sums are exact reorderings of the same float additions that per-particle
+# atomics make (atomics have no fixed order either); the adjoint is unchanged: every particle reads the
+# gradient of the nodes it wrote.
+
+_WARP_LANES = """
+    const int lane = tid & 31;
+    const int first = tid - lane;
+    const unsigned mask = (n - first >= 32) ? 0xffffffffu : ((1u << (n - first)) - 1u);
+"""
+
+
+@wp.func_native(
+    snippet="""
+#if defined(__CUDA_ARCH__)
+""" + _WARP_LANES + """
+    __syncwarp(mask);
+    const int prev = __shfl_up_sync(mask, key, 1);
+    const bool head = (lane == 0) || (prev != key);
+    const unsigned ends = __ballot_sync(mask, head) | ~mask;
+    const unsigned later = (lane == 31) ? 0u : (ends & (0xffffffffu << (lane + 1)));
+    const int end = later ? (__ffs(later) - 1) : 32;
+    int longest = head ? (end - lane) : 0;
+    for (int off = 16; off > 0; off >>= 1) {
+        const int other = __shfl_xor_sync(mask, longest, off);
+        longest = other > longest ? other : longest;
+    }
+    int steps = 0;
+    while ((1 << steps) < longest)
+        ++steps;
+    return end | (head ? 64 : 0) | (steps << 8);  // no int(...): Warp's generated code defines int(x) as a macro
+#else
+    return 64;
+#endif
+""",
+    adj_snippet="",
+)
+def warp_segment(key: int, tid: int, n: int) -> int:
+    """This lane's segment of equal keys in its warp: the lane after its end (bits 0-5), whether it is the
+    segment's first lane (bit 6), and the log2 steps that sum the warp's longest segment (bits 8+)."""
+    ...
+
+
+def _segment_sum(names):
+    """CUDA text: sum the float variables ``names`` over each lane's segment (exact at the segment's first
+    lane); needs _WARP_LANES and ``seg`` (from warp_segment) in scope. ``steps`` is the same on every lane,
+    so every lane of the mask runs every shuffle."""
+    shuffles = "".join(f"        const float {v}_ = __shfl_down_sync(mask, {v}, off);\n" for v in names)
+    adds = " ".join(f"{v} += {v}_;" for v in names)
+    return (f"    for (int it = 0, off = 1; it < (seg >> 8); ++it, off <<= 1) {{\n{shuffles}"
+            f"        if (lane + off < (seg & 63)) {{ {adds} }}\n    }}\n")
+
+
+@wp.func_native(
+    snippet="""
+#if defined(__CUDA_ARCH__)
+""" + _WARP_LANES + """
+    float s0 = value[0], s1 = value[1], s2 = value[2], s3 = value[3];
+""" + _segment_sum(["s0", "s1", "s2", "s3"]) + """
+    if (seg & 64) {
+        float* node = reinterpret_cast<float*>(&wp::index(grid, w, i, j, k));
+#if __CUDA_ARCH__ >= 900
+        atomicAdd(reinterpret_cast<float4*>(node), make_float4(s0, s1, s2, s3));
+#else
+        atomicAdd(node, s0); atomicAdd(node + 1, s1); atomicAdd(node + 2, s2); atomicAdd(node + 3, s3);
+#endif
+    }
+#else
+    wp::atomic_add(&wp::index(grid, w, i, j, k), value);
+#endif
+""",
+    adj_snippet="""
+    if (adj_grid.data)
+        adj_value += wp::index(adj_grid, w, i, j, k);
+    else if (grid.grad)
+        adj_value += wp::index_grad(grid, w, i, j, k);
+""",
+    replay_snippet="",
+)
+def warp_segment_add(grid: wp.array4d(dtype=wp.vec4), w: int, i: int, j: int, k: int, value: wp.vec4, seg: int,
+                     tid: int, n: int):
+    """grid[w, i, j, k] += the sum of ``value`` over this lane's segment (see warp_segment)."""
+    ...
+
+
+@wp.func_native(
+    snippet="""
+#if defined(__CUDA_ARCH__)
+""" + _WARP_LANES + """
+    float s0 = value;
+""" + _segment_sum(["s0"]) + """
+    return s0;
+#else
+    return value;
+#endif
+""",
+    adj_snippet="",
+)
+def warp_segment_sum(value: float, seg: int, tid: int, n: int) -> float:
+    """The sum of ``value`` over this lane's segment, exact at its first lane (forward only)."""
+    ...
+
+
+@wp.func_native(
+    snippet="""
+#if defined(__CUDA_ARCH__)
+""" + _WARP_LANES + """
+    const unsigned want = __ballot_sync(mask, flag != 0);
+    if (want == 0u)
+        return -1;
+    const int leader = __ffs(want) - 1;
+    int start = 0;
+    if (lane == leader)
+        start = atomicAdd(&wp::index(counter, 0), __popc(want));
+    start = __shfl_sync(mask, start, leader);
+    return flag ? start + __popc(want & ((1u << lane) - 1u)) : -1;
+#else
+    return flag ? wp::atomic_add(&wp::index(counter, 0), 1) : -1;
+#endif
+""",
+    adj_snippet="",
+    replay_snippet="return -1;",
+)
+def claim_slot(flag: int, counter: wp.array(dtype=int), tid: int, n: int) -> int:
+    """A unique slot (counter[0] counts them) for each lane whose flag is set, -1 for the others: one
+    atomic per warp."""
+    ...
+
+
+@wp.kernel(grid_stride=False)
+def active_columns_kernel(columns: wp.array(dtype=int), count: int, active: wp.array(dtype=int),
+                          active_count: wp.array(dtype=int)):
+    """List the flagged columns (flat index (w * res_i + i) * res_j + j) for the grid update."""
+    t = wp.tid()
+    slot = claim_slot(columns[t], active_count, t, count)
+    if slot >= 0:
+        active[slot] = t
+
+
+@wp.func
+def stencil_key(w: int, base: wp.vec3i, res: wp.vec3i):
+    """One integer per (world, stencil base node): the particle sort's key."""
+    return ((w * res[0] + base[0]) * res[1] + base[1]) * res[2] + base[2]
+
+
+@wp.kernel(grid_stride=False)
+def p2g_sorted_kernel(
+    order: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    damage: wp.array(dtype=float),
+    particle_world: wp.array(dtype=int),
+    particle_vol: wp.array(dtype=float),
+    particle_E: wp.array(dtype=float),
+    particle_nu: wp.array(dtype=float),
+    particle_density: wp.array(dtype=float),
+    particle_viscosity: wp.array(dtype=float),
+    origin: wp.vec3,
+    dx: float,
+    inv_dx: float,
+    res: wp.vec3i,
+    dt: float,
+    count: int,
+    grid_mvm: wp.array4d(dtype=wp.vec4),
+    columns: wp.array3d(dtype=int),
+):
+    """p2g_kernel for CUDA with warp-summed atomics; thread t scatters particle order[t] (one thread per
+    particle: no grid-stride loop, so the lanes of a warp are the consecutive threads below ``count``)."""
+    t = wp.tid()
+    p = order[t]
+    w = particle_world[p]
+    mv, affine, mass, base, fx = p2g_particle(p, x, v, C, F, damage, particle_vol, particle_E, particle_nu,
+                                              particle_density, particle_viscosity, origin, inv_dx, res, dt)
+    seg = warp_segment(stencil_key(w, base, res), t, count)
+    if (seg & 64) != 0:
+        mark_columns(columns, w, base)  # once per segment: its lanes share the stencil
+    W = bspline_weights(fx)
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                weight = W[i, 0] * W[j, 1] * W[k, 2]
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
+                m = weight * (mv + affine * dpos)
+                warp_segment_add(grid_mvm, w, base[0] + i, base[1] + j, base[2] + k,
+                                 wp.vec4(m[0], m[1], m[2], weight * mass), seg, t, count)
+
+
+@wp.kernel
+def sort_keys_kernel(
+    x: wp.array(dtype=wp.vec3),
+    particle_world: wp.array(dtype=int),
+    origin: wp.vec3,
+    inv_dx: float,
+    res: wp.vec3i,
+    keys: wp.array(dtype=int),
+    values: wp.array(dtype=int),
+):
+    """Each particle's stencil key and its index, for the radix sort that orders P2G's threads."""
+    p = wp.tid()
+    base, fx = cell_base(x[p], origin, inv_dx, res)
+    keys[p] = stencil_key(particle_world[p], base, res)
+    values[p] = p
 
 
 def make_grid_update_kernel(ee_count: int):
@@ -260,8 +503,9 @@ def make_grid_update_kernel(ee_count: int):
 
     @wp.kernel(module="unique")
     def grid_update_kernel(
-        grid_m: wp.array4d(dtype=float),
-        grid_mv: wp.array4d(dtype=wp.vec3),
+        grid_mvm: wp.array4d(dtype=wp.vec4),
+        active: wp.array(dtype=int),
+        active_count: wp.array(dtype=int),
         origin: wp.vec3,
         dx: float,
         res: wp.vec3i,
@@ -284,63 +528,125 @@ def make_grid_update_kernel(ee_count: int):
         ee_grip: wp.array(dtype=int),
         world_grip_friction: wp.array(dtype=float),
         clear_inputs: int,
+        threads: int,
         grid_v: wp.array4d(dtype=wp.vec3),
     ):
-        """Grid velocity update: momentum / mass, gravity, end-effectors, table and walls.
+        """Grid velocity update: momentum / mass, gravity, end-effectors, table and walls, on the nodes of
+        the columns listed in ``active`` (see active_columns_kernel): ``threads`` threads stride over them,
+        so that the work follows the nodes particles reached, not the grid's size (a heavy kernel launched
+        over every node, most of them empty, was the step's largest cost for many small worlds).
 
         With ``clear_inputs`` the touched mass and momentum nodes are zeroed once read, which saves the
-        next substep two full-grid clears (only when no tape needs those values again).
+        next substep a full-grid clear (only when no tape needs those values again). Nodes no particle
+        reached (mass exactly 0) are neither read further nor written.
         """
-        w, i, j, k = wp.tid()
-        m = grid_m[w, i, j, k]
-        mv = grid_mv[w, i, j, k]
-        if clear_inputs != 0 and m != 0.0:
-            grid_m[w, i, j, k] = 0.0
-            grid_mv[w, i, j, k] = wp.vec3(0.0)
-        vel = wp.vec3(0.0)
-        if m > 1.0e-12:
-            vel = mv / m + dt * gravity
-            node = origin + wp.vec3(float(i), float(j), float(k)) * dx
-            for e in range(EE):
-                s = w * EE + e
-                shape = ee_shape[s]
-                if shape >= 0:
-                    c = ee_pos[s]
-                    d, n = shape_sdf_normal(shape, node, c, ee_rot[s], ee_radius[s], ee_half_height[s], ee_half_extents[s])
-                    if d < 0.0:
-                        v_ee = ee_vel[s] + wp.cross(ee_omega[s], node - c)
-                        if ee_grip[s] != 0:
-                            # a closed gripper carries the nodes it covers, by friction: it removes at most
-                            # grip_friction * g0 * dt of their relative velocity per substep (g0 = 9.81 m/s^2:
-                            # the squeeze presses with the grasped weight; the rigid,
-                            # Dirichlet grip when that is large)
-                            limit = wp.min(world_grip_friction[w] * 9.81 * dt, 1.0e10)
-                            vel = v_ee + grip_hold(vel - v_ee, limit)
-                        elif ee_gripper[s] == 0 or d > -0.5 * dx:
-                            # a tool pushes what it covers out through its nearest face; an open gripper
-                            # only within half a cell of its surface (what it held lies free inside)
-                            vel = v_ee + coulomb_project(vel - v_ee, n, ee_friction[s])
-            if has_table != 0:
-                # the node layer nearest the table plane (and any below) carries the table, so the table
-                # sits within half a cell of its height however the grid lines up with it
-                if node[2] < table_z + 0.5 * dx:
-                    vel = coulomb_project(vel, wp.vec3(0.0, 0.0, 1.0), world_table_friction[w])
-            b = boundary_cells
-            if i < b and vel[0] < 0.0:
-                vel = wp.vec3(0.0, vel[1], vel[2])
-            if i >= res[0] - b and vel[0] > 0.0:
-                vel = wp.vec3(0.0, vel[1], vel[2])
-            if j < b and vel[1] < 0.0:
-                vel = wp.vec3(vel[0], 0.0, vel[2])
-            if j >= res[1] - b and vel[1] > 0.0:
-                vel = wp.vec3(vel[0], 0.0, vel[2])
-            if k < b and vel[2] < 0.0:
-                vel = wp.vec3(vel[0], vel[1], 0.0)
-            if k >= res[2] - b and vel[2] > 0.0:
-                vel = wp.vec3(vel[0], vel[1], 0.0)
-        grid_v[w, i, j, k] = vel
+        t = wp.tid()
+        for q in range(t, active_count[0] * res[2], threads):
+            col = active[q / res[2]]
+            k = q - (q / res[2]) * res[2]
+            j = col % res[1]
+            i = (col / res[1]) % res[0]
+            w = col / (res[1] * res[0])
+            mvm = grid_mvm[w, i, j, k]
+            m = mvm[3]
+            if m == 0.0:
+                # no particle reached this node: G2P reads it only with weight 0, so its velocity is left as is
+                continue
+            if clear_inputs != 0:
+                grid_mvm[w, i, j, k] = wp.vec4(0.0)
+            mv = wp.vec3(mvm[0], mvm[1], mvm[2])
+            vel = wp.vec3(0.0)
+            if m > 1.0e-12:
+                vel = mv / m + dt * gravity
+                node = origin + wp.vec3(float(i), float(j), float(k)) * dx
+                for e in range(EE):
+                    s = w * EE + e
+                    shape = ee_shape[s]
+                    if shape >= 0:
+                        c = ee_pos[s]
+                        d, n = shape_sdf_normal(shape, node, c, ee_rot[s], ee_radius[s], ee_half_height[s], ee_half_extents[s])
+                        if d < 0.0:
+                            v_ee = ee_vel[s] + wp.cross(ee_omega[s], node - c)
+                            if ee_grip[s] != 0:
+                                # a closed gripper carries the nodes it covers, by friction: it removes at most
+                                # grip_friction * g0 * dt of their relative velocity per substep (g0 = 9.81 m/s^2:
+                                # the squeeze presses with the grasped weight; the rigid,
+                                # Dirichlet grip when that is large)
+                                limit = wp.min(world_grip_friction[w] * 9.81 * dt, 1.0e10)
+                                vel = v_ee + grip_hold(vel - v_ee, limit)
+                            elif ee_gripper[s] == 0 or d > -0.5 * dx:
+                                # a tool pushes what it covers out through its nearest face; an open gripper
+                                # only within half a cell of its surface (what it held lies free inside)
+                                vel = v_ee + coulomb_project(vel - v_ee, n, ee_friction[s])
+                if has_table != 0:
+                    # the node layer nearest the table plane (and any below) carries the table, so the table
+                    # sits within half a cell of its height however the grid lines up with it
+                    if node[2] < table_z + 0.5 * dx:
+                        vel = coulomb_project(vel, wp.vec3(0.0, 0.0, 1.0), world_table_friction[w])
+                b = boundary_cells
+                if i < b and vel[0] < 0.0:
+                    vel = wp.vec3(0.0, vel[1], vel[2])
+                if i >= res[0] - b and vel[0] > 0.0:
+                    vel = wp.vec3(0.0, vel[1], vel[2])
+                if j < b and vel[1] < 0.0:
+                    vel = wp.vec3(vel[0], 0.0, vel[2])
+                if j >= res[1] - b and vel[1] > 0.0:
+                    vel = wp.vec3(vel[0], 0.0, vel[2])
+                if k < b and vel[2] < 0.0:
+                    vel = wp.vec3(vel[0], vel[1], 0.0)
+                if k >= res[2] - b and vel[2] > 0.0:
+                    vel = wp.vec3(vel[0], vel[1], 0.0)
+            grid_v[w, i, j, k] = vel
 
     return grid_update_kernel
+
+
+@wp.func
+def g2p_finish(
+    p: int,
+    new_v: wp.vec3,
+    new_C: wp.mat33,
+    x: wp.array(dtype=wp.vec3),
+    F: wp.array(dtype=wp.mat33),
+    damage: wp.array(dtype=float),
+    particle_E: wp.array(dtype=float),
+    particle_nu: wp.array(dtype=float),
+    particle_yield: wp.array(dtype=float),
+    particle_plastic: wp.array(dtype=int),
+    particle_fracture_strain: wp.array(dtype=float),
+    particle_fracture_softening: wp.array(dtype=float),
+    origin: wp.vec3,
+    dx: float,
+    res: wp.vec3i,
+    dt: float,
+    min_singular: float,
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    C_out: wp.array(dtype=wp.mat33),
+    F_out: wp.array(dtype=wp.mat33),
+    damage_out: wp.array(dtype=float),
+):
+    """Particle p's update from its gathered velocity and affine field: F (with the plastic return
+    mapping), damage, and advection inside the grid."""
+    Fn = (wp.identity(n=3, dtype=float) + dt * new_C) * F[p]
+    if particle_plastic[p] != 0:
+        mu, lam = lame_parameters(particle_E[p], particle_nu[p])
+        Fn = von_mises_return(Fn, mu, particle_yield[p], min_singular)
+    # damage only grows (fracture effect; a threshold of 1e30 keeps it at 0)
+    dmg = damage[p]
+    strain = particle_fracture_strain[p]
+    if strain < 1.0e20:
+        dmg = wp.max(dmg, damage_from_stretch(Fn, strain, particle_fracture_softening[p]))
+    damage_out[p] = dmg
+    xn = x[p] + dt * new_v
+    # keep every particle's stencil inside the grid
+    lo = origin + wp.vec3(dx)
+    hi = origin + wp.vec3(float(res[0] - 2), float(res[1] - 2), float(res[2] - 2)) * dx
+    xn = wp.vec3(wp.clamp(xn[0], lo[0], hi[0]), wp.clamp(xn[1], lo[1], hi[1]), wp.clamp(xn[2], lo[2], hi[2]))
+    x_out[p] = xn
+    v_out[p] = new_v
+    C_out[p] = new_C
+    F_out[p] = Fn
 
 
 @wp.kernel
@@ -368,7 +674,8 @@ def g2p_kernel(
     F_out: wp.array(dtype=wp.mat33),
     damage_out: wp.array(dtype=float),
 ):
-    """Gather velocity and affine field, update F (with plastic return mapping) and advect particles."""
+    """Gather velocity and affine field, update F (with plastic return mapping) and advect particles
+    (one particle per thread; the adjoint adds one atomic per particle, node and component)."""
     p = wp.tid()
     w = particle_world[p]
     base, fx = cell_base(x[p], origin, inv_dx, res)
@@ -383,25 +690,9 @@ def g2p_kernel(
                 gv = grid_v[w, base[0] + i, base[1] + j, base[2] + k]
                 new_v = new_v + weight * gv
                 new_C = new_C + (4.0 * inv_dx * inv_dx * weight) * wp.outer(gv, dpos)
-    Fn = (wp.identity(n=3, dtype=float) + dt * new_C) * F[p]
-    if particle_plastic[p] != 0:
-        mu, lam = lame_parameters(particle_E[p], particle_nu[p])
-        Fn = von_mises_return(Fn, mu, particle_yield[p], min_singular)
-    # damage only grows (fracture effect; a threshold of 1e30 keeps it at 0)
-    dmg = damage[p]
-    strain = particle_fracture_strain[p]
-    if strain < 1.0e20:
-        dmg = wp.max(dmg, damage_from_stretch(Fn, strain, particle_fracture_softening[p]))
-    damage_out[p] = dmg
-    xn = x[p] + dt * new_v
-    # keep every particle's stencil inside the grid
-    lo = origin + wp.vec3(dx)
-    hi = origin + wp.vec3(float(res[0] - 2), float(res[1] - 2), float(res[2] - 2)) * dx
-    xn = wp.vec3(wp.clamp(xn[0], lo[0], hi[0]), wp.clamp(xn[1], lo[1], hi[1]), wp.clamp(xn[2], lo[2], hi[2]))
-    x_out[p] = xn
-    v_out[p] = new_v
-    C_out[p] = new_C
-    F_out[p] = Fn
+    g2p_finish(p, new_v, new_C, x, F, damage, particle_E, particle_nu, particle_yield, particle_plastic,
+               particle_fracture_strain, particle_fracture_softening, origin, dx, res, dt, min_singular,
+               x_out, v_out, C_out, F_out, damage_out)
 
 
 @wp.kernel
@@ -441,7 +732,7 @@ def expand_materials_kernel(
     particle_fracture_softening[p] = world_fracture_softening[w]
 
 
-@wp.kernel
+@wp.kernel(grid_stride=False)
 def reduce_material_grads_kernel(
     particle_world: wp.array(dtype=int),
     particle_stiffness: wp.array(dtype=float),
@@ -464,22 +755,37 @@ def reduce_material_grads_kernel(
     world_stiffness_slope_grad: wp.array(dtype=wp.vec3),
     world_fracture_strain_grad: wp.array(dtype=float),
     world_fracture_softening_grad: wp.array(dtype=float),
+    count: int,
 ):
-    """Adjoint of expand_materials_kernel: sum per-particle parameter gradients into their worlds."""
+    """Adjoint of expand_materials_kernel: sum per-particle parameter gradients into their worlds (on CUDA,
+    the lanes of a warp in one world are summed first: one atomic per warp and world, not per particle)."""
     p = wp.tid()
     w = particle_world[p]
     u = particle_body_coord[p]
     field = wp.exp(wp.dot(world_stiffness_slope[w], u))
     Ep = world_E[w] * particle_stiffness[p] * field
-    wp.atomic_add(world_E_grad, w, gE[p] * particle_stiffness[p] * field)
-    wp.atomic_add(world_nu_grad, w, gnu[p])
-    wp.atomic_add(world_density_grad, w, grho[p])
-    wp.atomic_add(world_yield_grad, w, gys[p])
-    wp.atomic_add(world_viscosity_grad, w, geta[p])
-    wp.atomic_add(world_stiffness_slope_grad, w, (gE[p] * Ep) * u)
-    wp.atomic_add(world_fracture_strain_grad, w, gfs[p])
-    wp.atomic_add(world_fracture_softening_grad, w, gfw[p])
     stiffness_grad[p] = stiffness_grad[p] + gE[p] * world_E[w] * field
+    seg = warp_segment(w, p, count)
+    gslope = (gE[p] * Ep) * u
+    sE = warp_segment_sum(gE[p] * particle_stiffness[p] * field, seg, p, count)
+    snu = warp_segment_sum(gnu[p], seg, p, count)
+    srho = warp_segment_sum(grho[p], seg, p, count)
+    sys = warp_segment_sum(gys[p], seg, p, count)
+    seta = warp_segment_sum(geta[p], seg, p, count)
+    s0 = warp_segment_sum(gslope[0], seg, p, count)
+    s1 = warp_segment_sum(gslope[1], seg, p, count)
+    s2 = warp_segment_sum(gslope[2], seg, p, count)
+    sfs = warp_segment_sum(gfs[p], seg, p, count)
+    sfw = warp_segment_sum(gfw[p], seg, p, count)
+    if (seg & 64) != 0:
+        wp.atomic_add(world_E_grad, w, sE)
+        wp.atomic_add(world_nu_grad, w, snu)
+        wp.atomic_add(world_density_grad, w, srho)
+        wp.atomic_add(world_yield_grad, w, sys)
+        wp.atomic_add(world_viscosity_grad, w, seta)
+        wp.atomic_add(world_stiffness_slope_grad, w, wp.vec3(s0, s1, s2))
+        wp.atomic_add(world_fracture_strain_grad, w, sfs)
+        wp.atomic_add(world_fracture_softening_grad, w, sfw)
 
 
 @wp.kernel

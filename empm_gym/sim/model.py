@@ -415,7 +415,7 @@ class Model:
                     self.particle_fracture_softening.grad],
             outputs=[self.world_E.grad, self.world_nu.grad, self.world_density.grad, self.world_yield.grad,
                      self.world_viscosity.grad, self.particle_stiffness.grad, self.world_stiffness_slope.grad,
-                     self.world_fracture_strain.grad, self.world_fracture_softening.grad],
+                     self.world_fracture_strain.grad, self.world_fracture_softening.grad, self.particle_count],
             device=self.device,
         )
 

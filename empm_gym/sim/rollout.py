@@ -198,5 +198,5 @@ class Rollout:
         for s in self._states + self._checkpoints:
             total += sum(a.capacity * (2 if a.grad is not None else 1) for a in s.arrays())
         for g in self._grids:
-            total += sum(a.capacity * (2 if a.grad is not None else 1) for a in (g.m, g.mv, g.v))
+            total += sum(a.capacity * (2 if a.grad is not None else 1) for a in (g.mvm, g.v)) + g.columns.capacity
         return total

@@ -33,7 +33,8 @@ class UnstableTimeStep(ValueError):
 
 
 class GridScratch:
-    """Grid arrays of one substep (mass [kg], momentum [kg m/s], velocity [m/s]) for every world.
+    """Grid arrays of one substep for every world: ``mvm`` holds momentum [kg m/s] (xyz) and mass [kg] (w)
+    in one vec4 per node, so that P2G adds both with one atomic; ``v`` is the velocity [m/s].
 
     A differentiable rollout keeps one per taped substep, since the tape replays kernels with the
     arrays' current values.
@@ -44,12 +45,16 @@ class GridScratch:
         d = model.device
         self.clean = True
         """The mass and momentum arrays are known to be zero (freshly allocated or cleared in place)."""
-        self.m = wp.zeros(shape, dtype=float, device=d, requires_grad=requires_grad)
-        self.mv = wp.zeros(shape, dtype=wp.vec3, device=d, requires_grad=requires_grad)
+        self.mvm = wp.zeros(shape, dtype=wp.vec4, device=d, requires_grad=requires_grad)
+        self.columns = wp.zeros(shape[:3], dtype=int, device=d)
+        """1 where P2G reached a column (world, i, j) of nodes; cleared before every P2G."""
+        self.active = wp.zeros(self.columns.size, dtype=int, device=d)
+        """The flagged columns' flat indices, ``active_count[0]`` of them (in any order)."""
+        self.active_count = wp.zeros(1, dtype=int, device=d)
         self.v = wp.zeros(shape, dtype=wp.vec3, device=d, requires_grad=requires_grad)
 
     def zero_grad(self):
-        for a in (self.m, self.mv, self.v):
+        for a in (self.mvm, self.v):
             if a.grad is not None:
                 a.grad.zero_()
 
@@ -78,8 +83,22 @@ class SolverMPM:
             wp.set_module_options({"deterministic": wp.DeterministicMode.RUN_TO_RUN}, module=K)
         self.scratch = GridScratch(model)
         self.step_count = 0
+        self._order = None
+        # P2G with warp-summed atomics visits particles in cell order (CUDA only; the deterministic mode keeps
+        # Warp's own atomics, which it makes repeatable); the key must fit an int32
+        nodes = model.world_count * int(np.prod(model.grid_res))
+        if model.device.is_cuda and not self.config.deterministic and self.config.sort_every > 0 and nodes < 2**31:
+            n = model.particle_count
+            self._keys = wp.zeros(2 * n, dtype=int, device=model.device)
+            self._values = wp.zeros(2 * n, dtype=int, device=model.device)
+            self._key_bits = max(int(nodes - 1).bit_length(), 1)
+            self._order = self._values[:n]
+            self.sort_particles(model.state())  # also allocates the sort's scratch outside any graph capture
         self._flags = wp.zeros(model.world_count, dtype=int, device=model.device)
         self._grid_kernel = _grid_kernel(model.ee_count)
+        # threads of the grid update, striding over the active nodes (the CPU runs a launch as one loop)
+        nodes = model.world_count * int(np.prod(model.grid_res))
+        self._grid_threads = min(nodes, 2**17) if model.device.is_cuda else 1
 
     # -- guards --------------------------------------------------------------
     def max_stable_dt(self, max_speed: float = 0.0) -> float:
@@ -126,13 +145,27 @@ class SolverMPM:
                 worlds=bad,
             )
 
+    def sort_particles(self, state: State):
+        """Order P2G's threads by (world, stencil base node) of the particles of ``state`` (CUDA). Only the
+        visiting order changes: particle arrays keep their order, and any order gives the same physics."""
+        if self._order is None:
+            return
+        m = self.model
+        n = m.particle_count
+        wp.launch(K.sort_keys_kernel, dim=n,
+                  inputs=[state.particle_x, m.particle_world, wp.vec3(*m.grid_origin), m.inv_dx, wp.vec3i(*m.grid_res)],
+                  outputs=[self._keys, self._values], device=m.device, record_tape=False)
+        wp.utils.radix_sort_pairs(self._keys, self._values, n, end_bit=self._key_bits)
+
     # -- step ----------------------------------------------------------------
     def step(self, state_in: State, state_out: State, control: Control, dt: float,
-             scratch: Optional[GridScratch] = None, *, guards: bool = True):
+             scratch: Optional[GridScratch] = None, *, guards: bool = True, sort: Optional[bool] = None):
         """Advance all worlds by one substep of dt [s] from ``state_in`` into ``state_out``.
 
         ``scratch`` gives the grid arrays to use (one per taped substep in a differentiable rollout);
         ``guards=False`` skips the dt and divergence checks (a rollout that already made them).
+        ``sort`` re-sorts P2G's particle order by cell first (CUDA; None: every ``config.sort_every`` steps;
+        a caller that captures a fixed group of substeps in a CUDA graph passes True on its first one).
         """
         if guards:
             self.check_dt(dt, control.max_speed)
@@ -142,51 +175,55 @@ class SolverMPM:
         # a taped substep keeps its grid values for the backward pass and is cleared here instead
         fused = scratch is None and _wp_context.runtime.tape is None
         if not (fused and g.clean):
-            g.m.zero_()
-            g.mv.zero_()
+            g.mvm.zero_()
+        g.columns.zero_()
+        g.active_count.zero_()
         origin = wp.vec3(*m.grid_origin)
         res = wp.vec3i(*m.grid_res)
-        wp.launch(
-            K.p2g_kernel,
-            dim=m.particle_count,
-            inputs=[
-                state_in.particle_x, state_in.particle_v, state_in.particle_C, state_in.particle_F,
-                state_in.particle_damage, m.particle_world, m.particle_vol, m.particle_E, m.particle_nu, m.particle_density,
-                m.particle_viscosity,
-                origin, m.dx, m.inv_dx, res, dt,
-            ],
-            outputs=[g.m, g.mv],
-            device=m.device,
-        )
+        particles = [
+            state_in.particle_x, state_in.particle_v, state_in.particle_C, state_in.particle_F,
+            state_in.particle_damage, m.particle_world, m.particle_vol, m.particle_E, m.particle_nu, m.particle_density,
+            m.particle_viscosity,
+        ]
+        if self._order is None:
+            wp.launch(K.p2g_kernel, dim=m.particle_count, inputs=[*particles, origin, m.dx, m.inv_dx, res, dt],
+                      outputs=[g.mvm, g.columns], device=m.device)
+        else:
+            if sort is None:
+                sort = self.step_count % self.config.sort_every == 0
+            if sort:
+                self.sort_particles(state_in)
+            wp.launch(K.p2g_sorted_kernel, dim=m.particle_count,
+                      inputs=[self._order, *particles, origin, m.dx, m.inv_dx, res, dt, m.particle_count],
+                      outputs=[g.mvm, g.columns], device=m.device)
         has_table = 1 if m.table is not None else 0
         table_z = float(m.table.height) if m.table is not None else 0.0
+        wp.launch(K.active_columns_kernel, dim=g.columns.size, inputs=[g.columns.flatten(), g.columns.size],
+                  outputs=[g.active, g.active_count], device=m.device, record_tape=False)
         wp.launch(
             self._grid_kernel,
-            dim=(m.world_count, *m.grid_res),
+            dim=self._grid_threads,
             inputs=[
-                g.m, g.mv, origin, m.dx, res, dt, wp.vec3(*m.gravity), m.grid.boundary_cells,
+                g.mvm, g.active, g.active_count, origin, m.dx, res, dt, wp.vec3(*m.gravity), m.grid.boundary_cells,
                 has_table, table_z, m.world_table_friction,
                 m.ee_shape, m.ee_radius, m.ee_half_height, m.ee_half_extents, m.ee_friction,
                 m.ee_gripper, state_in.ee_pos, state_in.ee_rot, control.ee_vel, control.ee_omega, control.ee_grip,
-                m.world_grip_friction, int(fused),
+                m.world_grip_friction, int(fused), self._grid_threads,
             ],
             outputs=[g.v],
             device=m.device,
         )
         g.clean = fused
-        wp.launch(
-            K.g2p_kernel,
-            dim=m.particle_count,
-            inputs=[
-                state_in.particle_x, state_in.particle_F, state_in.particle_damage, m.particle_world,
-                m.particle_E, m.particle_nu, m.particle_yield, m.particle_plastic,
-                m.particle_fracture_strain, m.particle_fracture_softening,
-                g.v, origin, m.dx, m.inv_dx, res, dt, self.config.plasticity_min_singular,
-            ],
-            outputs=[state_out.particle_x, state_out.particle_v, state_out.particle_C, state_out.particle_F,
-                     state_out.particle_damage],
-            device=m.device,
-        )
+        g2p_in = [
+            state_in.particle_x, state_in.particle_F, state_in.particle_damage, m.particle_world,
+            m.particle_E, m.particle_nu, m.particle_yield, m.particle_plastic,
+            m.particle_fracture_strain, m.particle_fracture_softening,
+            g.v, origin, m.dx, m.inv_dx, res, dt, self.config.plasticity_min_singular,
+        ]
+        g2p_out = [state_out.particle_x, state_out.particle_v, state_out.particle_C, state_out.particle_F,
+                   state_out.particle_damage]
+        # G2P keeps the particles' own order: in cell order its reads and writes scatter (measured slower)
+        wp.launch(K.g2p_kernel, dim=m.particle_count, inputs=g2p_in, outputs=g2p_out, device=m.device)
         if m.ee_count > 0:
             wp.launch(
                 K.ee_integrate_kernel,

@@ -203,3 +203,35 @@ def test_gradients_stay_finite_over_long_horizon():
     assert abs(model.world_E.grad.numpy()[0]) > 0
     for name, g in ro.initial_grad.items():
         assert np.all(np.isfinite(g.numpy())), f"initial {name} gradient is not finite"
+
+
+def test_grid_update_thread_count_changes_nothing():
+    # the grid update's threads stride over the active nodes; results and gradients must not depend on
+    # how many there are (one, a few that do not divide the work, more than there are nodes)
+    model = _gripper_model()
+    W = _weights(model, 1, seed=11)
+
+    def setup(s0, ctrls):
+        _initial_velocity(s0, ctrls)
+        for c in ctrls:
+            c.set(velocity=[[[0.1, 0.0, 0.2]]], grip=[[1]])
+
+    out = []
+    for threads in (None, 7, 100000):
+        solver = SolverMPM(model)
+        if threads:
+            solver._grid_threads = threads
+        ro = Rollout(model, solver, steps=20, dt=DT, substeps_per_control=5, record_every=20)
+        ctrls = ro.make_controls()
+        s0 = model.state(requires_grad=True)
+        setup(s0, ctrls)
+        recs = ro.forward(s0, ctrls)
+        ro.zero_grad(ctrls)
+        ro.backward([None] * (len(recs) - 1) + [W[0]], state0=s0)
+        out.append((recs[-1].numpy().copy(), model.world_E.grad.numpy().copy(),
+                    np.stack([c.ee_vel.grad.numpy() for c in ctrls])))
+    assert np.abs(out[0][1]).max() > 0 and np.abs(out[0][2]).max() > 0
+    for x, gE, gv in out[1:]:
+        np.testing.assert_array_equal(x, out[0][0])
+        np.testing.assert_allclose(gE, out[0][1], rtol=1e-6)
+        np.testing.assert_allclose(gv, out[0][2], rtol=1e-6, atol=1e-9)
