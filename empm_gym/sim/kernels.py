@@ -242,7 +242,16 @@ def p2g_particle(
     return mass * v[p], affine, mass, base, fx
 
 
-@wp.kernel(grid_stride=False)
+@wp.func
+def mark_columns(columns: wp.array3d(dtype=int), w: int, base: wp.vec3i):
+    """Flag the 3 x 3 grid columns (w, i, j) that a stencil with this base node reaches, so that the grid
+    update skips the columns no particle reached."""
+    for i in range(3):
+        for j in range(3):
+            columns[w, base[0] + i, base[1] + j] = 1
+
+
+@wp.kernel
 def p2g_kernel(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
@@ -260,20 +269,16 @@ def p2g_kernel(
     inv_dx: float,
     res: wp.vec3i,
     dt: float,
-    count: int,
     grid_mvm: wp.array4d(dtype=wp.vec4),
     columns: wp.array3d(dtype=int),
-    active: wp.array(dtype=int),
-    active_count: wp.array(dtype=int),
 ):
     """Scatter particle momentum and mass to the grid (xyz: momentum, w: mass), one particle per thread,
-    one float atomic per component: the CPU path, and CUDA's with deterministic atomics. Lists the grid
-    columns it reaches (see list_columns)."""
+    one float atomic per component: the CPU path, and CUDA's with deterministic atomics."""
     p = wp.tid()
     w = particle_world[p]
     mv, affine, mass, base, fx = p2g_particle(p, x, v, C, F, damage, particle_vol, particle_E, particle_nu,
                                               particle_density, particle_viscosity, origin, inv_dx, res, dt)
-    list_columns(columns, active, active_count, w, base, res, True, p, count)
+    mark_columns(columns, w, base)
     W = bspline_weights(fx)
     for i in range(3):
         for j in range(3):
@@ -409,26 +414,20 @@ def warp_segment_sum(value: float, seg: int, tid: int, n: int) -> float:
     adj_snippet="",
     replay_snippet="return -1;",
 )
-def claim_slot(flag: bool, counter: wp.array(dtype=int), tid: int, n: int) -> int:
+def claim_slot(flag: int, counter: wp.array(dtype=int), tid: int, n: int) -> int:
     """A unique slot (counter[0] counts them) for each lane whose flag is set, -1 for the others: one
     atomic per warp."""
     ...
 
 
-@wp.func
-def list_columns(columns: wp.array3d(dtype=int), active: wp.array(dtype=int), active_count: wp.array(dtype=int),
-                 w: int, base: wp.vec3i, res: wp.vec3i, mark: bool, tid: int, n: int):
-    """Flag the 3 x 3 grid columns (w, i, j) a stencil with this base node reaches (where ``mark``), and
-    append each newly flagged column's flat index (w * res_i + i) * res_j + j to ``active``, so that the
-    grid update visits only those. Every lane of the warp must call it (``claim_slot``)."""
-    for i in range(3):
-        for j in range(3):
-            first = False
-            if mark:
-                first = wp.atomic_max(columns, w, base[0] + i, base[1] + j, 1) == 0
-            slot = claim_slot(first, active_count, tid, n)
-            if slot >= 0:
-                active[slot] = (w * res[0] + base[0] + i) * res[1] + base[1] + j
+@wp.kernel(grid_stride=False)
+def active_columns_kernel(columns: wp.array(dtype=int), count: int, active: wp.array(dtype=int),
+                          active_count: wp.array(dtype=int)):
+    """List the flagged columns (flat index (w * res_i + i) * res_j + j) for the grid update."""
+    t = wp.tid()
+    slot = claim_slot(columns[t], active_count, t, count)
+    if slot >= 0:
+        active[slot] = t
 
 
 @wp.func
@@ -459,8 +458,6 @@ def p2g_sorted_kernel(
     count: int,
     grid_mvm: wp.array4d(dtype=wp.vec4),
     columns: wp.array3d(dtype=int),
-    active: wp.array(dtype=int),
-    active_count: wp.array(dtype=int),
 ):
     """p2g_kernel for CUDA with warp-summed atomics; thread t scatters particle order[t] (one thread per
     particle: no grid-stride loop, so the lanes of a warp are the consecutive threads below ``count``)."""
@@ -470,7 +467,8 @@ def p2g_sorted_kernel(
     mv, affine, mass, base, fx = p2g_particle(p, x, v, C, F, damage, particle_vol, particle_E, particle_nu,
                                               particle_density, particle_viscosity, origin, inv_dx, res, dt)
     seg = warp_segment(stencil_key(w, base, res), t, count)
-    list_columns(columns, active, active_count, w, base, res, (seg & 64) != 0, t, count)  # once per segment
+    if (seg & 64) != 0:
+        mark_columns(columns, w, base)  # once per segment: its lanes share the stencil
     W = bspline_weights(fx)
     for i in range(3):
         for j in range(3):
@@ -506,7 +504,6 @@ def make_grid_update_kernel(ee_count: int):
     @wp.kernel(module="unique")
     def grid_update_kernel(
         grid_mvm: wp.array4d(dtype=wp.vec4),
-        columns: wp.array3d(dtype=int),
         active: wp.array(dtype=int),
         active_count: wp.array(dtype=int),
         origin: wp.vec3,
@@ -535,12 +532,12 @@ def make_grid_update_kernel(ee_count: int):
         grid_v: wp.array4d(dtype=wp.vec3),
     ):
         """Grid velocity update: momentum / mass, gravity, end-effectors, table and walls, on the nodes of
-        the columns listed in ``active`` (see list_columns): ``threads`` threads stride over them,
+        the columns listed in ``active`` (see active_columns_kernel): ``threads`` threads stride over them,
         so that the work follows the nodes particles reached, not the grid's size (a heavy kernel launched
         over every node, most of them empty, was the step's largest cost for many small worlds).
 
-        With ``clear_inputs`` the touched mass and momentum nodes and column flags are zeroed once read,
-        which saves the next substep full-grid clears (only when no tape needs those values again). Nodes no particle
+        With ``clear_inputs`` the touched mass and momentum nodes are zeroed once read, which saves the
+        next substep a full-grid clear (only when no tape needs those values again). Nodes no particle
         reached (mass exactly 0) are neither read further nor written.
         """
         t = wp.tid()
@@ -550,8 +547,6 @@ def make_grid_update_kernel(ee_count: int):
             j = col % res[1]
             i = (col / res[1]) % res[0]
             w = col / (res[1] * res[0])
-            if clear_inputs != 0 and k == 0:
-                columns[w, i, j] = 0
             mvm = grid_mvm[w, i, j, k]
             m = mvm[3]
             if m == 0.0:

@@ -44,11 +44,10 @@ class GridScratch:
         shape = (model.world_count, *model.grid_res)
         d = model.device
         self.clean = True
-        """The mass and momentum arrays and the column flags are known to be zero (freshly allocated or
-        cleared in place by the grid update)."""
+        """The mass and momentum arrays are known to be zero (freshly allocated or cleared in place)."""
         self.mvm = wp.zeros(shape, dtype=wp.vec4, device=d, requires_grad=requires_grad)
         self.columns = wp.zeros(shape[:3], dtype=int, device=d)
-        """1 where P2G reached a column (world, i, j) of nodes."""
+        """1 where P2G reached a column (world, i, j) of nodes; cleared before every P2G."""
         self.active = wp.zeros(self.columns.size, dtype=int, device=d)
         """The flagged columns' flat indices, ``active_count[0]`` of them (in any order)."""
         self.active_count = wp.zeros(1, dtype=int, device=d)
@@ -177,7 +176,7 @@ class SolverMPM:
         fused = scratch is None and _wp_context.runtime.tape is None
         if not (fused and g.clean):
             g.mvm.zero_()
-            g.columns.zero_()
+        g.columns.zero_()
         g.active_count.zero_()
         origin = wp.vec3(*m.grid_origin)
         res = wp.vec3i(*m.grid_res)
@@ -187,9 +186,8 @@ class SolverMPM:
             m.particle_viscosity,
         ]
         if self._order is None:
-            wp.launch(K.p2g_kernel, dim=m.particle_count,
-                      inputs=[*particles, origin, m.dx, m.inv_dx, res, dt, m.particle_count],
-                      outputs=[g.mvm, g.columns, g.active, g.active_count], device=m.device)
+            wp.launch(K.p2g_kernel, dim=m.particle_count, inputs=[*particles, origin, m.dx, m.inv_dx, res, dt],
+                      outputs=[g.mvm, g.columns], device=m.device)
         else:
             if sort is None:
                 sort = self.step_count % self.config.sort_every == 0
@@ -197,14 +195,16 @@ class SolverMPM:
                 self.sort_particles(state_in)
             wp.launch(K.p2g_sorted_kernel, dim=m.particle_count,
                       inputs=[self._order, *particles, origin, m.dx, m.inv_dx, res, dt, m.particle_count],
-                      outputs=[g.mvm, g.columns, g.active, g.active_count], device=m.device)
+                      outputs=[g.mvm, g.columns], device=m.device)
         has_table = 1 if m.table is not None else 0
         table_z = float(m.table.height) if m.table is not None else 0.0
+        wp.launch(K.active_columns_kernel, dim=g.columns.size, inputs=[g.columns.flatten(), g.columns.size],
+                  outputs=[g.active, g.active_count], device=m.device, record_tape=False)
         wp.launch(
             self._grid_kernel,
             dim=self._grid_threads,
             inputs=[
-                g.mvm, g.columns, g.active, g.active_count, origin, m.dx, res, dt, wp.vec3(*m.gravity), m.grid.boundary_cells,
+                g.mvm, g.active, g.active_count, origin, m.dx, res, dt, wp.vec3(*m.gravity), m.grid.boundary_cells,
                 has_table, table_z, m.world_table_friction,
                 m.ee_shape, m.ee_radius, m.ee_half_height, m.ee_half_extents, m.ee_friction,
                 m.ee_gripper, state_in.ee_pos, state_in.ee_rot, control.ee_vel, control.ee_omega, control.ee_grip,
