@@ -629,6 +629,7 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
         if not torch.isfinite(g).all():
             skipped += 1
             g = torch.zeros_like(g)
+            z.grad = g.clone()  # the optimiser steps on z.grad: a NaN there would make the parameters NaN
         if best is None or L < best[0]:
             best = (L, z.detach().clone(), g)
             scale = min(1.0, scale * 1.25)

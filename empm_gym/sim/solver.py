@@ -164,8 +164,9 @@ class SolverMPM:
 
         ``scratch`` gives the grid arrays to use (one per taped substep in a differentiable rollout);
         ``guards=False`` skips the dt and divergence checks (a rollout that already made them).
-        ``sort`` re-sorts P2G's particle order by cell first (CUDA; None: every ``config.sort_every`` steps;
-        a caller that captures a fixed group of substeps in a CUDA graph passes True on its first one).
+        ``sort`` re-sorts P2G's particle order by cell first (CUDA, untaped steps on the solver's own grid;
+        None: every ``config.sort_every`` steps; a caller that captures a fixed group of substeps in a CUDA
+        graph passes True on its first one).
         """
         if guards:
             self.check_dt(dt, control.max_speed)
@@ -185,7 +186,10 @@ class SolverMPM:
             state_in.particle_damage, m.particle_world, m.particle_vol, m.particle_E, m.particle_nu, m.particle_density,
             m.particle_viscosity,
         ]
-        if self._order is None:
+        # the warp-summed P2G serves untaped steps only: on one H100 an identification fit taped through it
+        # gave non-finite material gradients in blocks of 32 threads (not reproduced on the CPU, not yet
+        # understood); taped steps keep the per-particle atomics, whose gradients are tested
+        if self._order is None or not fused:
             wp.launch(K.p2g_kernel, dim=m.particle_count, inputs=[*particles, origin, m.dx, m.inv_dx, res, dt],
                       outputs=[g.mvm, g.columns], device=m.device)
         else:

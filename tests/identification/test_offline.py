@@ -138,3 +138,34 @@ def test_quaternion_angular_velocity():
     q = np.array([[[0, 0, np.sin(a / 2), np.cos(a / 2)]] for a in (0.0, ang, 2 * ang)])
     w = quat_angular_velocity(q, 30.0)
     assert np.allclose(w[:, 0], [[0, 0, ang * 30]] * 2)
+
+
+def test_adam_skips_a_non_finite_gradient_without_corrupting_the_parameters(rope, monkeypatch):
+    # a NaN gradient (as a float atomic gone wrong would give) must be counted and skipped, not stepped on
+    import torch
+
+    from empm_gym.identification import offline
+
+    class NanGrad(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, x):
+            return x.clone()
+
+        @staticmethod
+        def backward(ctx, g):
+            return g * float("nan")
+
+    calls = {"n": 0}
+    real = offline.Objective.torch
+
+    def poisoned(self, X):
+        calls["n"] += 1
+        loss = real(self, X)
+        return NanGrad.apply(loss) if calls["n"] == 2 else loss
+
+    monkeypatch.setattr(offline.Objective, "torch", poisoned)
+    r = identify(rope.obs, rope.scene, params=("E",), method="adam", init={"E": ROPE_E / 3}, iters=3,
+                 progress=False)
+    assert calls["n"] >= 3
+    assert r.extra["skipped_steps"] == 1
+    assert all(np.isfinite(p["E"]) for p in r.param_history) and np.isfinite(r.params["E"])
