@@ -208,38 +208,16 @@ def cell_base(x: wp.vec3, origin: wp.vec3, inv_dx: float, res: wp.vec3i):
     return base, fx
 
 
-@wp.func
-def p2g_particle(
-    p: int,
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    damage: wp.array(dtype=float),
-    particle_vol: wp.array(dtype=float),
-    particle_E: wp.array(dtype=float),
-    particle_nu: wp.array(dtype=float),
-    particle_density: wp.array(dtype=float),
-    particle_viscosity: wp.array(dtype=float),
-    origin: wp.vec3,
-    inv_dx: float,
-    res: wp.vec3i,
-    dt: float,
-):
-    """What particle p scatters (MLS-MPM / APIC): momentum [kg m/s], the affine matrix (stress impulse and
-    APIC's mass * C) [kg/s], mass [kg], the stencil's base node and the particle's offset from it [cells]."""
-    vol = particle_vol[p]
-    mass = particle_density[p] * vol
-    mu, lam = lame_parameters(particle_E[p], particle_nu[p])
-    Fp = F[p]
-    Cp = C[p]
-    tau = damaged_kirchhoff(Fp, mu, lam, damage[p])
+@wp.func(inline=True)
+def p2g_affine(Fp: wp.mat33, Cp: wp.mat33, damage: float, E: float, nu: float, viscosity: float, vol: float,
+               mass: float, dt: float, inv_dx: float):
+    """APIC's affine matrix of one particle [kg/s]: its stress impulse over dt and mass * C."""
+    mu, lam = lame_parameters(E, nu)
+    tau = damaged_kirchhoff(Fp, mu, lam, damage)
     # Kelvin-Voigt viscous stress (zero when eta = 0); APIC's C is the velocity gradient, so
     # tau_v = J eta (C + C^T). No branch: a data-dependent branch here slows the adjoint kernel.
-    tau = tau + (particle_viscosity[p] * wp.determinant(Fp)) * (Cp + wp.transpose(Cp))
-    affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * Cp
-    base, fx = cell_base(x[p], origin, inv_dx, res)
-    return mass * v[p], affine, mass, base, fx
+    tau = tau + (viscosity * wp.determinant(Fp)) * (Cp + wp.transpose(Cp))
+    return (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * Cp
 
 
 @wp.func
@@ -249,6 +227,21 @@ def mark_columns(columns: wp.array3d(dtype=int), w: int, base: wp.vec3i):
     for i in range(3):
         for j in range(3):
             columns[w, base[0] + i, base[1] + j] = 1
+
+
+@wp.kernel
+def mark_columns_kernel(
+    x: wp.array(dtype=wp.vec3),
+    particle_world: wp.array(dtype=int),
+    origin: wp.vec3,
+    inv_dx: float,
+    res: wp.vec3i,
+    columns: wp.array3d(dtype=int),
+):
+    """Flag the grid columns each particle's stencil reaches (p2g_kernel's companion; not differentiated)."""
+    p = wp.tid()
+    base, fx = cell_base(x[p], origin, inv_dx, res)
+    mark_columns(columns, particle_world[p], base)
 
 
 @wp.kernel
@@ -270,15 +263,18 @@ def p2g_kernel(
     res: wp.vec3i,
     dt: float,
     grid_mvm: wp.array4d(dtype=wp.vec4),
-    columns: wp.array3d(dtype=int),
 ):
     """Scatter particle momentum and mass to the grid (xyz: momentum, w: mass), one particle per thread,
-    one float atomic per component: the CPU path, and CUDA's with deterministic atomics."""
+    one float atomic per component: the CPU path, taped steps, and CUDA's with deterministic atomics
+    (mark_columns_kernel flags the columns, outside the tape)."""
     p = wp.tid()
     w = particle_world[p]
-    mv, affine, mass, base, fx = p2g_particle(p, x, v, C, F, damage, particle_vol, particle_E, particle_nu,
-                                              particle_density, particle_viscosity, origin, inv_dx, res, dt)
-    mark_columns(columns, w, base)
+    vol = particle_vol[p]
+    mass = particle_density[p] * vol
+    affine = p2g_affine(F[p], C[p], damage[p], particle_E[p], particle_nu[p], particle_viscosity[p], vol, mass, dt,
+                        inv_dx)
+    mv = mass * v[p]
+    base, fx = cell_base(x[p], origin, inv_dx, res)
     W = bspline_weights(fx)
     for i in range(3):
         for j in range(3):
@@ -464,8 +460,12 @@ def p2g_sorted_kernel(
     t = wp.tid()
     p = order[t]
     w = particle_world[p]
-    mv, affine, mass, base, fx = p2g_particle(p, x, v, C, F, damage, particle_vol, particle_E, particle_nu,
-                                              particle_density, particle_viscosity, origin, inv_dx, res, dt)
+    vol = particle_vol[p]
+    mass = particle_density[p] * vol
+    affine = p2g_affine(F[p], C[p], damage[p], particle_E[p], particle_nu[p], particle_viscosity[p], vol, mass, dt,
+                        inv_dx)
+    mv = mass * v[p]
+    base, fx = cell_base(x[p], origin, inv_dx, res)
     seg = warp_segment(stencil_key(w, base, res), t, count)
     if (seg & 64) != 0:
         mark_columns(columns, w, base)  # once per segment: its lanes share the stencil

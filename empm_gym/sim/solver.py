@@ -98,7 +98,7 @@ class SolverMPM:
         self._grid_kernel = _grid_kernel(model.ee_count)
         # threads of the grid update, striding over the active nodes (the CPU runs a launch as one loop)
         nodes = model.world_count * int(np.prod(model.grid_res))
-        self._grid_threads = min(nodes, 2**17) if model.device.is_cuda else 1
+        self._grid_threads = min(nodes, 2**17) if model.device.is_cuda else nodes
 
     # -- guards --------------------------------------------------------------
     def max_stable_dt(self, max_speed: float = 0.0) -> float:
@@ -191,7 +191,10 @@ class SolverMPM:
         # understood); taped steps keep the per-particle atomics, whose gradients are tested
         if self._order is None or not fused:
             wp.launch(K.p2g_kernel, dim=m.particle_count, inputs=[*particles, origin, m.dx, m.inv_dx, res, dt],
-                      outputs=[g.mvm, g.columns], device=m.device)
+                      outputs=[g.mvm], device=m.device)
+            wp.launch(K.mark_columns_kernel, dim=m.particle_count,
+                      inputs=[state_in.particle_x, m.particle_world, origin, m.inv_dx, res], outputs=[g.columns],
+                      device=m.device, record_tape=False)
         else:
             if sort is None:
                 sort = self.step_count % self.config.sort_every == 0
