@@ -229,6 +229,28 @@ def mark_columns(columns: wp.array3d(dtype=int), w: int, base: wp.vec3i):
             columns[w, base[0] + i, base[1] + j] = 1
 
 
+@wp.func_native(
+    snippet="""
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+    float* node = reinterpret_cast<float*>(&wp::index(grid, w, i, j, k));
+    atomicAdd(reinterpret_cast<float4*>(node), make_float4(value[0], value[1], value[2], value[3]));
+#else
+    wp::atomic_add(&wp::index(grid, w, i, j, k), value);
+#endif
+""",
+    adj_snippet="""
+    if (adj_grid.data)
+        adj_value += wp::index(adj_grid, w, i, j, k);
+    else if (grid.grad)
+        adj_value += wp::index_grad(grid, w, i, j, k);
+""",
+    replay_snippet="",
+)
+def packed_add(grid: wp.array4d(dtype=wp.vec4), w: int, i: int, j: int, k: int, value: wp.vec4):
+    """grid[w, i, j, k] += value with one 16-byte atomic (sm_90 and later; one per component elsewhere)."""
+    ...
+
+
 @wp.kernel
 def mark_columns_kernel(
     x: wp.array(dtype=wp.vec3),
@@ -262,11 +284,13 @@ def p2g_kernel(
     inv_dx: float,
     res: wp.vec3i,
     dt: float,
+    packed: int,
     grid_mvm: wp.array4d(dtype=wp.vec4),
 ):
-    """Scatter particle momentum and mass to the grid (xyz: momentum, w: mass), one particle per thread,
-    one float atomic per component: the CPU path, taped steps, and CUDA's with deterministic atomics
-    (mark_columns_kernel flags the columns, outside the tape)."""
+    """Scatter particle momentum and mass to the grid (xyz: momentum, w: mass), one particle per thread:
+    the CPU path and taped steps (``packed``: one 16-byte atomic per node on CUDA; 0: Warp's atomics, one
+    per component, as the CPU and CUDA's deterministic mode need). mark_columns_kernel flags the columns,
+    outside the tape."""
     p = wp.tid()
     w = particle_world[p]
     vol = particle_vol[p]
@@ -282,7 +306,11 @@ def p2g_kernel(
                 weight = W[i, 0] * W[j, 1] * W[k, 2]
                 dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
                 m = weight * (mv + affine * dpos)
-                wp.atomic_add(grid_mvm, w, base[0] + i, base[1] + j, base[2] + k, wp.vec4(m[0], m[1], m[2], weight * mass))
+                node = wp.vec4(m[0], m[1], m[2], weight * mass)
+                if packed != 0:
+                    packed_add(grid_mvm, w, base[0] + i, base[1] + j, base[2] + k, node)
+                else:
+                    wp.atomic_add(grid_mvm, w, base[0] + i, base[1] + j, base[2] + k, node)
 
 
 # -- P2G on CUDA: particles visited in cell order, each warp sums what its threads give one node before a

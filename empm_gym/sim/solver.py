@@ -84,6 +84,7 @@ class SolverMPM:
         self.scratch = GridScratch(model)
         self.step_count = 0
         self._order = None
+        self._packed = int(model.device.is_cuda and not self.config.deterministic)
         # P2G with warp-summed atomics visits particles in cell order (CUDA only; the deterministic mode keeps
         # Warp's own atomics, which it makes repeatable); the key must fit an int32
         nodes = model.world_count * int(np.prod(model.grid_res))
@@ -190,8 +191,8 @@ class SolverMPM:
         # gave non-finite material gradients in blocks of 32 threads (not reproduced on the CPU, not yet
         # understood); taped steps keep the per-particle atomics, whose gradients are tested
         if self._order is None or not fused:
-            wp.launch(K.p2g_kernel, dim=m.particle_count, inputs=[*particles, origin, m.dx, m.inv_dx, res, dt],
-                      outputs=[g.mvm], device=m.device)
+            wp.launch(K.p2g_kernel, dim=m.particle_count, inputs=[*particles, origin, m.dx, m.inv_dx, res, dt,
+                                                                 self._packed], outputs=[g.mvm], device=m.device)
             wp.launch(K.mark_columns_kernel, dim=m.particle_count,
                       inputs=[state_in.particle_x, m.particle_world, origin, m.inv_dx, res], outputs=[g.columns],
                       device=m.device, record_tape=False)
