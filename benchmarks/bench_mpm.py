@@ -24,7 +24,6 @@ import warp as wp
 
 from empm_gym.sim import (EndEffectorConfig, GridConfig, MaterialConfig, ModelBuilder, Rollout, SolverConfig,
                           SolverMPM, TableConfig, sample_box)
-from empm_gym.sim import kernels as K
 from empm_gym.sim.effects import EFFECTS
 
 #: Parameter values that switch each effect on in the benchmark (typical magnitudes; the step's cost does
@@ -103,111 +102,6 @@ def time_forward(model, steps: int, graph: bool, config: SolverConfig = None):
     return model.particle_count * steps / elapsed
 
 
-# -- a plain APIC step, the yardstick the issue measures against: unsorted particles, one dense grid, one
-# float atomic per component, fixed-corotated stress, gravity and sticky walls; no table, no end-effectors.
-
-@wp.kernel
-def _plain_p2g(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
-               F: wp.array(dtype=wp.mat33), inv_dx: float, dt: float, vol: float, mass: float, mu: float,
-               lam: float, gm: wp.array3d(dtype=float), gmv: wp.array3d(dtype=wp.vec3)):
-    p = wp.tid()
-    xl = x[p] * inv_dx
-    base = wp.vec3i(int(xl[0] - 0.5), int(xl[1] - 0.5), int(xl[2] - 0.5))
-    fx = xl - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    W = K.bspline_weights(fx)
-    affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * K.fixed_corotated_kirchhoff(F[p], mu, lam) + mass * C[p]
-    for i in range(3):
-        for j in range(3):
-            for k in range(3):
-                weight = W[i, 0] * W[j, 1] * W[k, 2]
-                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) / inv_dx
-                wp.atomic_add(gmv, base[0] + i, base[1] + j, base[2] + k, weight * (mass * v[p] + affine * dpos))
-                wp.atomic_add(gm, base[0] + i, base[1] + j, base[2] + k, weight * mass)
-
-
-@wp.kernel
-def _plain_grid(gm: wp.array3d(dtype=float), gmv: wp.array3d(dtype=wp.vec3), dt: float, n: int,
-                gv: wp.array3d(dtype=wp.vec3)):
-    i, j, k = wp.tid()
-    m = gm[i, j, k]
-    vel = wp.vec3(0.0)
-    if m > 0.0:
-        vel = gmv[i, j, k] / m + wp.vec3(0.0, 0.0, -9.81 * dt)
-        if i < 3 or j < 3 or k < 3 or i > n - 4 or j > n - 4 or k > n - 4:
-            vel = wp.vec3(0.0)
-    gv[i, j, k] = vel
-    gm[i, j, k] = 0.0
-    gmv[i, j, k] = wp.vec3(0.0)
-
-
-@wp.kernel
-def _plain_g2p(x: wp.array(dtype=wp.vec3), F: wp.array(dtype=wp.mat33), gv: wp.array3d(dtype=wp.vec3),
-               inv_dx: float, dt: float, v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33)):
-    p = wp.tid()
-    xl = x[p] * inv_dx
-    base = wp.vec3i(int(xl[0] - 0.5), int(xl[1] - 0.5), int(xl[2] - 0.5))
-    fx = xl - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    W = K.bspline_weights(fx)
-    nv = wp.vec3(0.0)
-    nC = wp.mat33(0.0)
-    for i in range(3):
-        for j in range(3):
-            for k in range(3):
-                weight = W[i, 0] * W[j, 1] * W[k, 2]
-                g = gv[base[0] + i, base[1] + j, base[2] + k]
-                nv += weight * g
-                nC += (4.0 * inv_dx * weight) * wp.outer(g, wp.vec3(float(i), float(j), float(k)) - fx)
-    F[p] = (wp.identity(n=3, dtype=float) + dt * nC) * F[p]
-    v[p] = nv
-    C[p] = nC
-    x[p] = x[p] + dt * nv
-
-
-def reference_rate(particles: int, device: str, steps: int) -> float:
-    """Particle-steps/s of the plain step: a cube of ``particles`` at 8 per cell in a unit box (dx = 1 / n)."""
-    side = int(round(particles ** (1.0 / 3.0)))
-    n = int(np.ceil(side / 2 / 0.6))  # the cube spans 60 % of the box
-    dx = 1.0 / n
-    g = np.linspace(0.2, 0.2 + 0.6 * (side - 1) / side, side)
-    x = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
-    N = len(x)
-    arr = dict(x=wp.array(x, dtype=wp.vec3, device=device), v=wp.zeros(N, dtype=wp.vec3, device=device),
-               C=wp.zeros(N, dtype=wp.mat33, device=device),
-               F=wp.array(np.tile(np.eye(3, dtype=np.float32), (N, 1, 1)), dtype=wp.mat33, device=device))
-    gm = wp.zeros((n, n, n), dtype=float, device=device)
-    gmv = wp.zeros((n, n, n), dtype=wp.vec3, device=device)
-    gv = wp.zeros((n, n, n), dtype=wp.vec3, device=device)
-    E, nu, rho = 1e5, 0.3, 1000.0
-    mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
-    vol = (0.6 / side) ** 3
-    dt = 0.4 * dx / np.sqrt((lam + 2 * mu) / rho) * 0.5
-
-    def loop(k):
-        for _ in range(k):
-            wp.launch(_plain_p2g, N, inputs=[arr["x"], arr["v"], arr["C"], arr["F"], 1.0 / dx, dt, vol, rho * vol,
-                                             mu, lam, gm, gmv], device=device)
-            wp.launch(_plain_grid, (n, n, n), inputs=[gm, gmv, dt, n, gv], device=device)
-            wp.launch(_plain_g2p, N, inputs=[arr["x"], arr["F"], gv, 1.0 / dx, dt, arr["v"], arr["C"]], device=device)
-
-    loop(2)
-    wp.synchronize_device(device)
-    if wp.get_device(device).is_cuda:
-        with wp.ScopedCapture(device=device) as cap:
-            loop(steps)
-        wp.capture_launch(cap.graph)
-        wp.synchronize_device(device)
-        t0 = time.perf_counter()
-        wp.capture_launch(cap.graph)
-    else:
-        t0 = time.perf_counter()
-        loop(steps)
-    wp.synchronize_device(device)
-    rate = N * steps / (time.perf_counter() - t0)
-    assert np.all(np.isfinite(arr["x"].numpy())), "the reference step diverged"
-    return rate
-
-
-
 def time_grad(model, steps: int, checkpoint_every):
     solver = SolverMPM(model)
     dt = 0.5 * solver.max_stable_dt()
@@ -278,8 +172,6 @@ def main(argv=None):
                    help="CUDA only: per-kernel forward/adjoint GPU times for one world of this many particles")
     p.add_argument("--no-graph", action="store_true", help="do not capture the forward loop in a CUDA graph")
     p.add_argument("--effects", action="store_true", help="one row per effect of the catalogue (none first)")
-    p.add_argument("--reference", action="store_true",
-                   help="also time the plain APIC step (unsorted, one atomic per component) on the single-world sizes")
     args = p.parse_args(argv)
     wp.init()
     dev = wp.get_device(args.device)
@@ -293,7 +185,7 @@ def main(argv=None):
         return
     print(f"device: {dev.name} ({dev.alias}), warp {wp.__version__}, material: "
           f"{'elastoplastic (von Mises)' if args.plastic else 'elastic (fixed corotated)'}")
-    head = (f"{'worlds':>7} {'particles':>10} {'fwd p-steps/s':>14} {'unsorted':>10} {'plain ref':>10} "
+    head = (f"{'worlds':>7} {'particles':>10} {'fwd p-steps/s':>14} {'unsorted':>10} "
             f"{'fwd+bwd p-steps/s':>18} {'bwd/fwd':>8} {'peak MB full':>13} {'peak MB ckpt':>13}")
     print(head)
     print("-" * len(head))
@@ -302,11 +194,11 @@ def main(argv=None):
         total = model.particle_count
         steps = args.steps or int(np.clip(2e7 / total if dev.is_cuda else 2e6 / total, 4, 2000))
         fwd = time_forward(model, steps, graph=not args.no_graph)
-        # the same step with one atomic per particle and component (the CPU's path; on CUDA, sort_every=0)
+        # the same step without the cell sort and warp sums (CUDA, sort_every=0); the plain reference step to
+        # compare with is ../shared/tools/ref_mpm.py, run in the same job
         plain = time_forward(model, steps, graph=not args.no_graph, config=SolverConfig(sort_every=0)) \
             if dev.is_cuda else float("nan")
-        ref = reference_rate(total, args.device, steps) if args.reference and worlds == 1 else float("nan")
-        row = f"{worlds:>7} {total:>10} {fwd:>14.3e} {plain:>10.3e} {ref:>10.3e}"
+        row = f"{worlds:>7} {total:>10} {fwd:>14.3e} {plain:>10.3e}"
         if total <= args.grad_max:
             gm = build(worlds, per_world, args.device, requires_grad=True, plastic=args.plastic)
             _, fb, ratio, peak_full = time_grad(gm, args.grad_steps, None)
