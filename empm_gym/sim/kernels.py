@@ -251,27 +251,6 @@ def packed_add(grid: wp.array4d(dtype=wp.vec4), w: int, i: int, j: int, k: int, 
     ...
 
 
-@wp.func_native(
-    snippet="""
-    const wp::vec4& g = wp::index(grid, w, i, j, k);
-    return wp::vec3(g[0], g[1], g[2]);
-""",
-    adj_snippet="""
-    wp::vec4* dst = adj_grid.data ? &wp::index(adj_grid, w, i, j, k) : (grid.grad ? &wp::index_grad(grid, w, i, j, k) : nullptr);
-    if (dst) {
-#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
-        atomicAdd(reinterpret_cast<float4*>(dst), make_float4(adj_ret[0], adj_ret[1], adj_ret[2], 0.0f));
-#else
-        wp::atomic_add(dst, wp::vec4(adj_ret[0], adj_ret[1], adj_ret[2], 0.0f));
-#endif
-    }
-""",
-)
-def grid_velocity(grid: wp.array4d(dtype=wp.vec4), w: int, i: int, j: int, k: int) -> wp.vec3:
-    """The velocity held in grid[w, i, j, k] (xyz); its adjoint adds with one 16-byte atomic on sm_90+."""
-    ...
-
-
 @wp.kernel
 def mark_columns_kernel(
     x: wp.array(dtype=wp.vec3),
@@ -578,7 +557,7 @@ def make_grid_update_kernel(ee_count: int):
         world_grip_friction: wp.array(dtype=float),
         clear_inputs: int,
         threads: int,
-        grid_v: wp.array4d(dtype=wp.vec4),
+        grid_v: wp.array4d(dtype=wp.vec3),
     ):
         """Grid velocity update: momentum / mass, gravity, end-effectors, table and walls, on the nodes of
         the columns listed in ``active`` (see active_columns_kernel): ``threads`` threads stride over them,
@@ -645,7 +624,7 @@ def make_grid_update_kernel(ee_count: int):
                     vel = wp.vec3(vel[0], vel[1], 0.0)
                 if k >= res[2] - b and vel[2] > 0.0:
                     vel = wp.vec3(vel[0], vel[1], 0.0)
-            grid_v[w, i, j, k] = wp.vec4(vel[0], vel[1], vel[2], 0.0)
+            grid_v[w, i, j, k] = vel
 
     return grid_update_kernel
 
@@ -710,23 +689,21 @@ def g2p_kernel(
     particle_plastic: wp.array(dtype=int),
     particle_fracture_strain: wp.array(dtype=float),
     particle_fracture_softening: wp.array(dtype=float),
-    grid_v: wp.array4d(dtype=wp.vec4),
+    grid_v: wp.array4d(dtype=wp.vec3),
     origin: wp.vec3,
     dx: float,
     inv_dx: float,
     res: wp.vec3i,
     dt: float,
     min_singular: float,
-    packed: int,
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
     C_out: wp.array(dtype=wp.mat33),
     F_out: wp.array(dtype=wp.mat33),
     damage_out: wp.array(dtype=float),
 ):
-    """Gather velocity and affine field, update F (with plastic return mapping) and advect particles, one
-    particle per thread. The adjoint adds each node's velocity gradient with one 16-byte atomic where
-    ``packed`` (CUDA, see grid_velocity), else with Warp's atomics, one per component."""
+    """Gather velocity and affine field, update F (with plastic return mapping) and advect particles
+    (one particle per thread; the adjoint adds one atomic per particle, node and component)."""
     p = wp.tid()
     w = particle_world[p]
     base, fx = cell_base(x[p], origin, inv_dx, res)
@@ -738,12 +715,7 @@ def g2p_kernel(
             for k in range(3):
                 weight = W[i, 0] * W[j, 1] * W[k, 2]
                 dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
-                gv = wp.vec3(0.0)
-                if packed != 0:
-                    gv = grid_velocity(grid_v, w, base[0] + i, base[1] + j, base[2] + k)
-                else:
-                    g4 = grid_v[w, base[0] + i, base[1] + j, base[2] + k]
-                    gv = wp.vec3(g4[0], g4[1], g4[2])
+                gv = grid_v[w, base[0] + i, base[1] + j, base[2] + k]
                 new_v = new_v + weight * gv
                 new_C = new_C + (4.0 * inv_dx * inv_dx * weight) * wp.outer(gv, dpos)
     g2p_finish(p, new_v, new_C, x, F, damage, particle_E, particle_nu, particle_yield, particle_plastic,

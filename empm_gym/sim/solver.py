@@ -34,7 +34,7 @@ class UnstableTimeStep(ValueError):
 
 class GridScratch:
     """Grid arrays of one substep for every world: ``mvm`` holds momentum [kg m/s] (xyz) and mass [kg] (w)
-    in one vec4 per node, so that P2G adds both with one atomic; ``v`` is the velocity [m/s] (xyz of a vec4).
+    in one vec4 per node, so that P2G adds both with one atomic; ``v`` is the velocity [m/s].
 
     A differentiable rollout keeps one per taped substep, since the tape replays kernels with the
     arrays' current values.
@@ -51,8 +51,7 @@ class GridScratch:
         self.active = wp.zeros(self.columns.size, dtype=int, device=d)
         """The flagged columns' flat indices, ``active_count[0]`` of them (in any order)."""
         self.active_count = wp.zeros(1, dtype=int, device=d)
-        self.v = wp.zeros(shape, dtype=wp.vec4, device=d, requires_grad=requires_grad)
-        """Node velocity [m/s] in xyz (w unused: 16-byte nodes take one atomic in G2P's adjoint)."""
+        self.v = wp.zeros(shape, dtype=wp.vec3, device=d, requires_grad=requires_grad)
 
     def zero_grad(self):
         for a in (self.mvm, self.v):
@@ -227,7 +226,7 @@ class SolverMPM:
             state_in.particle_x, state_in.particle_F, state_in.particle_damage, m.particle_world,
             m.particle_E, m.particle_nu, m.particle_yield, m.particle_plastic,
             m.particle_fracture_strain, m.particle_fracture_softening,
-            g.v, origin, m.dx, m.inv_dx, res, dt, self.config.plasticity_min_singular, self._packed,
+            g.v, origin, m.dx, m.inv_dx, res, dt, self.config.plasticity_min_singular,
         ]
         g2p_out = [state_out.particle_x, state_out.particle_v, state_out.particle_C, state_out.particle_F,
                    state_out.particle_damage]
