@@ -205,9 +205,10 @@ def test_gradients_stay_finite_over_long_horizon():
         assert np.all(np.isfinite(g.numpy())), f"initial {name} gradient is not finite"
 
 
-def test_grid_update_thread_count_changes_nothing():
+def test_grid_update_thread_count_and_packed_atomics_change_nothing():
     # the grid update's threads stride over the active nodes; results and gradients must not depend on
-    # how many there are (one, a few that do not divide the work, more than there are nodes)
+    # how many there are (one, a few that do not divide the work, more than there are nodes), nor on P2G's
+    # native 16-byte node atomic (its CPU branch runs here)
     model = _gripper_model()
     W = _weights(model, 1, seed=11)
 
@@ -217,9 +218,11 @@ def test_grid_update_thread_count_changes_nothing():
             c.set(velocity=[[[0.1, 0.0, 0.2]]], grip=[[1]])
 
     out = []
-    for threads in (None, 7, 100000):
+    for threads in (None, 7, 100000, "packed"):
         solver = SolverMPM(model)
-        if threads:
+        if threads == "packed":
+            solver._packed = 1
+        elif threads:
             solver._grid_threads = threads
         ro = Rollout(model, solver, steps=20, dt=DT, substeps_per_control=5, record_every=20)
         ctrls = ro.make_controls()
