@@ -116,6 +116,9 @@ _RATIO_UNITS = {"E": "m^2/s^2", "yield_stress": "m^2/s^2", "viscosity": "m^2/s"}
 #: stiffness is not resolved: a 2.4 cm rope at dx = 2 cm (1.2 cells) fitted E 6.9x too stiff, at dx = 1 cm
 #: (2.4 cells) within 5 % (issue 14); a 4 cm rope at dx = 2 cm (2 cells) within 15 % (tests/identification).
 MIN_CELLS_ACROSS = 1.5
+#: An interval wider than this share of the search box (in the optimiser's coordinates: a factor 10 of E
+#: when the box is 10x either way) leaves the parameter undetermined: the data do not pin it down.
+WIDE_INTERVAL = 0.5
 #: Below this many cells the fit is flagged as marginal (a warning, the parameter stays determined).
 MARGINAL_CELLS_ACROSS = 3.0
 
@@ -299,8 +302,8 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     are resampled); the grid's resolution is checked separately.
 
     A parameter is ``determined: false`` (with the reasons in ``identifiability.warnings``) when it lies at
-    its search bound, when its interval reaches past the search box (the loss is flat within noise along
-    it), when it is correlated with another fitted parameter by more than 0.95 (only a combination is
+    its search bound, when its interval reaches past the search box or spans more than
+    :data:`WIDE_INTERVAL` of it (the loss is flat, or nearly, within noise along it), when it is correlated with another fitted parameter by more than 0.95 (only a combination is
     determined), when it is E / yield_stress / viscosity fitted together with the density (only their
     ratio to the density enters the motion), or when the grid has fewer than :data:`MIN_CELLS_ACROSS` cells
     across the body's thinnest part.
@@ -384,6 +387,11 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
         elif not reasons[k] and (lo_z < zl - tol or hi_z > zh + tol):
             reasons[k].append("the loss is flat within the frame-to-frame noise along it: its "
                               f"{100 * level:.0f} % interval reaches past the search box {list(bounds[k])}")
+        elif not reasons[k] and hi_z - lo_z > WIDE_INTERVAL * (zh - zl):
+            reasons[k].append(f"the loss is nearly flat within the frame-to-frame noise along it: its "
+                              f"{100 * level:.0f} % interval [{interval[0]:.4g}, {interval[1]:.4g}] spans "
+                              f"{(hi_z - lo_z) / (zh - zl):.0%} of the search box {list(bounds[k])} (optimiser "
+                              f"scale)")
         unc[k] = {"interval": interval, "level": level, "determined": True}
     # correlations between fitted parameters (finite draws only)
     corr = {}
