@@ -198,3 +198,13 @@ def test_in_place_grid_clearing_equals_explicit_clearing():
         a, b = b, a
     assert np.array_equal(fused.particle_x.numpy(), a.particle_x.numpy())
     assert not scratch.clean and solver.scratch.clean
+
+
+def test_solver_config_rejects_bad_values():
+    from empm_gym.sim import SolverConfig
+
+    for kw, what in (({"cfl": 0.0}, "cfl"), ({"cfl": 1.5}, "cfl"), ({"check_every": -1}, "check_every"),
+                     ({"sort_every": -2}, "sort_every")):
+        with pytest.raises(ValueError, match=what):
+            SolverConfig(**kw)
+    assert SolverConfig(sort_every=0).sort_every == 0  # 0 is allowed: never sort
