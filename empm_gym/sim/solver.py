@@ -85,9 +85,9 @@ class SolverMPM:
         self.step_count = 0
         self._order = None
         self._packed = int(model.device.is_cuda and not self.config.deterministic)
+        nodes = model.world_count * int(np.prod(model.grid_res))
         # P2G with warp-summed atomics visits particles in cell order (CUDA only; the deterministic mode keeps
         # Warp's own atomics, which it makes repeatable); the key must fit an int32
-        nodes = model.world_count * int(np.prod(model.grid_res))
         if model.device.is_cuda and not self.config.deterministic and self.config.sort_every > 0 and nodes < 2**31:
             n = model.particle_count
             self._keys = wp.zeros(2 * n, dtype=int, device=model.device)
@@ -98,7 +98,6 @@ class SolverMPM:
         self._flags = wp.zeros(model.world_count, dtype=int, device=model.device)
         self._grid_kernel = _grid_kernel(model.ee_count)
         # threads of the grid update, striding over the active nodes (the CPU runs a launch as one loop)
-        nodes = model.world_count * int(np.prod(model.grid_res))
         self._grid_threads = min(nodes, 2**17) if model.device.is_cuda else nodes
 
     # -- guards --------------------------------------------------------------
@@ -222,16 +221,20 @@ class SolverMPM:
             device=m.device,
         )
         g.clean = fused
-        g2p_in = [
-            state_in.particle_x, state_in.particle_F, state_in.particle_damage, m.particle_world,
-            m.particle_E, m.particle_nu, m.particle_yield, m.particle_plastic,
-            m.particle_fracture_strain, m.particle_fracture_softening,
-            g.v, origin, m.dx, m.inv_dx, res, dt, self.config.plasticity_min_singular,
-        ]
-        g2p_out = [state_out.particle_x, state_out.particle_v, state_out.particle_C, state_out.particle_F,
-                   state_out.particle_damage]
         # G2P keeps the particles' own order: in cell order its reads and writes scatter (measured slower)
-        wp.launch(K.g2p_kernel, dim=m.particle_count, inputs=g2p_in, outputs=g2p_out, device=m.device)
+        wp.launch(
+            K.g2p_kernel,
+            dim=m.particle_count,
+            inputs=[
+                state_in.particle_x, state_in.particle_F, state_in.particle_damage, m.particle_world,
+                m.particle_E, m.particle_nu, m.particle_yield, m.particle_plastic,
+                m.particle_fracture_strain, m.particle_fracture_softening,
+                g.v, origin, m.dx, m.inv_dx, res, dt, self.config.plasticity_min_singular,
+            ],
+            outputs=[state_out.particle_x, state_out.particle_v, state_out.particle_C, state_out.particle_F,
+                     state_out.particle_damage],
+            device=m.device,
+        )
         if m.ee_count > 0:
             wp.launch(
                 K.ee_integrate_kernel,
