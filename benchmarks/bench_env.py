@@ -40,6 +40,40 @@ def profile(env_id, n, steps, kwargs):
           f"GPU time per vector step (ms):")
     for name, ms in sorted(totals.items(), key=lambda kv: -kv[1])[:15]:
         print(f"  {ms / steps:9.3f}  {name}")
+    # the same steps as the benchmark runs them (substeps replayed as one graph), the wall time split by phase:
+    # each phase ends with a synchronize, so a phase's time is its host work plus the GPU work it waits for
+    venv.close()
+    venv = gym.make_vec(env_id, num_envs=n, **kwargs)
+    venv.reset(seed=0)
+    core = venv.unwrapped.core
+    phases = {}
+
+    def timed(name, fn):
+        def wrapper(*a, **kw):
+            wp.synchronize()
+            t = time.perf_counter()
+            out = fn(*a, **kw)
+            wp.synchronize()
+            phases[name] = phases.get(name, 0.0) + time.perf_counter() - t
+            return out
+        return wrapper
+
+    for name in ("controls_from_actions", "_advance", "metrics", "observe"):
+        setattr(core, name, timed(name, getattr(core, name)))
+    core.solver.check_state = timed("check_state", core.solver.check_state)
+    for t in range(3):
+        venv.step(acts[t])
+    phases.clear()
+    wp.synchronize()
+    t0 = time.perf_counter()
+    for t in range(3, steps + 3):
+        venv.step(acts[t])
+    wp.synchronize()
+    wall = time.perf_counter() - t0
+    print(f"with the graph: {wall * 1e3 / steps:.2f} ms wall per vector step, by phase (ms):")
+    for name, sec in sorted(phases.items(), key=lambda kv: -kv[1]):
+        print(f"  {sec * 1e3 / steps:9.3f}  {name}")
+    print(f"  {(wall - sum(phases.values())) * 1e3 / steps:9.3f}  the rest (wrappers, rewards, autoreset)")
 
 
 def bench(env_id, n, steps, warmup, kwargs):

@@ -28,6 +28,8 @@ from pathlib import Path
 OBJECTS = {
     "rope": {"params": ("E",)},
     "dough": {"params": ("yield_stress",)},
+    # the dough squeezed well below its yield stress: its E is what the squeeze and release show
+    "dough-elastic": {"params": ("E",), "synth": {"object": "dough", "yield_stress": 3.0e4}},
 }
 
 
@@ -47,7 +49,8 @@ def load_problem(rec, args):
                                        table_friction=gt["table_friction"], device=args.device,
                                        progress=not args.quiet, info=info)
     t_load = time.perf_counter() - t0
-    bodies = {"other_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.particles_per_cell),
+    bodies = {"other_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.particles_per_cell,
+                                                         symmetry=info.get("symmetry")),
               "body_note": info.get("body_completion")}
     return scene, obs, views, gt, t_load, bodies
 
@@ -105,7 +108,7 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
                                 allow_abbrev=False)
     p.add_argument("--device", default=None, help='Warp device for synthesis and identification ("cpu", "cuda:0")')
-    p.add_argument("--objects", default="rope,dough", help="comma-separated: rope,dough")
+    p.add_argument("--objects", default="rope,dough", help="comma-separated: " + ",".join(OBJECTS))
     p.add_argument("--methods", default="adam", help="comma-separated: adam,cmaes")
     p.add_argument("--params", default=None, help="override the identified parameters, e.g. E,yield_stress")
     p.add_argument("--frames", type=int, default=60)
@@ -143,7 +146,8 @@ def main(argv=None):
                 problem = (scene, obs, None, gt, t_load, bodies)
             else:
                 t0 = time.perf_counter()
-                rec = synthesize(Path(args.out_dir) / f"rec_{key}", obj, seed=args.seed, frames=args.frames,
+                spec = OBJECTS[obj].get("synth", {"object": obj})
+                rec = synthesize(Path(args.out_dir) / f"rec_{key}", seed=args.seed, frames=args.frames, **spec,
                                  cameras=C, width=args.width, height=args.height, overwrite=True,
                                  progress=not args.quiet, device=args.device or "cpu")
                 print(f"synthesised {obj}: {args.frames} frames x {C} cameras in "

@@ -126,7 +126,7 @@ def plan_fit(scene, material, *, fit_frames: int, iters: int, particles_per_cell
 
     ``fixed`` names the options the user set (``particles_per_cell``, ``iters``, ``lr``, ``frames``,
     ``margin``): those are never changed. ``views`` is the count of extra bodies the intervals will probe (one
-    per camera for more than one camera), ``rebuild_body(scene, ppc)`` returns ``scene`` with its frame-0 body
+    per camera for more than one camera, two for a single-view completion's axis), ``rebuild_body(scene, ppc)`` returns ``scene`` with its frame-0 body
     built at another fill (None: the fill is not changed). The estimate is measured on the scene itself.
     """
     def variants():

@@ -156,7 +156,9 @@ def _identify(args) -> int:
     iters = args.iters if args.iters is not None else int(resume["iterations_requested"]) if resume else 30
     ppc = args.particles_per_cell
     try:
-        plan, scene = _plan(args, scene, obs, resume, F, iters, ppc, len(views.cameras))
+        cams = len(views.cameras)
+        shape_bodies = (cams if cams > 1 else 0) + (2 if (body_info.get("symmetry") or {}).get("used") else 0)
+        plan, scene = _plan(args, scene, obs, resume, F, iters, ppc, shape_bodies)
     except (ValueError, OSError) as exc:
         print(f"empm identify: error: {exc}", file=sys.stderr)
         return 2
@@ -202,7 +204,7 @@ def _identify(args) -> int:
                   file=sys.stderr)
         from .data import view_jackknife_bodies
 
-        others = view_jackknife_bodies(args.rec_dir, scene, particles_per_cell=ppc)
+        others = view_jackknife_bodies(args.rec_dir, scene, particles_per_cell=ppc, symmetry=body_info.get("symmetry"))
         a = assess_fit(res, scene, obs, other_bodies=others, body_note=body_info.get("body_completion"),
                        resample_bodies=2 if plan is None else plan.resample_bodies,
                        # the finer grid costs several probe batches, which a time budget's estimate leaves out
@@ -229,9 +231,10 @@ def _identify(args) -> int:
     return 0
 
 
-def _plan(args, scene, obs, resume, F: int, iters: int, ppc: float, cams: int):
+def _plan(args, scene, obs, resume, F: int, iters: int, ppc: float, shape_bodies: int):
     """``(FitPlan or None, scene)``: the Adam fit's settings for the time budget (:mod:`.budget`), said on stderr
-    with the estimate; a resumed fit takes the plan recorded in the file it continues."""
+    with the estimate; a resumed fit takes the plan recorded in the file it continues. ``shape_bodies``: how many
+    rebuilt frame-0 bodies the intervals will probe (:func:`.data.view_jackknife_bodies`)."""
     import dataclasses
 
     from .budget import FitPlan, default_budget_s, plan_fit
@@ -255,7 +258,7 @@ def _plan(args, scene, obs, resume, F: int, iters: int, ppc: float, cams: int):
         return plan, scene
     budget = default_budget_s(args.device) if args.budget_min is None else 60.0 * args.budget_min
     plan, scene = plan_fit(scene, scene.material, fit_frames=F, iters=iters, particles_per_cell=ppc, budget_s=budget,
-                           fixed=args.user_set, views=cams if cams > 1 else 0, lr=args.lr,
+                           fixed=args.user_set, views=shape_bodies, lr=args.lr,
                            rebuild_body=lambda sc, q: rebuilt_scene(args.rec_dir, sc, particles_per_cell=q,
                                                                     points=obs.points[0]),
                            uncertainty=not args.no_uncertainty)

@@ -774,8 +774,9 @@ def complete_by_symmetry(points: np.ndarray, rec: Recording, t: int = 0, *, ee_c
     ``axis_m`` (x, y), ``axis_spread_m`` (the extent in x and y of the allowed axes: large where one view
     leaves the body's extent open), ``contradicted`` (the fraction of turned points contradicted), ``kept``
     (bool [N]: the points whose turned copy is not contradicted), ``used`` (False, and no points, when more
-    than ``max_contradicted`` are: the views refute the prior, and the body is left to the column fill)
-    and ``note`` (one line saying what was assumed).
+    than ``max_contradicted`` are: the views refute the prior, and the body is left to the column fill),
+    ``away_from_cameras`` (unit x, y: horizontally away from the cameras, None when they look straight down),
+    ``pixel_m`` (a pixel's footprint at the object's depth) and ``note`` (one line saying what was assumed).
     """
     from scipy import ndimage
 
@@ -871,7 +872,9 @@ def complete_by_symmetry(points: np.ndarray, rec: Recording, t: int = 0, *, ee_c
     bad = contradicted(turned)
     frac = float(bad.mean())
     info = {"axis_m": [float(c[0]), float(c[1])], "contradicted": frac, "axis_spread_m": [float(v) for v in spread],
-            "used": axis is not None or frac <= max_contradicted, "kept": ~bad}
+            "used": axis is not None or frac <= max_contradicted, "kept": ~bad,
+            "away_from_cameras": None if away is None else [float(away[0]), float(away[1])],
+            "pixel_m": float(views.pixel_m)}
     if not info["used"]:
         info["note"] = (f"half-turn symmetry about a vertical axis refuted by the depth images ({100 * frac:.0f} % of "
                         f"the turned surface lies in seen free space); the hidden side is only the column fill "

@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from empm_gym.identification.data import load_recording
+from empm_gym.identification.data import AXIS_VARIANT, load_recording, view_jackknife_bodies
 from empm_gym.perception.cameras import Camera, intrinsics_matrix, look_at
 from empm_gym.perception.fusion import hidden_by_end_effectors, view_gap_deg
 from empm_gym.perception.recording import RecordingWriter
@@ -120,6 +120,15 @@ def test_one_view_body_is_completed_by_the_half_turn(tmp_path, name):
     assert inside(scene.particles).mean() > 0.9
     plain, _, _ = load_recording(rec, frames=2, single_view=False, progress=False)
     assert plain.volumes.sum() / volume < ratio - 0.1  # what the completion adds
+    # the completion's share in the interval: the body completed about the axis moved half a pixel towards the
+    # camera is thinner across the view, moved away thicker; nothing else of the scene changes
+    bodies = view_jackknife_bodies(rec, scene, particles_per_cell=27, symmetry=info["symmetry"])
+    assert [label.split(" mm ")[1] for label, _ in bodies] == ["towards the cameras", "away from the cameras"]
+    assert all(label.startswith(AXIS_VARIANT) for label, _ in bodies)
+    (_, near), (_, far) = bodies
+    v = scene.volumes.sum()
+    assert near.volumes.sum() < 0.985 * v and far.volumes.sum() > 1.015 * v, (near.volumes.sum(), v, far.volumes.sum())
+    assert near.dx == scene.dx and near.table == scene.table and near.material == scene.material
 
 
 def test_a_view_that_shows_too_little_says_so(tmp_path):

@@ -9,7 +9,7 @@ import pytest
 
 from empm_gym.identification.offline import identify
 from empm_gym.identification.problem import Observations, Scene, simulate_frames
-from empm_gym.identification.uncertainty import assess_fit, body_thickness, newton_bootstrap
+from empm_gym.identification.uncertainty import WIDE_INTERVAL, assess_fit, body_thickness, box_reasons, newton_bootstrap
 from empm_gym.sim import MaterialConfig, sample_box, sample_cylinder
 
 from . import scenes
@@ -32,6 +32,29 @@ def test_newton_bootstrap_recovers_a_known_minimum():
     d = newton_bootstrap(flat, dz, n_boot=50)["draws"]
     assert np.all((d > 100.0) | np.isposinf(d))
     assert np.all(np.isposinf(newton_bootstrap(np.broadcast_to(-0.01 * dz[:, :1], (5, T)), dz, n_boot=5)["draws"]))
+
+
+def test_box_rules_for_an_undetermined_parameter():
+    """Where the fit, the loss's minimum and the interval lie in the search box decide `determined`. The
+    one-camera elastic dough's E (start 6e4, box [6e3, 6e5]): fitted 3.16e4 with the interval [9.81e3, 3.47e4],
+    a factor 3.5 inside the box, is undetermined; the three-camera fit's [8.36e3, 2.33e4] (a factor 2.8) is
+    not. The fit at a bound, a minimum outside the box and an interval past it each say so."""
+    from empm_gym.identification.problem import ParamSpace
+
+    space = ParamSpace(["E"], {"E": (6.0e3, 6.0e5)})
+    zl, zh = float(space.z_lo[0]), float(space.z_hi[0])
+    z = ParamSpace.to_z1
+    r = box_reasons(space, "E", z("E", 3.16e4), z("E", 3.16e4), z("E", 9.81e3), z("E", 3.47e4))
+    assert len(r) == 1 and "nearly flat" in r[0] and "spans 27%" in r[0], r
+    assert np.log(3.47e4 / 9.81e3) > WIDE_INTERVAL * np.log(100.0) > np.log(2.33e4 / 8.36e3)
+    assert box_reasons(space, "E", z("E", 2.21e4), z("E", 2.21e4), z("E", 8.36e3), z("E", 2.33e4)) == []
+    r = box_reasons(space, "E", zh, zh, zh - 0.1, zh)
+    assert len(r) == 1 and "upper search bound" in r[0], r
+    mid = 0.5 * (zl + zh)
+    r = box_reasons(space, "E", mid, zl - 1.0, mid - 0.1, mid + 0.1)
+    assert len(r) == 1 and "below the search box" in r[0], r
+    r = box_reasons(space, "E", mid, mid, zl - 0.5, mid + 0.1)
+    assert len(r) == 1 and "reaches past the search box" in r[0], r
 
 
 def test_body_thickness_of_cylinders_and_slabs():

@@ -28,9 +28,11 @@ def diagnose_recording(rec_dir, *, out_dir=None, base=None, config=None, dx: flo
 
     if base is not None and not isinstance(base, MaterialConfig):
         base = read_material(base).material
+    info = {}
     scene, obs, views = load_recording(rec_dir, dx=dx, particles_per_cell=particles_per_cell, device=device,
-                                       progress=progress)
-    others = ((lambda: view_jackknife_bodies(rec_dir, scene, particles_per_cell=particles_per_cell)) if view_bodies
+                                       progress=progress, info=info)
+    others = ((lambda: view_jackknife_bodies(rec_dir, scene, particles_per_cell=particles_per_cell,
+                                             symmetry=info.get("symmetry"))) if view_bodies
               else ())
     return diagnose(scene, obs, views, base=base, config=config, out_dir=out_dir, progress=progress, effects=effects,
                     other_bodies=others)
