@@ -58,9 +58,10 @@ def profile(env_id, n, steps, kwargs):
             return out
         return wrapper
 
-    for name in ("controls_from_actions", "_advance", "metrics", "observe"):
+    for name in ("controls_from_actions", "_advance", "metrics", "observe", "reset", "check_action"):
         setattr(core, name, timed(name, getattr(core, name)))
     core.solver.check_state = timed("check_state", core.solver.check_state)
+    core.control.set = timed("control.set", core.control.set)
     for t in range(3):
         venv.step(acts[t])
     phases.clear()

@@ -217,6 +217,10 @@ class BatchedCore:
         idx = np.stack([model.world_particle_start[w] + perm for w in range(W)]).astype(np.int32)
         self._gather_idx = wp.array(idx, dtype=int, device=self.device)
         self._gathered = wp.zeros((W, G), dtype=wp.vec3, device=self.device)
+        # the observed particles alone (the first of the gathered ones): observe() reads back only these, not the
+        # Chamfer sample (reading back all G per step took 6.5 of 27 ms per vector step at 1024 rope worlds)
+        self._obs_count = {"state": self.obs_particles, "points": self.points_count}.get(obs_mode, 0)
+        self._obs_gathered = wp.zeros((W, max(self._obs_count, 1)), dtype=wp.vec3, device=self.device)
         self._target_dev = wp.zeros((W, self.chamfer_target_points), dtype=wp.vec3, device=self.device)
         self._cd_a = wp.zeros(W, dtype=float, device=self.device)
         self._cd_b = wp.zeros(W, dtype=float, device=self.device)
@@ -441,16 +445,15 @@ class BatchedCore:
     def observe(self):
         """Observations of all worlds: an array [W, ...] ("state") or a dict of arrays."""
         W = self.num_envs
-        self._gather()
-        g = self._gathered.numpy()
-        tgt = self._target_obs.copy()
         ee = self._ee_obs()
+        if self.obs_mode == "depth":
+            return {"depth": self.depth_images(), "ee": ee, "target": self._target_obs.copy()}
+        wp.launch(EK.gather_kernel, dim=(W, self._obs_count), inputs=[self.state.particle_x, self._gather_idx],
+                  outputs=[self._obs_gathered], device=self.device)
+        p = self._clip_points(self._obs_gathered.numpy())
         if self.obs_mode == "state":
-            p = self._clip_points(g[:, : self.obs_particles])
-            return np.concatenate([p.reshape(W, -1), ee, tgt.reshape(W, -1)], 1)
-        if self.obs_mode == "points":
-            return {"points": self._clip_points(g[:, : self.points_count]), "ee": ee, "target": tgt}
-        return {"depth": self.depth_images(), "ee": ee, "target": tgt}
+            return np.concatenate([p.reshape(W, -1), ee, self._target_obs.reshape(W, -1)], 1)
+        return {"points": p, "ee": ee, "target": self._target_obs.copy()}
 
     def depth_images(self) -> np.ndarray:
         """Top-down orthographic depth of the particles, [W, R, R, 1] uint8: 255 * (camera_height - z) /

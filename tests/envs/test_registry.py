@@ -172,6 +172,29 @@ def test_vector_env_equals_single_envs(env_id, small_kwargs):
     assert saw_reset, "the test must cover the same-step autoreset"
 
 
+def test_state_observation_is_the_current_particles(env_id, small_kwargs):
+    """After a few steps, each world's "state" observation holds, in order: positions of that world's particles
+    as they are now (each at zero distance from one of them, none stale), the end-effectors' positions and
+    grips, and its target points."""
+    N = 2
+    venv = gym.make_vec(env_id, num_envs=N, **small_kwargs(env_id))
+    venv.reset(seed=3)
+    rng = np.random.default_rng(1)
+    for _ in range(3):
+        obs, *_ = venv.step(rng.uniform(-1, 1, venv.action_space.shape).astype(np.float32))
+    core = venv.core
+    n, K = core.obs_particles, core.K
+    x = core.state.particle_x.numpy().reshape(N, core.P, 3)
+    for w in range(N):
+        pts = obs[w, : 3 * n].reshape(n, 3)
+        d = np.linalg.norm(pts[:, None] - x[w][None], axis=-1)
+        assert d.min(1).max() < 1e-6, d.min(1).max()
+    ee = core.state.ee_pos.numpy()[: N * K].reshape(N, K * 3)
+    np.testing.assert_allclose(obs[:, 3 * n: 3 * n + 3 * K], ee, atol=1e-6)
+    np.testing.assert_array_equal(obs[:, 3 * n + 3 * K: 3 * n + 4 * K], core.grip)
+    np.testing.assert_array_equal(obs[:, 3 * n + 4 * K:], core._target_obs.reshape(N, -1))
+
+
 def test_get_set_state_round_trip(env_id, small_kwargs):
     env = gym.make(env_id, **small_kwargs(env_id))
     env.reset(seed=1)
