@@ -50,6 +50,37 @@ def gather_kernel(x: wp.array(dtype=wp.vec3), index: wp.array2d(dtype=int), out:
 
 
 @wp.kernel
+def observe_points_kernel(x: wp.array(dtype=wp.vec3), index: wp.array2d(dtype=int), lower: wp.vec3, upper: wp.vec3,
+                          out: wp.array2d(dtype=wp.vec3)):
+    """out[w, i] = x[index[w, i]] with NaN read as 0 and every coordinate clamped to [lower, upper] (infinities
+    to the bound): the observed points, ready for the observation space."""
+    w, i = wp.tid()
+    p = x[index[w, i]]
+    q = wp.vec3()
+    for k in range(3):
+        v = p[k]
+        if wp.isnan(v):
+            v = 0.0
+        q[k] = wp.clamp(v, lower[k], upper[k])
+    out[w, i] = q
+
+
+@wp.kernel
+def scatter_rows_vec3_kernel(worlds: wp.array(dtype=int), src: wp.array2d(dtype=wp.vec3),
+                             dst: wp.array2d(dtype=wp.vec3)):
+    """dst[worlds[j], i] = src[j, i]: rows for some worlds, uploaded together."""
+    j, i = wp.tid()
+    dst[worlds[j], i] = src[j, i]
+
+
+@wp.kernel
+def scatter_rows_int_kernel(worlds: wp.array(dtype=int), src: wp.array2d(dtype=int), dst: wp.array2d(dtype=int)):
+    """dst[worlds[j], i] = src[j, i]."""
+    j, i = wp.tid()
+    dst[worlds[j], i] = src[j, i]
+
+
+@wp.kernel
 def nearest_mean_kernel(
     a: wp.array2d(dtype=wp.vec3), b: wp.array2d(dtype=wp.vec3), scale: float, out: wp.array(dtype=float)
 ):
