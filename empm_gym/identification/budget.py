@@ -57,7 +57,7 @@ class FitPlan:
     lr: Optional[float]
     motion_margin: Optional[float]
     resample_bodies: int
-    memory_budget_bytes: float
+    memory_budget_bytes: Optional[float]  # None: identify's default (a third of a GPU's free memory, 1 GB on the CPU)
     estimate_s: float
     budget_s: Optional[float]
     steps: List[str] = field(default_factory=list)
@@ -133,7 +133,7 @@ def plan_fit(scene, material, *, fit_frames: int, iters: int, particles_per_cell
         return (1 + plan.resample_bodies + views) if uncertainty else 0
 
     plan = FitPlan(particles_per_cell=particles_per_cell, fit_frames=fit_frames, iters=iters, lr=lr,
-                   motion_margin=None, resample_bodies=resample_bodies, memory_budget_bytes=1.0e9,
+                   motion_margin=None, resample_bodies=resample_bodies, memory_budget_bytes=None,
                    estimate_s=0.0, budget_s=budget_s)
     t_frame = frame_seconds(scene, material)
     plan.estimate_s = plan.default_estimate_s = estimate_s(t_frame, fit_frames, iters, variants())

@@ -39,6 +39,7 @@ from typing import Any, Callable, Dict, Iterator, List, Mapping, Optional, Seque
 
 import numpy as np
 import torch
+import warp as wp
 
 from empm_gym.sim import MaterialConfig, Rollout, SimulationDiverged, SolverConfig, SolverMPM, read_material, write_material
 from empm_gym.sim.effects import PARAMETERS, parameter
@@ -326,7 +327,7 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
              lr: float = 0.15, betas: Tuple[float, float] = (0.8, 0.95), popsize: int = 6, sigma0: float = 0.5, l_dist: float = 1.0, l_trk: float = 100.0,
              chamfer: str = "both", max_points: int = 2000, observation: str = "auto",
              bounds: Optional[Dict[str, Tuple[float, float]]] = None, seed: int = 0, progress: bool = True,
-             checkpoint_every: Union[str, int, None] = "auto", memory_budget_bytes: float = 1.0e9,
+             checkpoint_every: Union[str, int, None] = "auto", memory_budget_bytes: Optional[float] = None,
              callback: Optional[Callable[[int, float, Dict[str, float]], None]] = None,
              stop: Any = None, resume: Union[Mapping, "FitResult", None] = None) -> FitResult:
     """Identify ``params`` (any of :data:`~.problem.PARAM_NAMES`: E, nu, density and every effect parameter) of
@@ -347,6 +348,12 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
     starting values with loss NaN). ``resume`` (the ``fit`` section of such a result's material file, or
     the result) continues that fit up to ``iters`` iterations in all; the other arguments, the observations
     and the scene must be those it was started with (else :class:`ResumeError`).
+
+    ``checkpoint_every`` ("auto": only when the taped rollout would exceed ``memory_budget_bytes``; None: never;
+    an int: every so many substeps) trades memory for recomputation in Adam's backward pass.
+    ``memory_budget_bytes`` (None: a third of the GPU's free memory on CUDA, 1 GB on the CPU): a rollout taped
+    at once on CUDA is replayed from CUDA graphs (:class:`~empm_gym.sim.Rollout`), which a checkpointed one is
+    not, so the GPU's memory is worth using.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -570,6 +577,8 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
     cache = {}
     per_node = 2 * 4 * 7 * int(np.prod(model.grid_res)) * model.world_count
     per_particle = 2 * 4 * 24 * model.particle_count
+    if budget is None:
+        budget = wp.get_device(model.device).free_memory / 3.0 if model.device.is_cuda else 1.0e9
     hist_l, hist_p = [], []
     skipped = 0
     if prior is not None:  # continue an interrupted fit where it stopped

@@ -9,6 +9,12 @@ positions and accumulates the gradients of that loss into the model's material a
 With ``checkpoint_every=S`` only every S-th state is kept in the forward pass; the backward pass
 replays each segment of S substeps on a fresh tape (Warp's fluid-checkpoint pattern), so memory grows
 with S, not with the horizon. ``checkpoint_every=None`` tapes the whole rollout at once.
+
+On CUDA a rollout taped at once (``graph=True``, the default) captures its substeps and, separately, their
+adjoints in two CUDA graphs the first time it runs, and replays them after: an identification rollout of a
+few thousand particles over hundreds of substeps is otherwise bound by launching its kernels one at a time
+from Python. The graphs hold the rollout's own arrays, so what changes between runs (the material, the
+controls, the initial state, the seed gradients) is copied into those arrays, never swapped for new ones.
 """
 
 
@@ -35,6 +41,21 @@ def _add_grad(arr: wp.array, g):
     wp.launch(_axpy(arr.dtype), dim=arr.shape[0], inputs=[g, arr.grad], device=arr.device)
 
 
+def _same_objects(a: Optional[list], b: list) -> bool:
+    return a is not None and len(a) == len(b) and all(x is y for x, y in zip(a, b))
+
+
+def _set_array(arr: wp.array, g):
+    """arr = g (g: numpy array or torch tensor of arr's shape; None sets zeros), in place."""
+    if g is None:
+        arr.zero_()
+        return
+    if hasattr(g, "detach"):
+        g = g.detach().cpu().numpy()
+    shape = tuple(arr.shape) + tuple(getattr(arr.dtype, "_shape_", ()))
+    arr.assign(np.asarray(g, dtype=np.float32).reshape(shape))
+
+
 _AXPY = {}
 
 
@@ -54,7 +75,8 @@ class Rollout:
     """A differentiable rollout of ``steps`` substeps of ``dt`` [s] (see the module docstring)."""
 
     def __init__(self, model: Model, solver: SolverMPM, *, steps: int, dt: float,
-                 substeps_per_control: int = 1, record_every: int = 1, checkpoint_every: Optional[int] = None):
+                 substeps_per_control: int = 1, record_every: int = 1, checkpoint_every: Optional[int] = None,
+                 graph: bool = True):
         if steps <= 0 or substeps_per_control <= 0 or record_every <= 0:
             raise ValueError("steps, substeps_per_control and record_every must be positive integers")
         if checkpoint_every is not None and checkpoint_every <= 0:
@@ -75,6 +97,12 @@ class Rollout:
         self._tape: Optional[wp.Tape] = None
         self.initial_grad: Optional[dict] = None
         self.final_state: Optional[State] = None
+        # CUDA graphs of the forward substeps and of their adjoints (see the module docstring); the controls
+        # they were captured with, and the buffers that feed the seed gradients into the backward graph
+        self.graph = bool(graph) and model.device.is_cuda and not self.checkpointed and solver.config.check_every == 0
+        self._fwd_graph = self._bwd_graph = None
+        self._graph_controls: Optional[list] = None
+        self._seed_bufs: dict = {}
 
     def make_controls(self) -> List[Control]:
         """One Control (with gradients) per control period."""
@@ -95,7 +123,21 @@ class Rollout:
         states[0].assign(state0)
         self._records, self._checkpoints = [], []
         check_every = self.solver.config.check_every
-        if not self.checkpointed:
+        if self.graph:
+            if self._fwd_graph is None or not _same_objects(self._graph_controls, self._controls):
+                self._bwd_graph = None
+                self._tape = wp.Tape()
+                with wp.ScopedCapture(device=self.model.device) as cap:
+                    with self._tape:
+                        for t in range(self.steps):
+                            self.solver.step(states[t], states[t + 1], self._control(controls, t), self.dt,
+                                             self._grids[t], guards=False)
+                self._fwd_graph = cap.graph  # captured, not yet run
+                self._graph_controls = list(self._controls)  # held, so that the graph's arrays stay alive
+            wp.capture_launch(self._fwd_graph)
+            self._records = [states[t].particle_x for t in self.record_steps]
+            self.final_state = states[self.steps]
+        elif not self.checkpointed:
             self._tape = wp.Tape()
             with self._tape:
                 for t in range(self.steps):
@@ -145,7 +187,24 @@ class Rollout:
             raise ValueError(f"Rollout.backward: expected {len(self.record_steps)} record gradients, got {len(record_grads)}")
         seeds = dict(zip(self.record_steps, record_grads))
         states, grids = self._states, self._grids
-        if not self.checkpointed:
+        if self.graph:
+            if self._bwd_graph is None:
+                self._seed_bufs = {t: wp.zeros_like(states[t].particle_x) for t in self.record_steps}
+                _axpy(states[0].particle_x.dtype)  # made (and its module loaded) before the capture
+                with wp.ScopedCapture(device=self.model.device) as cap:
+                    for s in states:
+                        s.zero_grad()
+                    for g in grids:
+                        g.zero_grad()
+                    for t, buf in self._seed_bufs.items():
+                        _add_grad(states[t].particle_x, buf)
+                    self._tape.backward()
+                self._bwd_graph = cap.graph
+            for t, buf in self._seed_bufs.items():
+                _set_array(buf, seeds[t])
+            wp.capture_launch(self._bwd_graph)
+            first = states[0]
+        elif not self.checkpointed:
             for s in states:
                 s.zero_grad()
             for g in grids:
