@@ -169,3 +169,16 @@ def test_adam_skips_a_non_finite_gradient_without_corrupting_the_parameters(rope
     assert calls["n"] >= 3
     assert r.extra["skipped_steps"] == 1
     assert all(np.isfinite(p["E"]) for p in r.param_history) and np.isfinite(r.params["E"])
+
+
+def test_substep_rungs_hold_every_count_within_a_quarter():
+    """The GPU fit rounds the substep count up to a rung, so that small changes of E reuse one rollout and its
+    CUDA graphs: every count maps to a rung at least as large and at most 25 % larger, rungs map to
+    themselves, the map never decreases, and there are few rungs (about four per doubling)."""
+    from empm_gym.identification.offline import substep_rung
+
+    r = [substep_rung(n) for n in range(1, 4097)]
+    assert all(n <= v <= 1.25 * n for n, v in zip(range(1, 4097), r))
+    assert all(substep_rung(v) == v for v in r)
+    assert all(a <= b for a, b in zip(r, r[1:]))
+    assert len(set(r)) <= 8 + 4 * 9
