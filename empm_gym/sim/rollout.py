@@ -20,6 +20,8 @@ controls, the initial state, the seed gradients) is copied into those arrays, ne
 
 from typing import List, Optional, Sequence
 
+import logging
+
 import numpy as np
 import warp as wp
 
@@ -27,6 +29,8 @@ from .model import Control, Model, State
 from .solver import GridScratch, SolverMPM
 
 __all__ = ["Rollout"]
+
+_log = logging.getLogger(__name__)
 
 
 def _add_grad(arr: wp.array, g):
@@ -123,10 +127,10 @@ class Rollout:
         states[0].assign(state0)
         self._records, self._checkpoints = [], []
         check_every = self.solver.config.check_every
-        if self.graph:
-            if self._fwd_graph is None or not _same_objects(self._graph_controls, self._controls):
-                self._bwd_graph = None
-                self._tape = wp.Tape()
+        if self.graph and (self._fwd_graph is None or not _same_objects(self._graph_controls, self._controls)):
+            self._bwd_graph = None
+            self._tape = wp.Tape()
+            try:
                 with wp.ScopedCapture(device=self.model.device) as cap:
                     with self._tape:
                         for t in range(self.steps):
@@ -134,6 +138,10 @@ class Rollout:
                                              self._grids[t], guards=False)
                 self._fwd_graph = cap.graph  # captured, not yet run
                 self._graph_controls = list(self._controls)  # held, so that the graph's arrays stay alive
+            except Exception as exc:  # a device or driver that cannot capture: launch kernel by kernel
+                _log.warning("Rollout: CUDA graph capture failed (%s); launching kernels one by one", exc)
+                self.graph, self._fwd_graph = False, None
+        if self.graph:
             wp.capture_launch(self._fwd_graph)
             self._records = [states[t].particle_x for t in self.record_steps]
             self.final_state = states[self.steps]
@@ -187,10 +195,10 @@ class Rollout:
             raise ValueError(f"Rollout.backward: expected {len(self.record_steps)} record gradients, got {len(record_grads)}")
         seeds = dict(zip(self.record_steps, record_grads))
         states, grids = self._states, self._grids
-        if self.graph:
-            if self._bwd_graph is None:
-                self._seed_bufs = {t: wp.zeros_like(states[t].particle_x) for t in self.record_steps}
-                _axpy(states[0].particle_x.dtype)  # made (and its module loaded) before the capture
+        if self.graph and self._bwd_graph is None:
+            self._seed_bufs = {t: wp.zeros_like(states[t].particle_x) for t in self.record_steps}
+            _axpy(states[0].particle_x.dtype)  # made (and its module loaded) before the capture
+            try:
                 with wp.ScopedCapture(device=self.model.device) as cap:
                     for s in states:
                         s.zero_grad()
@@ -200,6 +208,11 @@ class Rollout:
                         _add_grad(states[t].particle_x, buf)
                     self._tape.backward()
                 self._bwd_graph = cap.graph
+            except Exception as exc:  # the forward's tape still holds every launch: run it kernel by kernel
+                _log.warning("Rollout: CUDA graph capture of the backward failed (%s); launching kernels one by one",
+                             exc)
+                self.graph, self._fwd_graph = False, None
+        if self.graph:
             for t, buf in self._seed_bufs.items():
                 _set_array(buf, seeds[t])
             wp.capture_launch(self._bwd_graph)
