@@ -10,15 +10,19 @@ is split into as many equal substeps as the CFL limit of the stiffest material r
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field, replace
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
+import warp as wp
 
 from empm_gym.sim import (EndEffectorConfig, GridConfig, MaterialConfig, ModelBuilder, SimulationDiverged,
                           SolverConfig, SolverMPM, TableConfig, stable_dt)
 from empm_gym.sim.effects import BASE_PARAMETERS, PARAMETERS, parameter
+
+_log = logging.getLogger(__name__)
 
 __all__ = [
     "Scene",
@@ -387,6 +391,9 @@ class _ForwardSim:
 
     def __init__(self, scene: Scene, materials: Sequence[MaterialConfig], frictions: Sequence[float]):
         self.scene = scene
+        #: on CUDA, replay each frame's substeps from a CUDA graph captured at its first frame (a few thousand
+        #: particles are otherwise bound by launching kernels from Python)
+        self.graph = True
         self.model = scene.builder(materials, frictions).finalize(scene.device, requires_grad=False)
         self.solver = SolverMPM(self.model, SolverConfig(cfl=scene.cfl, check_every=0))
 
@@ -414,13 +421,32 @@ class _ForwardSim:
         out = np.empty((frames, W, N, 3), np.float32)
         out[0] = a.particle_x.numpy().reshape(W, N, 3)
         bad = set()
+        graphs = {}  # id(state a frame starts from) -> (CUDA graph of the frame's substeps, a, b after it)
+        use_graph = self.graph and m.device.is_cuda
         for t in range(frames - 1):
-            if K:
+            if K:  # written into the control's arrays, which the graphs read
                 ctrl.set(velocity=np.broadcast_to(vel[t], (W, K, 3)), omega=np.broadcast_to(om[t], (W, K, 3)),
                          grip=np.broadcast_to(grip[t], (W, K)))
-            for _ in range(sub):
-                self.solver.step(a, b, ctrl, dt, guards=False)
-                a, b = b, a
+            if use_graph and id(a) not in graphs:
+                try:
+                    with wp.ScopedCapture(device=m.device) as cap:
+                        a1, b1 = a, b
+                        for _ in range(sub):
+                            self.solver.step(a1, b1, ctrl, dt, guards=False)
+                            a1, b1 = b1, a1
+                    graphs[id(a)] = (cap.graph, a1, b1)  # captured, not yet run
+                except Exception as exc:  # a device or driver that cannot capture: launch kernel by kernel
+                    _log.warning("forward simulation: CUDA graph capture failed (%s); launching kernels one by one",
+                                 exc)
+                    use_graph = False
+            if use_graph:
+                g, a1, b1 = graphs[id(a)]
+                wp.capture_launch(g)
+                a, b = a1, b1
+            else:
+                for _ in range(sub):
+                    self.solver.step(a, b, ctrl, dt, guards=False)
+                    a, b = b, a
             try:
                 self.solver.check_state(a, step=t + 1)
             except SimulationDiverged as exc:
