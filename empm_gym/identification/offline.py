@@ -598,6 +598,7 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
         budget = wp.get_device(model.device).free_memory / 3.0 if model.device.is_cuda else 1.0e9
     hist_l, hist_p = [], []
     skipped = 0
+    kept_sub = None  # substeps per frame of the rollout kept (CUDA)
     if prior is not None:  # continue an interrupted fit where it stopped
         st = prior["state"]
         try:
@@ -610,6 +611,7 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
                 bl, bz, bg = st["best"]
                 best = (float(bl), torch.tensor(bz, dtype=torch.float64), torch.tensor(bg, dtype=torch.float64))
             skipped = int(st["skipped_steps"])
+            kept_sub = st.get("substeps")  # the rollout's substeps when it stopped (CUDA), so it resumes on them
         except (KeyError, TypeError, ValueError, RuntimeError) as exc:
             raise ResumeError(f"its Adam state is incomplete or malformed ({type(exc).__name__}: {exc})") from None
         hist_l, hist_p = list(prior["loss_history"]), list(prior["param_history"])
@@ -620,8 +622,8 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
         sub, dt = substeps_for(scene, [mat], vmax)
         if model.device.is_cuda:  # a rollout (and its CUDA graphs) serves every E of its rung, and smaller E
             # while it takes at most REUSE_SUBSTEPS times the substeps they need (a smaller dt is as stable)
-            sub = next((s for s in cache if sub <= s <= REUSE_SUBSTEPS * sub), substep_rung(sub))
-            dt = 1.0 / (scene.fps * sub)
+            sub = kept_sub if kept_sub and sub <= kept_sub <= REUSE_SUBSTEPS * sub else substep_rung(sub)
+            kept_sub, dt = sub, 1.0 / (scene.fps * sub)
         if sub not in cache:
             cache.clear()  # keep one rollout's memory at a time
             steps = (F - 1) * sub
@@ -682,7 +684,7 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
     bar.close()
     state = {"z": z.detach().tolist(), "optimizer": {k: _tensor_to_json(v) for k, v in opt.state.get(z, {}).items()},
              "scale": scale, "best": None if best is None else [best[0], best[1].tolist(), best[2].tolist()],
-             "skipped_steps": skipped}
+             "skipped_steps": skipped, "substeps": kept_sub}
     return hist_l, hist_p, {"lr": lr, "betas": list(betas), "skipped_steps": skipped}, state
 
 
