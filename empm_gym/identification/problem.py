@@ -421,6 +421,13 @@ class _ForwardSim:
         out = np.empty((frames, W, N, 3), np.float32)
         out[0] = a.particle_x.numpy().reshape(W, N, 3)
         bad = set()
+
+        def substeps(a, b):  # one frame: returns (the state it ends in, the other)
+            for _ in range(sub):
+                self.solver.step(a, b, ctrl, dt, guards=False)
+                a, b = b, a
+            return a, b
+
         graphs = {}  # id(state a frame starts from) -> (CUDA graph of the frame's substeps, a, b after it)
         use_graph = self.graph and m.device.is_cuda
         for t in range(frames - 1):
@@ -430,10 +437,7 @@ class _ForwardSim:
             if use_graph and id(a) not in graphs:
                 try:
                     with wp.ScopedCapture(device=m.device) as cap:
-                        a1, b1 = a, b
-                        for _ in range(sub):
-                            self.solver.step(a1, b1, ctrl, dt, guards=False)
-                            a1, b1 = b1, a1
+                        a1, b1 = substeps(a, b)
                     graphs[id(a)] = (cap.graph, a1, b1)  # captured, not yet run
                 except Exception as exc:  # a device or driver that cannot capture: launch kernel by kernel
                     _log.warning("forward simulation: CUDA graph capture failed (%s); launching kernels one by one",
@@ -444,9 +448,7 @@ class _ForwardSim:
                 wp.capture_launch(g)
                 a, b = a1, b1
             else:
-                for _ in range(sub):
-                    self.solver.step(a, b, ctrl, dt, guards=False)
-                    a, b = b, a
+                a, b = substeps(a, b)
             try:
                 self.solver.check_state(a, step=t + 1)
             except SimulationDiverged as exc:

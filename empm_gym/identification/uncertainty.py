@@ -293,7 +293,7 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     share of the body's reconstructed *shape*: the same probes run on each, and their minima are pooled with
     the rest, so the interval spans how far the fit moves when one view less shapes the body (conservative:
     a body from fewer views is worse than the one fitted; for a single-view completion, the body completed about
-    its half-turn axis moved by a fraction of a pixel either way). Without them the shape is taken as given,
+    its half-turn axis moved by a pixel either way). Without them the shape is taken as given,
     and a warning says so quoting ``body_note`` (how the body was built) when given; with only the axis's
     variants, the warning says that the prior itself is taken as given. With
     ``refine_grid``, a grid too coarse to resolve the body well (fewer than :data:`MARGINAL_CELLS_ACROSS` cells

@@ -132,10 +132,7 @@ class Rollout:
             self._tape = wp.Tape()
             try:
                 with wp.ScopedCapture(device=self.model.device) as cap:
-                    with self._tape:
-                        for t in range(self.steps):
-                            self.solver.step(states[t], states[t + 1], self._control(controls, t), self.dt,
-                                             self._grids[t], guards=False)
+                    self._taped_steps(controls, check_every=0)
                 self._fwd_graph = cap.graph  # captured, not yet run
                 self._graph_controls = list(self._controls)  # held, so that the graph's arrays stay alive
             except Exception as exc:  # a device or driver that cannot capture: launch kernel by kernel
@@ -147,12 +144,7 @@ class Rollout:
             self.final_state = states[self.steps]
         elif not self.checkpointed:
             self._tape = wp.Tape()
-            with self._tape:
-                for t in range(self.steps):
-                    self.solver.step(states[t], states[t + 1], self._control(controls, t), self.dt,
-                                     self._grids[t], guards=False)
-                    if check_every and (t + 1) % check_every == 0:
-                        self.solver.check_state(states[t + 1], step=t + 1)
+            self._taped_steps(controls, check_every)
             self._records = [states[t].particle_x for t in self.record_steps]
             self.final_state = states[self.steps]
         else:
@@ -174,7 +166,27 @@ class Rollout:
             self.solver.check_state(self.final_state, step=self.steps)
         return self._records
 
+    def _taped_steps(self, controls, check_every: int):
+        """Every substep on ``self._tape``, each into its own state and grid (the rollout taped at once)."""
+        states = self._states
+        with self._tape:
+            for t in range(self.steps):
+                self.solver.step(states[t], states[t + 1], self._control(controls, t), self.dt, self._grids[t],
+                                 guards=False)
+                if check_every and (t + 1) % check_every == 0:
+                    self.solver.check_state(states[t + 1], step=t + 1)
+
     # -- backward --------------------------------------------------------------
+    def _taped_backward(self, seeds: dict):
+        """The adjoint of :meth:`_taped_steps` from the seed gradients ``{record step: gradient}``."""
+        for s in self._states:
+            s.zero_grad()
+        for g in self._grids:
+            g.zero_grad()
+        for t, g in seeds.items():
+            _add_grad(self._states[t].particle_x, g)
+        self._tape.backward()
+
     def zero_grad(self, controls: Optional[Sequence[Control]] = None):
         """Zero the gradients of the model's parameters and of the controls."""
         for a in self.model.parameter_arrays():
@@ -200,13 +212,7 @@ class Rollout:
             _axpy(states[0].particle_x.dtype)  # made (and its module loaded) before the capture
             try:
                 with wp.ScopedCapture(device=self.model.device) as cap:
-                    for s in states:
-                        s.zero_grad()
-                    for g in grids:
-                        g.zero_grad()
-                    for t, buf in self._seed_bufs.items():
-                        _add_grad(states[t].particle_x, buf)
-                    self._tape.backward()
+                    self._taped_backward(self._seed_bufs)
                 self._bwd_graph = cap.graph
             except Exception as exc:  # the forward's tape still holds every launch: run it kernel by kernel
                 _log.warning("Rollout: CUDA graph capture of the backward failed (%s); launching kernels one by one",
@@ -218,13 +224,7 @@ class Rollout:
             wp.capture_launch(self._bwd_graph)
             first = states[0]
         elif not self.checkpointed:
-            for s in states:
-                s.zero_grad()
-            for g in grids:
-                g.zero_grad()
-            for t, g in seeds.items():
-                _add_grad(states[t].particle_x, g)
-            self._tape.backward()
+            self._taped_backward(seeds)
             first = states[0]
         else:
             S = self.segment
