@@ -329,7 +329,8 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
              bounds: Optional[Dict[str, Tuple[float, float]]] = None, seed: int = 0, progress: bool = True,
              checkpoint_every: Union[str, int, None] = "auto", memory_budget_bytes: Optional[float] = None,
              callback: Optional[Callable[[int, float, Dict[str, float]], None]] = None,
-             stop: Any = None, resume: Union[Mapping, "FitResult", None] = None) -> FitResult:
+             stop: Any = None, resume: Union[Mapping, "FitResult", None] = None,
+             extra_starts: Sequence[Dict[str, float]] = ()) -> FitResult:
     """Identify ``params`` (any of :data:`~.problem.PARAM_NAMES`: E, nu, density and every effect parameter) of
     ``scene`` from ``observations``.
 
@@ -349,6 +350,10 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
     the result) continues that fit up to ``iters`` iterations in all; the other arguments, the observations
     and the scene must be those it was started with (else :class:`ResumeError`).
 
+    ``extra_starts`` (CMA-ES only): further starting points (SI values of ``params``, clipped to the box),
+    each simulated as one member of the first generation in place of a random sample: the search keeps the
+    best of them if nothing it samples does better.
+
     ``checkpoint_every`` ("auto": only when the taped rollout would exceed ``memory_budget_bytes``; None: never;
     an int: every so many substeps) trades memory for recomputation in Adam's backward pass.
     ``memory_budget_bytes`` (None: a third of the GPU's free memory on CUDA, 1 GB on the CPU): a rollout taped
@@ -362,6 +367,8 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
     if abs(observations.fps - scene.fps) > 1e-6 * scene.fps:
         raise ValueError(f"observations at {observations.fps} fps but the scene's controls at {scene.fps} fps")
     params = tuple(params)
+    if extra_starts and method != "cmaes":
+        raise ValueError("extra_starts are CMA-ES starting points; method='adam' has one start (init)")
     init_vals = _initial_values(scene, params, init)
     space = ParamSpace(params, {**default_bounds(init_vals), **(bounds or {})})
     for n, v in init_vals.items():
@@ -377,8 +384,13 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
                           max_points=max_points, seed=seed, observation=observation)
     # the fitted effects are simulated from the start (their flags and arrays on), at the starting values
     base_mat = _base_material(scene.material, init_vals)
+    starts = [{n: float(np.clip(st[n], *space.bounds[n])) for n in params} for st in extra_starts]
+    if len(starts) >= popsize:
+        raise ValueError(f"{len(starts)} extra_starts leave no sampled member in a population of {popsize}")
     settings = _fit_settings(method, params, init_vals, space, F, observation, l_dist, l_trk, chamfer, max_points,
                              seed, lr, betas, popsize, sigma0)
+    if starts:
+        settings["extra_starts"] = starts
     digest = _problem_digest(scene, objective, base_mat)
     prior = None if resume is None else _check_resume(resume, settings, digest, iters)
     t0 = time.perf_counter()
@@ -387,7 +399,7 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
                                                  progress, checkpoint_every, memory_budget_bytes, callback, stop, prior)
     else:
         hist_l, hist_p, extra, state = _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize,
-                                                  sigma0, seed, progress, callback, stop, prior)
+                                                  sigma0, seed, progress, callback, stop, prior, starts)
     wall = time.perf_counter() - t0 + (float(prior["wall_time_s"]) if prior else 0.0)
     done = len(hist_l)
     complete = done >= iters
@@ -689,7 +701,7 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
 
 
 def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sigma0, seed, progress, callback,
-               stop=None, prior=None):
+               stop=None, prior=None, starts=()):
     import warnings
 
     import cma
@@ -709,6 +721,8 @@ def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sig
         warnings.simplefilter("ignore")
         es = cma.CMAEvolutionStrategy(list(z0), float(sigma0), opts)  # seeds numpy's global generator
     n = len(space.names)
+    if starts:  # members of the first generation (pycma's inject: they replace its first samples)
+        es.inject([list(space.to_z(st)) + ([0.0] if dummy else []) for st in starts], force=True)
     hist_l, hist_p, gen_mean, pop_losses = [], [], [], []
 
     def generation(losses_of):

@@ -195,3 +195,28 @@ def test_each_fit_is_scored_with_its_own_substeps():
     batched, _, _ = _ForwardSim(sc_visc, [base, visc], [0.5, 0.5]).run(T)
     np.testing.assert_array_equal(X[:, 1], batched[:, 1])
     assert np.abs(batched[:, 0] - alone[:, 0]).max() > 0  # the bug this guards against: dt from the batch
+
+
+def test_variant_refits_also_start_from_the_base_model_inside_each_candidate():
+    """A candidate's refit on a variant also starts where its effect vanishes (at the variant's base E) and from
+    its own optimum with E moved as the base model's E moved; every start lies in the candidate's box."""
+    from empm_gym.identification.doctor.core import _ABSENT, _Fit, _search_box, _variant_starts
+    from empm_gym.sim import MaterialConfig
+
+    stiff = MaterialConfig(E=1e5, nu=0.3, density=1000.0)
+    base = _Fit("base", {"E": 2e4}, stiff, 0.5, 1.0, 0.0)
+    vbase = _Fit("base", {"E": 5e4}, stiff, 0.5, 1.0, 0.0)
+    vanish = {"yield_stress": 1, "viscosity": 0, "grip_friction": 1, "fracture_strain": 1}  # box end: 0 low, 1 high
+    for effect in EFFECTS:
+        ps = candidate_params(effect)
+        assert set(ps) <= set(_ABSENT), effect
+        bounds = {"E": (1e4, 6e4), **{p: _search_box(p, stiff, 0.01) for p in ps}}
+        params = {"E": 1.5e4, **{p: float(np.mean(bounds[p])) for p in ps}}
+        absent, moved = _variant_starts(_Fit(effect, params, stiff, 0.5, 1.0, 0.0, bounds=bounds), base, vbase)
+        assert absent["E"] == 5e4 and moved["E"] == pytest.approx(1.5e4 * 2.5)
+        for p in ps:
+            lo, hi = bounds[p]
+            want = 0.5 if p == "friction" else 0.0 if p.startswith("stiffness_slope") else (lo, hi)[vanish[p]]
+            assert absent[p] == pytest.approx(want), (effect, p)
+            assert moved[p] == params[p]
+        assert all(bounds[k][0] <= v <= bounds[k][1] for st in (absent, moved) for k, v in st.items())

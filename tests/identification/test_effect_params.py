@@ -100,3 +100,19 @@ def test_recover_stiffness_slope(method, iters, tol):
     assert abs(r.params["stiffness_slope_1"] - 0.6) < tol, r.params
     assert r.material.get("stiffness_slope_1") == pytest.approx(r.params["stiffness_slope_1"])
     assert r.loss < 0.5 * r.loss_history[0]
+
+
+def test_cmaes_extra_starts_are_members_of_the_first_generation():
+    """A start given in ``extra_starts`` is simulated as it is in generation 0: with the truth among them and a
+    search too narrow to find it from ``init``, one generation returns the truth and its (zero) loss."""
+    obs = _observe(BASE.replace(viscosity=20.0))
+    kw = dict(params=("viscosity",), method="cmaes", init={"viscosity": 1.0}, bounds={"viscosity": (0.5, 100.0)}, iters=1, popsize=3, sigma0=0.01,
+              progress=False, observation="particles")
+    alone = identify(obs, _scene(BASE), **kw)
+    r = identify(obs, _scene(BASE), extra_starts=[{"viscosity": 20.0}], **kw)
+    assert alone.params["viscosity"] < 1.1 and alone.loss > 1e-5
+    assert r.params["viscosity"] == pytest.approx(20.0, rel=1e-9) and r.loss < 1e-3 * alone.loss
+    with pytest.raises(ValueError, match="CMA-ES starting points"):
+        identify(obs, _scene(BASE), extra_starts=[{"viscosity": 20.0}], **{**kw, "method": "adam"})
+    with pytest.raises(ValueError, match="leave no sampled member"):
+        identify(obs, _scene(BASE), extra_starts=[{"viscosity": 20.0}] * 3, **kw)

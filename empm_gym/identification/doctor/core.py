@@ -19,7 +19,9 @@ Pipeline (:func:`diagnose`):
    bootstrap over frames, a relative-gain penalty per added parameter).
 5. **Variants.** The significant candidates (at most ``variant_top``) and the base model are fitted again on
    other discretisations of the same body (the grid shifted by part of a cell, the particles on another
-   lattice) and, when given, on the frame-0 body rebuilt without each camera. A gain that a parameter owes to
+   lattice) and, when given, on the frame-0 body rebuilt without each camera (each candidate's refit also
+   tries, in its first generation, the base model it contains and its own optimum moved as the variant moved
+   the base model's E). A gain that a parameter owes to
    how the body happens to be discretised or reconstructed does not survive them; a gain the effect earns
    does (:func:`_check_variants`). The verdict is the candidate with the lowest held-out loss among those
    whose gain is significant and holds on the variants, else ``none``; its confidence is the fraction of
@@ -119,6 +121,12 @@ _SLOPE_CAP = 1.2
 #: equals the elastic one): 4x keeps a candidate at most 4x the base model's substeps.
 _VISCOSITY_CAP = 4.0
 
+#: Value of each candidate parameter at which its effect vanishes (clipped to the search box, where it is
+#: nearest to vanishing): a candidate holds the base model at (or next to) this point.
+_ABSENT = {"yield_stress": math.inf, "viscosity": 0.0, "friction": BASE_TABLE_FRICTION, "grip_friction": math.inf,
+           "stiffness_slope_1": 0.0, "stiffness_slope_2": 0.0, "stiffness_slope_3": 0.0, "fracture_strain": math.inf,
+           "fracture_softening": 0.0}
+
 #: Feature that a real effect should move, and the direction (+1: larger than in the base simulation).
 SIGNATURE_FEATURES = {
     "plasticity": ("residual_after_release_vs_contact", 1.0),
@@ -214,21 +222,38 @@ def _per_frame_losses(objective: Objective, X: np.ndarray) -> Dict[str, np.ndarr
     return out
 
 
-def _fit(name, scene, obs, params, init, bounds, base_mat, frames, cfg, progress, iters, sigma0=None) -> _Fit:
+def _fit(name, scene, obs, params, init, bounds, base_mat, frames, cfg, progress, iters, sigma0=None,
+         starts=()) -> _Fit:
     sc = scene.with_material(base_mat, table_friction=BASE_TABLE_FRICTION if "friction" not in params
                              else scene.table_friction)
     res = identify(obs, sc, params=params, method="cmaes", init=init, bounds=bounds, iters=iters, frames=frames,
                    popsize=cfg.popsize, sigma0=cfg.sigma0 if sigma0 is None else sigma0, l_trk=cfg.l_trk,
-                   max_points=cfg.max_points, seed=cfg.seed, progress=progress)
+                   max_points=cfg.max_points, seed=cfg.seed, progress=progress, extra_starts=starts)
     return _Fit(name=name, params=dict(res.params), material=res.material, friction=float(res.friction),
                 fit_loss=float(res.loss), wall_s=float(res.wall_time_s))
 
 
+def _variant_starts(like: "_Fit", base_fit: "_Fit", variant_base: "_Fit") -> List[Dict[str, float]]:
+    """Further starts of candidate ``like``'s refit on a variant whose base model was refitted as
+    ``variant_base``: the base model inside the candidate (the variant's E, each effect parameter where its
+    effect vanishes, :data:`_ABSENT`) and ``like``'s optimum with E scaled as the base model's E moved.
+
+    A refit from ``like``'s optimum alone, short and narrow, can stay far from the variant's own optimum when
+    the variant moves E (a body rebuilt from fewer views is often stiffer or softer): the candidate then
+    scores worse than the base model it contains, which says nothing about its effect."""
+    ratio = variant_base.params["E"] / base_fit.params["E"]
+    absent = {"E": variant_base.params["E"], **{k: _ABSENT[k] for k in like.params if k != "E"}}
+    moved = {**like.params, "E": like.params["E"] * ratio}
+    return [{k: float(np.clip(v, *like.bounds[k])) for k, v in st.items()} for st in (absent, moved)]
+
+
 def _fit_candidate(name: str, scene: Scene, obs: Observations, base_material: MaterialConfig, E_range, F: int,
-                   cfg: DoctorConfig, progress: bool, like: Optional["_Fit"] = None) -> "_Fit":
+                   cfg: DoctorConfig, progress: bool, like: Optional["_Fit"] = None,
+                   starts: Sequence[Dict[str, float]] = ()) -> "_Fit":
     """Fit candidate ``name`` ("base": E alone) on ``scene``: E within ``E_range`` from ``base_material``'s E,
     the effect's parameters from their registry start; or, with ``like`` (the same candidate fitted on another
-    discretisation), from ``like``'s optimum in ``like``'s box with a shorter, narrower search."""
+    discretisation), from ``like``'s optimum in ``like``'s box with a shorter, narrower search; ``starts``
+    are further members of the first CMA-ES generation."""
     ps = () if name == "base" else candidate_params(name)
     if like is None:
         Elo, Ehi = E_range
@@ -242,7 +267,8 @@ def _fit_candidate(name: str, scene: Scene, obs: Observations, base_material: Ma
         init = {k: float(np.clip(v, *bounds[k])) for k, v in like.params.items()}
         iters, sigma0 = cfg.variant_iters, cfg.variant_sigma0
     sc = dataclasses.replace(scene.with_material(start_mat), dt_materials=_box_corners(start_mat, bounds))
-    f = _fit(name, sc, obs, ("E",) + ps, init, bounds, start_mat, F, cfg, progress, iters, sigma0=sigma0)
+    f = _fit(name, sc, obs, ("E",) + ps, init, bounds, start_mat, F, cfg, progress, iters, sigma0=sigma0,
+             starts=starts)
     f.added, f.scene, f.bounds, f.start_material = len(ps), sc, bounds, start_mat
     return f
 
@@ -471,7 +497,8 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
 
     for label, kind, vs in tqdm(variants, desc="doctor: variants", disable=not progress, leave=False):
         vfits = [_fit_candidate("base", vs, obs, base_fit.start_material, None, F, cfg, progress, like=base_fit)]
-        vfits += [_fit_candidate(f.name, vs, obs, base_fit.start_material, None, F, cfg, progress, like=f)
+        vfits += [_fit_candidate(f.name, vs, obs, base_fit.start_material, None, F, cfg, progress, like=f,
+                                 starts=_variant_starts(f, base_fit, vfits[0])[:max(0, cfg.popsize - 2)])
                   for f in checked]
         objective = Objective(vfits[0].scene, obs, T, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed)
         X = _simulate_fits(vfits, T)
