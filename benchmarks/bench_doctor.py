@@ -149,12 +149,15 @@ def diagnose_all(problems: Path, args):
 
 def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: float) -> dict:
     """One result row of a doctor result (``diagnose``'s return value or a ``--dump`` line)."""
-    red = float("nan")
+    red = c_true = c_base = float("nan")
+    if res.get("candidates"):
+        c_base = res["base"]["heldout"]["chamfer_m"]
     if truth != "none" and res.get("candidates"):
-        c = next(c for c in res["candidates"] if c["effect"] == truth)
-        red = 1.0 - c["heldout"]["chamfer_m"] / res["base"]["heldout"]["chamfer_m"]
+        c_true = next(c for c in res["candidates"] if c["effect"] == truth)["heldout"]["chamfer_m"]
+        red = 1.0 - c_true / c_base
     return {"recording": name, "script": script, "truth": truth, "verdict": res["effect"],
-            "confidence": res.get("confidence", 0.0), "reduction": red,
+            "confidence": res.get("confidence", 0.0), "reduction": red, "base_chamfer_m": c_base,
+            "true_effect_chamfer_m": c_true,
             "before_variants": res.get("effect_before_variants", res["effect"]), "signature_m": signature_m,
             "wall_s": wall_s}
 
@@ -179,14 +182,67 @@ def rescore(paths):
     return rows
 
 
-def summarise(rows):
+def floors(problems: Path, args):
+    """The held-out Chamfer of the true material (``ground_truth``'s, read by the benchmark only) simulated on the
+    doctor's own body and grid, scored as the doctor scores: what a perfect fit of the right model could reach.
+    The reduction it gives over the base model bounds what the doctor's named effect can show: the rest of the
+    gap is depth noise, the reconstructed body and the discretisation, which no effect removes."""
+    import dataclasses
+
+    from empm_gym.identification.doctor import DoctorConfig
+    from empm_gym.identification.doctor.core import _per_frame_losses
+    from empm_gym.identification.offline import Objective
+    from empm_gym.identification.problem import _ForwardSim
+    from empm_gym.perception.synth import effect_material
+
+    cfg = DoctorConfig()
+    rows = []
+    for path in sorted(Path(problems).glob("*.pkl")):
+        with open(path, "rb") as f:
+            prob = pickle.load(f)
+        if prob["truth"] == "none":
+            continue
+        obs = prob["obs"]
+        mat, _ = effect_material(args.object, prob["truth"])
+        mu = mat.get("friction")
+        sc = dataclasses.replace(prob["scene"], device=args.device, motion_margin=cfg.motion_margin)
+        sc = sc.with_material(mat, table_friction=mu)
+        T = obs.num_frames if sc.num_frames is None else min(obs.num_frames, sc.num_frames)
+        F = int(round(cfg.train_fraction * T))
+        X, _, _ = _ForwardSim(sc, [mat], [mu]).run(T)
+        per = _per_frame_losses(Objective(sc, obs, T, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed), X[:, 0])
+        row = {"recording": path.stem, "truth": prob["truth"], "floor_chamfer_m": float(np.mean(per["chamfer"][F:])),
+               "floor_loss": float(np.mean(per["loss"][F:]))}
+        rows.append(row)
+        print(f"{path.stem:48s} true material's held-out Chamfer {1e3 * row['floor_chamfer_m']:.3f} mm", flush=True)
+        if args.jsonl:
+            with open(args.jsonl, "a") as f:
+                f.write(json.dumps(row) + "\n")
+    return rows
+
+
+def summarise(rows, floor_rows=()):
     """The tables of result rows: the benchmark's set (each effect on its natural and second script) first,
-    then any other recordings (the first runs' second scripts) on their own."""
+    then any other recordings (the first runs' second scripts) on their own. With ``floor_rows``
+    (:func:`floors`), the reduction each effect recording could show at most, beside the one it shows."""
     bench = [r for r in rows if r["truth"] == "none" or r.get("script") in (NATURAL[r["truth"]], OTHER[r["truth"]])]
     rest = [r for r in rows if r not in bench]
     print(f"\n=== the benchmark: each effect on its natural and its second script, none on every script "
           f"({len(bench)} recordings)")
     _table(bench)
+    floor = {r["recording"]: r["floor_chamfer_m"] for r in floor_rows}
+    both = [r for r in bench if r["recording"] in floor and np.isfinite(r.get("base_chamfer_m", np.nan))]
+    if both:
+        print("\nheld-out Chamfer reduction with the true effect's fit, against the true material on the doctor's body "
+              "(the most any fit on that body can show)")
+        for eff in dict.fromkeys(r["truth"] for r in both):
+            rs = [r for r in both if r["truth"] == eff]
+            can = [1.0 - floor[r["recording"]] / r["base_chamfer_m"] for r in rs]
+            print(f"  {eff:24s} {len(rs)} recordings: shown {100 * np.median([r['reduction'] for r in rs]):6.1f} %, "
+                  f"possible {100 * np.median(can):6.1f} % (medians)")
+        can = [1.0 - floor[r["recording"]] / r["base_chamfer_m"] for r in both]
+        print(f"  all {len(both)}: shown {100 * np.median([r['reduction'] for r in both]):.1f} %, possible "
+              f"{100 * np.median(can):.1f} %")
     if rest:
         print(f"\n=== other recordings: the first runs' second scripts ({len(rest)} recordings)")
         _table(rest)
@@ -278,12 +334,18 @@ def main(argv=None):
     p.add_argument("--rescore", nargs="*", default=None,
                    help="print the tables of these --dump files (one JSON result per line), the verdict taken again "
                         "by the doctor's current rule, and stop")
+    p.add_argument("--floor", action="store_true",
+                   help="simulate each effect problem's true material on the doctor's body instead of diagnosing "
+                        "(rows to --jsonl; the benchmark's own use of ground truth)")
+    p.add_argument("--floors", nargs="*", default=[], help="--floor rows to print beside --summarise / --rescore")
     args = p.parse_args(argv)
+    floor_rows = [json.loads(line) for f in args.floors for line in Path(f).read_text().splitlines() if line]
     if args.rescore is not None:
-        summarise(rescore(args.rescore))
+        summarise(rescore(args.rescore), floor_rows)
         return 0
     if args.summarise is not None:
-        summarise([json.loads(line) for f in args.summarise for line in Path(f).read_text().splitlines() if line])
+        summarise([json.loads(line) for f in args.summarise for line in Path(f).read_text().splitlines() if line],
+                  floor_rows)
         return 0
     problems = Path(args.problems) if args.problems else None
     if args.make:
@@ -292,6 +354,9 @@ def main(argv=None):
             return 0
     if problems is None:
         p.error("give --make or --problems")
+    if args.floor:
+        floors(problems, args)
+        return 0
     diagnose_all(problems, args)
     return 0
 
