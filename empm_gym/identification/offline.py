@@ -45,7 +45,7 @@ from empm_gym.sim import MaterialConfig, Rollout, SimulationDiverged, SolverConf
 from empm_gym.sim.effects import PARAMETERS, parameter
 from empm_gym.sim.material_file import material_dict
 
-from .losses import chamfer_distance, chamfer_numpy, tracking_loss
+from .losses import chamfer_distance, chamfer_frames, pad_frames, tracking_loss
 from .problem import PARAM_NAMES, Observations, ParamSpace, Scene, _ForwardSim, substeps_for
 
 __all__ = ["identify", "FitResult", "Objective", "ResumeError", "read_resume_state", "default_bounds",
@@ -150,6 +150,7 @@ class Objective:
             if len(p) > max_points:
                 p = p[rng.choice(len(p), max_points, replace=False)]
             self.points.append(np.ascontiguousarray(p))
+        self._padded = pad_frames(self.points, scene.device)  # the observed points on the GPU (None on a CPU)
         self.surf = None
         if observation == "surface":
             self.surf = surface_embedding(self.points[0], scene.particles)
@@ -200,6 +201,12 @@ class Objective:
             loss = loss + self.l_trk * tracking_loss(pred, self.tracks[1:], self.visible[1:])
         return loss
 
+    def chamfer(self, P: np.ndarray, direction: Optional[str] = None) -> np.ndarray:
+        """Chamfer distance [frames] (m) of predicted points P [frames, S, 3] (:meth:`predicted_points`) against
+        the observed points of every frame (:func:`~.losses.chamfer_frames`: on the GPU for a CUDA scene)."""
+        obs = self._padded if self._padded is not None else self.points
+        return chamfer_frames(P[: self.frames], obs, direction=direction or self.direction)
+
     def numpy(self, X: np.ndarray) -> float:
         """Loss of simulated positions X [frames, N, 3] (numpy); non-finite input gives a large finite value."""
         return float(np.mean(self.per_frame(X)))
@@ -215,8 +222,7 @@ class Objective:
         if not np.all(np.isfinite(X[: self.frames])):
             return np.full(n, _DIVERGED_LOSS)
         P = self.predicted_points(np.asarray(X[: self.frames], np.float64))
-        out = self.l_dist * np.array([chamfer_numpy(P[t], self.points[t], direction=self.direction)
-                                      for t in range(1, self.frames)])
+        out = self.l_dist * self.chamfer(P)[1:]
         if self.track_index is not None:
             vis = self.visible[1:]
             if vis.any():

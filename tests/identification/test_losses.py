@@ -61,6 +61,25 @@ def test_chamfer_rejects_bad_shapes():
         L.chamfer_numpy(np.zeros((4, 3)), np.zeros((3, 3)), direction="sideways")
 
 
+@pytest.mark.parametrize("direction", ["both", "obs_to_pred", "pred_to_obs"])
+def test_chamfer_frames_on_padded_sets_matches_kd_trees(direction):
+    """The all-pairs Chamfer of padded frames (the GPU path, run here on torch's CPU) equals the KD-tree one on
+    ragged observed sets, the padding ignored; the small pair budget forces several chunks of frames."""
+    rng = np.random.default_rng(3)
+    pred = rng.normal(size=(5, 40, 3)) * 0.05
+    obs = [rng.normal(size=(n, 3)) * 0.05 + 0.01 for n in (7, 33, 1, 60, 12)]
+    want = [L.chamfer_numpy(p, o, direction=direction) for p, o in zip(pred, obs)]
+    padded = L.PaddedFrames(obs, torch.device("cpu"))
+    got = L.chamfer_frames(pred, padded, direction=direction, max_pairs=2 * 40 * 60)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(L.chamfer_frames(pred, obs, direction=direction, device="cpu"), want, rtol=0, atol=0)
+    assert L.pad_frames(obs, "cpu") is None  # the CPU keeps its KD-trees
+    with pytest.raises(ValueError, match="empty observed point set in frame 1"):
+        L.PaddedFrames([obs[0], np.zeros((0, 3))], torch.device("cpu"))
+    with pytest.raises(ValueError, match="pred must be"):
+        L.chamfer_frames(pred[:3], padded)
+
+
 def test_tracking_loss_ignores_occluded_points():
     rng = np.random.default_rng(2)
     pred = torch.tensor(rng.normal(size=(5, 7, 3)), requires_grad=True)

@@ -146,3 +146,19 @@ def test_forward_frames_from_graphs_match_launches():
         out[graph] = X
     assert np.ptp(out[False][:, 0, :, 2]) > 0.05  # the rope was lifted
     np.testing.assert_allclose(out[True], out[False], atol=2e-5)
+
+
+@cuda
+def test_chamfer_frames_on_the_gpu_matches_kd_trees():
+    """The objective's Chamfer on a CUDA scene (all pairs on the GPU) equals the CPU's KD-tree value."""
+    import torch
+
+    from empm_gym.identification.losses import chamfer_frames, chamfer_numpy, pad_frames
+
+    if not torch.cuda.is_available():
+        pytest.skip("torch without CUDA: the objective keeps its KD-trees")
+    rng = np.random.default_rng(0)
+    pred = rng.normal(size=(9, 700, 3)) * 0.05
+    obs = [rng.normal(size=(n, 3)) * 0.05 for n in rng.integers(100, 1500, 9)]
+    want = [chamfer_numpy(p, o) for p, o in zip(pred, obs)]
+    np.testing.assert_allclose(chamfer_frames(pred, pad_frames(obs, "cuda:0"), max_pairs=2 ** 21), want, rtol=1e-10)

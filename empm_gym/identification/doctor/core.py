@@ -48,7 +48,6 @@ import numpy as np
 from empm_gym.sim import MaterialConfig
 from empm_gym.sim.effects import BASE_TABLE_FRICTION, EFFECTS, PARAMETERS
 
-from ..losses import chamfer_numpy
 from ..offline import Objective, identify
 from ..problem import Observations, Scene, Views, _ForwardSim
 from ..uncertainty import block_bootstrap_indices, gain_is_significant, measurement_noise, paired_gain_test
@@ -207,8 +206,7 @@ def _per_frame_losses(objective: Objective, X: np.ndarray) -> Dict[str, np.ndarr
     if not np.all(np.isfinite(X[:T])):
         return out
     P = objective.predicted_points(np.asarray(X[:T], np.float64))
-    for t in range(T):
-        out["chamfer"][t] = chamfer_numpy(P[t], objective.points[t])
+    out["chamfer"][:] = objective.chamfer(P, direction="both")
     out["loss"][:] = out["chamfer"]
     if objective.track_index is not None:
         pred = objective._predicted_tracks(np.asarray(X, np.float64))
