@@ -140,10 +140,9 @@ class PaddedFrames:
         self.points = torch.as_tensor(pts, device=device)
         self.valid = torch.as_tensor(valid, device=device)
         self.count = self.valid.sum(1).to(torch.float64)
-        self.sets = sets
 
     def __len__(self) -> int:
-        return len(self.sets)
+        return int(self.points.shape[0])
 
 
 def pad_frames(frames, device) -> Optional[PaddedFrames]:
@@ -152,8 +151,9 @@ def pad_frames(frames, device) -> Optional[PaddedFrames]:
     return None if dev is None else PaddedFrames(frames, dev)
 
 
-def chamfer_frames(pred, obs, *, direction: str = "both", device=None, max_pairs: int = 2 ** 27) -> np.ndarray:
-    """:func:`chamfer_numpy` of every frame t: ``pred[t]`` against ``obs[t]`` -> [T] floats (m).
+def chamfer_frames(pred, obs, *, direction: str = "both", device=None, first: int = 0,
+                   max_pairs: int = 2 ** 27) -> np.ndarray:
+    """:func:`chamfer_numpy` of every frame t >= ``first``: ``pred[t - first]`` against ``obs[t]`` -> floats (m).
 
     ``pred`` is [T, S, 3] (one point count for all frames), ``obs`` a list of T [M_t, 3] arrays or their
     :func:`pad_frames`. On a CUDA ``device`` (or with ``obs`` padded on one) every pairwise distance is
@@ -167,9 +167,9 @@ def chamfer_frames(pred, obs, *, direction: str = "both", device=None, max_pairs
     if not isinstance(obs, PaddedFrames):
         padded = pad_frames(obs, device)
         if padded is None:
-            return np.array([chamfer_numpy(p, o, direction=direction) for p, o in zip(pred, obs)])
+            return np.array([chamfer_numpy(p, o, direction=direction) for p, o in zip(pred, obs[first:])])
         obs = padded
-    T, dev = len(obs), obs.points.device
+    T, dev = len(obs) - first, obs.points.device
     P = torch.as_tensor(np.asarray(pred, np.float64), device=dev) if not isinstance(pred, torch.Tensor) else \
         pred.to(dev, torch.float64)
     if P.ndim != 3 or P.shape[0] != T or P.shape[2] != 3 or P.shape[1] == 0:
@@ -178,13 +178,13 @@ def chamfer_frames(pred, obs, *, direction: str = "both", device=None, max_pairs
     step = max(1, int(max_pairs // max(1, P.shape[1] * obs.points.shape[1])))
     for a in range(0, T, step):
         b = min(T, a + step)
-        d = torch.cdist(P[a:b], obs.points[a:b], compute_mode="use_mm_for_euclid_dist")  # [c, S, M]
-        valid = obs.valid[a:b]
+        d = torch.cdist(P[a:b], obs.points[first + a:first + b], compute_mode="use_mm_for_euclid_dist")  # [c, S, M]
+        valid = obs.valid[first + a:first + b]
         parts = []
         if direction in ("both", "pred_to_obs"):
             parts.append(d.masked_fill(~valid[:, None, :], float("inf")).min(2).values.mean(1))
         if direction in ("both", "obs_to_pred"):
-            parts.append((d.min(1).values * valid).sum(1) / obs.count[a:b])
+            parts.append((d.min(1).values * valid).sum(1) / obs.count[first + a:first + b])
         out[a:b] = parts[0] if len(parts) == 1 else 0.5 * (parts[0] + parts[1])
     return out.cpu().numpy()
 

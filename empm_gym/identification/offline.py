@@ -201,11 +201,12 @@ class Objective:
             loss = loss + self.l_trk * tracking_loss(pred, self.tracks[1:], self.visible[1:])
         return loss
 
-    def chamfer(self, P: np.ndarray, direction: Optional[str] = None) -> np.ndarray:
-        """Chamfer distance [frames] (m) of predicted points P [frames, S, 3] (:meth:`predicted_points`) against
-        the observed points of every frame (:func:`~.losses.chamfer_frames`: on the GPU for a CUDA scene)."""
+    def chamfer(self, P: np.ndarray, direction: Optional[str] = None, first: int = 0) -> np.ndarray:
+        """Chamfer distance (m) of predicted points P [frames, S, 3] (:meth:`predicted_points`) against the
+        observed points of frames ``first`` .. frames - 1 (:func:`~.losses.chamfer_frames`: on the GPU for a
+        CUDA scene)."""
         obs = self._padded if self._padded is not None else self.points
-        return chamfer_frames(P[: self.frames], obs, direction=direction or self.direction)
+        return chamfer_frames(P[first: self.frames], obs, direction=direction or self.direction, first=first)
 
     def numpy(self, X: np.ndarray) -> float:
         """Loss of simulated positions X [frames, N, 3] (numpy); non-finite input gives a large finite value."""
@@ -222,7 +223,7 @@ class Objective:
         if not np.all(np.isfinite(X[: self.frames])):
             return np.full(n, _DIVERGED_LOSS)
         P = self.predicted_points(np.asarray(X[: self.frames], np.float64))
-        out = self.l_dist * self.chamfer(P)[1:]
+        out = self.l_dist * self.chamfer(P, first=1)
         if self.track_index is not None:
             vis = self.visible[1:]
             if vis.any():
