@@ -78,7 +78,7 @@ def run_one(obj, method, args, problem, cameras):
     t_assess = time.perf_counter() - t0
     blind = assess_fit(res, scene, obs)["uncertainty"]  # without the shape's share, for comparison
     out_dir = Path(args.out_dir) / f"{obj}_c{cameras}_{method}"
-    res.extra["dx"] = args.dx
+    res.extra["dx"] = scene.dx
     res.save(out_dir / "material.json")
     nan = {"summary": {"chamfer": float("nan"), "iou": float("nan")}}
     ev = nan if views is None else evaluate(scene, res.material, res.friction, obs, views,
@@ -98,7 +98,7 @@ def run_one(obj, method, args, problem, cameras):
                      "warnings": res.extra["identifiability"]["warnings"],
                      "fitted": res.params[p], "error_pct": 100.0 * (res.params[p] / true - 1.0),
                      "fit_wall_s": res.wall_time_s, "load_s": t_load, "iters": len(res.loss_history),
-                     "particles": len(scene.particles), "frames_fitted": F, "loss": res.loss,
+                     "particles": len(scene.particles), "dx": scene.dx, "frames_fitted": F, "loss": res.loss,
                      "heldout_chamfer_m": ev["summary"].get("chamfer"), "heldout_iou": ev["summary"].get("iou"),
                      "device": str(args.device or "default")})
     return rows
@@ -167,7 +167,7 @@ def main(argv=None):
     hdr = f"{'object':6s} {'cams':>4s} {'method':6s} {'param':12s} {'true':>10s} {'init':>10s} {'fitted':>10s} " \
           f"{'err %':>7s} {'95 % interval':>21s} {'width %':>7s} {'covers':>6s} {'shape-blind interval':>21s} " \
           f"{'covers':>6s} {'determ.':>7s} {'fit s':>7s} " \
-          f"{'int. s':>6s} {'iters':>5s} {'N':>6s} {'loss':>9s} {'CD held':>8s} {'IoU held':>8s}"
+          f"{'int. s':>6s} {'iters':>5s} {'N':>6s} {'dx mm':>5s} {'loss':>9s} {'CD held':>8s} {'IoU held':>8s}"
     print(hdr)
     print("-" * len(hdr))
     for r in rows:
@@ -176,7 +176,7 @@ def main(argv=None):
         print(f"{r['object']:6s} {r['cameras']:4d} {r['method']:6s} {r['param']:12s} {r['true']:10.4g} {r['init']:10.4g} "
               f"{r['fitted']:10.4g} {r['error_pct']:7.2f} {iv:>21s} {r['width_pct']:7.1f} {'yes' if r['covered'] else 'no':>6s} "
               f"{bv:>21s} {'yes' if r['covered_shape_blind'] else 'no':>6s} {'yes' if r['determined'] else 'no':>7s} {r['fit_wall_s']:7.1f} {r['assess_s']:6.1f} {r['iters']:5d} "
-              f"{r['particles']:6d} {r['loss']:9.3g} {r['heldout_chamfer_m']:8.4f} {r['heldout_iou']:8.3f}")
+              f"{r['particles']:6d} {1e3 * r['dx']:5.2f} {r['loss']:9.3g} {r['heldout_chamfer_m']:8.4f} {r['heldout_iou']:8.3f}")
     for r in rows:
         if r.get("body_minima"):
             print(f"  {r['object']} {r['cameras']} cameras: minimum per body: "

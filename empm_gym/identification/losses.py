@@ -27,6 +27,7 @@ __all__ = [
     "chamfer_distance",
     "chamfer_numpy",
     "chamfer_frames",
+    "chamfer_frames_torch",
     "pad_frames",
     "tracking_loss",
     "tracking_error",
@@ -169,24 +170,56 @@ def chamfer_frames(pred, obs, *, direction: str = "both", device=None, first: in
         if padded is None:
             return np.array([chamfer_numpy(p, o, direction=direction) for p, o in zip(pred, obs[first:])])
         obs = padded
-    T, dev = len(obs) - first, obs.points.device
-    P = torch.as_tensor(np.asarray(pred, np.float64), device=dev) if not isinstance(pred, torch.Tensor) else \
-        pred.to(dev, torch.float64)
+    P = torch.as_tensor(np.asarray(pred, np.float64), device=obs.points.device) \
+        if not isinstance(pred, torch.Tensor) else pred.detach()
+    return _padded_chamfer(P, obs, direction, first, max_pairs, eps=None).cpu().numpy()
+
+
+def chamfer_frames_torch(pred: torch.Tensor, obs: PaddedFrames, *, direction: str = "both", first: int = 0,
+                         eps: float = 1e-12, max_pairs: int = 2 ** 27) -> torch.Tensor:
+    """:func:`chamfer_distance` of every frame t >= ``first`` (``pred[t - first]`` [T, S, 3], a tensor that may
+    require grad, against the padded ``obs[t]``) -> [T] on ``pred``'s device, differentiable with respect to
+    ``pred``. The nearest neighbours come from all pairs on ``obs``' device (no KD-trees, no host copies of
+    the points); the distances to them carry the gradient, as in :func:`chamfer_distance`."""
+    if direction not in _DIRECTIONS:
+        raise ValueError(f"chamfer_frames_torch: direction must be one of {_DIRECTIONS}, got {direction!r}")
+    return _padded_chamfer(pred.to(obs.points.device, torch.float64), obs, direction, first, max_pairs,
+                           eps=eps).to(pred.device, pred.dtype)
+
+
+def _padded_chamfer(P: torch.Tensor, obs: PaddedFrames, direction: str, first: int, max_pairs: int,
+                    eps: Optional[float]) -> torch.Tensor:
+    """Per-frame Chamfer of P [T, S, 3] (float64, on obs' device) against ``obs`` frames ``first`` ...: the
+    nearest distances (``eps`` None), or sqrt(squared distance to the nearest point + eps), differentiable."""
+    T = len(obs) - first
     if P.ndim != 3 or P.shape[0] != T or P.shape[2] != 3 or P.shape[1] == 0:
         raise ValueError(f"chamfer_frames: pred must be [{T}, S > 0, 3], got {tuple(P.shape)}")
-    out = torch.empty(T, dtype=torch.float64, device=dev)
+    out = []
     step = max(1, int(max_pairs // max(1, P.shape[1] * obs.points.shape[1])))
     for a in range(0, T, step):
         b = min(T, a + step)
-        d = torch.cdist(P[a:b], obs.points[first + a:first + b], compute_mode="use_mm_for_euclid_dist")  # [c, S, M]
-        valid = obs.valid[first + a:first + b]
+        p, o = P[a:b], obs.points[first + a:first + b]
+        valid, count = obs.valid[first + a:first + b], obs.count[first + a:first + b]
+        with torch.no_grad():
+            d = torch.cdist(p.detach(), o, compute_mode="use_mm_for_euclid_dist")  # [c, S, M]
+            d_po = d.masked_fill(~valid[:, None, :], float("inf")).min(2)
+            d_op = d.min(1)
         parts = []
         if direction in ("both", "pred_to_obs"):
-            parts.append(d.masked_fill(~valid[:, None, :], float("inf")).min(2).values.mean(1))
+            if eps is None:
+                parts.append(d_po.values.mean(1))
+            else:
+                near = torch.gather(o, 1, d_po.indices[..., None].expand(-1, -1, 3))
+                parts.append(torch.sqrt(((p - near) ** 2).sum(-1) + eps).mean(1))
         if direction in ("both", "obs_to_pred"):
-            parts.append((d.min(1).values * valid).sum(1) / obs.count[first + a:first + b])
-        out[a:b] = parts[0] if len(parts) == 1 else 0.5 * (parts[0] + parts[1])
-    return out.cpu().numpy()
+            if eps is None:
+                dist = d_op.values
+            else:
+                near = torch.gather(p, 1, d_op.indices[..., None].expand(-1, -1, 3))
+                dist = torch.sqrt(((o - near) ** 2).sum(-1) + eps)
+            parts.append((dist * valid).sum(1) / count)
+        out.append(parts[0] if len(parts) == 1 else 0.5 * (parts[0] + parts[1]))
+    return torch.cat(out)
 
 
 def _track_args(pred, target, visible):

@@ -45,7 +45,7 @@ from empm_gym.sim import MaterialConfig, Rollout, SimulationDiverged, SolverConf
 from empm_gym.sim.effects import PARAMETERS, parameter
 from empm_gym.sim.material_file import material_dict
 
-from .losses import chamfer_distance, chamfer_frames, pad_frames, tracking_loss
+from .losses import chamfer_distance, chamfer_frames, chamfer_frames_torch, pad_frames, tracking_loss
 from .problem import PARAM_NAMES, Observations, ParamSpace, Scene, _ForwardSim, substeps_for
 
 __all__ = ["identify", "FitResult", "Objective", "ResumeError", "read_resume_state", "default_bounds",
@@ -192,10 +192,12 @@ class Objective:
     def torch(self, X: torch.Tensor) -> torch.Tensor:
         """Loss of simulated positions X [frames, N, 3] (torch), differentiable."""
         P = self.predicted_points(X)
-        terms = []
-        for t in range(1, self.frames):
-            terms.append(chamfer_distance(P[t], self.points[t], direction=self.direction))
-        loss = self.l_dist * torch.stack(terms).mean()
+        if self._padded is not None:  # all pairs on the GPU
+            terms = chamfer_frames_torch(P[1:self.frames], self._padded, direction=self.direction, first=1)
+        else:
+            terms = torch.stack([chamfer_distance(P[t], self.points[t], direction=self.direction)
+                                 for t in range(1, self.frames)])
+        loss = self.l_dist * terms.mean()
         if self.track_index is not None:
             pred = self._predicted_tracks(X)
             loss = loss + self.l_trk * tracking_loss(pred, self.tracks[1:], self.visible[1:])

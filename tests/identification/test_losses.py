@@ -80,6 +80,25 @@ def test_chamfer_frames_on_padded_sets_matches_kd_trees(direction):
         L.chamfer_frames(pred[:3], padded)
 
 
+@pytest.mark.parametrize("direction", ["both", "obs_to_pred", "pred_to_obs"])
+def test_differentiable_chamfer_frames_match_chamfer_distance(direction):
+    """The differentiable all-pairs Chamfer of padded frames (Adam's loss on the GPU, here on torch's CPU) has
+    the value and the gradient of :func:`chamfer_distance` frame by frame, over several chunks of frames."""
+    rng = np.random.default_rng(5)
+    pred = rng.normal(size=(4, 30, 3)) * 0.05
+    obs = [rng.normal(size=(n, 3)) * 0.05 for n in (9, 1, 41, 20, 17)]  # frame 0 is skipped (first=1)
+    ref = torch.tensor(pred, requires_grad=True)
+    want = torch.stack([L.chamfer_distance(ref[t], obs[t + 1], direction=direction) for t in range(4)])
+    (want * torch.arange(1.0, 5.0, dtype=torch.float64)).sum().backward()
+    got_p = torch.tensor(pred, requires_grad=True)
+    got = L.chamfer_frames_torch(got_p, L.PaddedFrames(obs, torch.device("cpu")), direction=direction, first=1,
+                                 max_pairs=30 * 41)
+    (got * torch.arange(1.0, 5.0, dtype=torch.float64)).sum().backward()
+    np.testing.assert_allclose(got.detach().numpy(), want.detach().numpy(), rtol=1e-12)
+    np.testing.assert_allclose(got_p.grad.numpy(), ref.grad.numpy(), rtol=1e-9, atol=1e-12)
+    assert torch.count_nonzero(got_p.grad) > 0
+
+
 def test_tracking_loss_ignores_occluded_points():
     rng = np.random.default_rng(2)
     pred = torch.tensor(rng.normal(size=(5, 7, 3)), requires_grad=True)

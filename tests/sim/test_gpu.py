@@ -162,3 +162,14 @@ def test_chamfer_frames_on_the_gpu_matches_kd_trees():
     obs = [rng.normal(size=(n, 3)) * 0.05 for n in rng.integers(100, 1500, 9)]
     want = [chamfer_numpy(p, o) for p, o in zip(pred, obs)]
     np.testing.assert_allclose(chamfer_frames(pred, pad_frames(obs, "cuda:0"), max_pairs=2 ** 21), want, rtol=1e-10)
+    # Adam's differentiable loss: the value and the gradient of the KD-tree chamfer_distance, frame by frame
+    from empm_gym.identification.losses import chamfer_distance, chamfer_frames_torch
+
+    ref = torch.tensor(pred, requires_grad=True)
+    torch.stack([chamfer_distance(ref[t], obs[t + 1]) for t in range(8)]).sum().backward()
+    got = torch.tensor(pred[:8], requires_grad=True)
+    val = chamfer_frames_torch(got, pad_frames(obs, "cuda:0"), first=1, max_pairs=2 ** 21)
+    assert val.device == got.device and val.shape == (8,)
+    val.sum().backward()
+    np.testing.assert_allclose(val.detach().numpy(), [chamfer_numpy(p, o) for p, o in zip(pred, obs[1:])], rtol=1e-8)
+    np.testing.assert_allclose(got.grad.numpy(), ref.grad.numpy()[:8], rtol=1e-8, atol=1e-12)
