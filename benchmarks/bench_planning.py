@@ -111,7 +111,7 @@ def main(argv=None):
             rows[pname] = res
         print(f"\n{env_id}: {args.seeds} targets, {args.steps} steps; MPC with {args.samples} samples, "
               f"{args.iterations} iterations, horizon {args.horizon}, noise {args.noise} (beta {args.noise_beta})")
-        print(f"| policy | Chamfer start [mm] | Chamfer end [mm] | end / start | success | return | s / episode |")
+        print("| policy | Chamfer start [mm] | Chamfer end [mm] | end / start | success | return | s / episode |")
         print("|---|---:|---:|---:|---:|---:|---:|")
         for pname, res in rows.items():
             m = lambda k: float(np.mean([r[k] for r in res]))

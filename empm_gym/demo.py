@@ -22,7 +22,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, List
+from typing import Callable
 
 import numpy as np
 from tqdm import tqdm
@@ -221,7 +221,6 @@ def run_loop_demo(out: Path, *, device: str = "cpu", frames: int = 45, iters: in
     starts the yield stress 3x off. CMA-ES with 4 worlds per generation: on one CPU core each generation
     is one batched simulation of the 31 fitted frames.
     """
-    import json
 
     from .cli import main as empm
 

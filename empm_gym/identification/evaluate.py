@@ -16,7 +16,7 @@ The scene is simulated from frame 0 with the given material through every frame,
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict, Optional, Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 

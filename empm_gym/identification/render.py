@@ -8,7 +8,7 @@ intrinsics scaled accordingly, so masks and losses can be computed cheaply on la
 
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from typing import Tuple
 
 import numpy as np
 import torch

@@ -14,11 +14,11 @@ normal pointing up, away from the table into the half-space holding the object.
 
 from __future__ import annotations
 
-from typing import List, Optional, Sequence, Tuple
+from typing import Optional, Sequence, Tuple
 
 import numpy as np
 
-from .cameras import Camera, backproject_depth
+from .cameras import Camera
 from .recording import Recording, RecordingError, validate_controls
 
 __all__ = [

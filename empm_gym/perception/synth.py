@@ -49,18 +49,16 @@ Frame t of the images shows the state after t frame intervals (frame 0 is the re
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from .cameras import Camera, intrinsics_matrix, look_at, pixel_rays
+from .cameras import Camera, intrinsics_matrix, look_at
 from .recording import RecordingError, RecordingWriter
 from .scripts import SCRIPTS, ObjectGeometry, _phases, _smooth, run_script
 

@@ -8,7 +8,7 @@ allowed, so a bad parameter never turns into a NaN three layers later.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from typing import Dict, Mapping, Optional, Sequence, Tuple
 
 __all__ = [
