@@ -9,7 +9,8 @@ import pytest
 
 from empm_gym.identification.offline import identify
 from empm_gym.identification.problem import Observations, Scene, simulate_frames
-from empm_gym.identification.uncertainty import WIDE_INTERVAL, assess_fit, body_thickness, box_reasons, newton_bootstrap
+from empm_gym.identification.uncertainty import (WIDE_INTERVAL, assess_fit, body_thickness, box_reasons, grid_resolution,
+                                                newton_bootstrap)
 from empm_gym.sim import MaterialConfig, sample_box, sample_cylinder
 
 from . import scenes
@@ -214,3 +215,38 @@ def test_a_marginal_grid_gets_a_finer_grid_variant():
     assert _finer_grid_scene(rope(0.011, 0.01, 8)) is None      # 8 per cell would become about 3
     assert _finer_grid_scene(rope(0.02, 0.01, 27)) is None      # 4 cells across: resolved
     assert _finer_grid_scene(rope(0.006, 0.01, 27)) is None     # about 1.2 cells: not a measurement at all
+
+
+def test_a_resolved_grid_gets_a_coarser_grid_variant():
+    """A grid that resolves the body (3 or more cells across) is probed on a coarser one as well: a rope four
+    cells thick gets the variant, its particles unchanged; a marginal or a too-coarse body gets none."""
+    from empm_gym.identification.uncertainty import COARSER_GRID, MARGINAL_CELLS_ACROSS, coarser_grid_scene
+
+    def rope(radius, dx):
+        x, v = sample_cylinder((-0.12, 0, radius), (0.12, 0, radius), radius, dx, 27, seed=0)
+        return Scene(x, v, fps=30.0, material=MaterialConfig(E=E_TRUE, nu=0.3, density=1000.0), dx=dx)
+
+    resolved = rope(0.02, 0.01)
+    assert grid_resolution(resolved)[0]["cells_across"] >= MARGINAL_CELLS_ACROSS
+    coarse = coarser_grid_scene(resolved)
+    assert coarse is not None and coarse.particles is resolved.particles
+    assert coarse.grid_config().dx == pytest.approx(COARSER_GRID * 0.01)
+    assert coarser_grid_scene(rope(0.011, 0.01)) is None    # 2.2 cells: the finer grid's case
+    assert coarser_grid_scene(rope(0.006, 0.01)) is None    # 1.2 cells: no measurement at all
+
+
+@pytest.mark.slow
+def test_the_coarser_grid_share_enters_the_interval():
+    """On a dough block four cells thick, the interval pools the minimum found on the coarser grid with the
+    fitted grid's: both lie inside it, and the method says so."""
+    p = scenes.dough_squeeze(yield_stress=None, E=3e4, frames=16, dx=0.015, fill_from_observation=False)
+    r = identify(p.obs, p.scene, params=("E",), method="cmaes", init={"E": 3e4}, iters=2, popsize=4, progress=False)
+    a = assess_fit(r, p.scene, p.obs, resample_bodies=0)
+    m = a["identifiability"]["body_minima"]
+    label = next(k for k in m if k.startswith("coarser grid"))
+    assert "dx = 0.025 m" in label and "on a coarser grid (dx = 0.025 m)" in a["identifiability"]["method"]
+    lo, hi = a["uncertainty"]["E"]["interval"]
+    for v in (m["fitted body"], m[label]):
+        assert v is not None and lo <= v <= hi, (m, lo, hi)
+    assert assess_fit(r, p.scene, p.obs, resample_bodies=0, refine_grid=False)["identifiability"]["body_minima"].keys() \
+        == {"fitted body"}
