@@ -172,6 +172,8 @@ def main(argv=None):
                    help="CUDA only: per-kernel forward/adjoint GPU times for one world of this many particles")
     p.add_argument("--no-graph", action="store_true", help="do not capture the forward loop in a CUDA graph")
     p.add_argument("--effects", action="store_true", help="one row per effect of the catalogue (none first)")
+    p.add_argument("--sort-every", type=int, default=None,
+                   help="SolverConfig.sort_every of the forward column (CUDA; default: the solver's default)")
     args = p.parse_args(argv)
     wp.init()
     dev = wp.get_device(args.device)
@@ -193,7 +195,8 @@ def main(argv=None):
         model = build(worlds, per_world, args.device, plastic=args.plastic)
         total = model.particle_count
         steps = args.steps or int(np.clip(2e7 / total if dev.is_cuda else 2e6 / total, 4, 2000))
-        fwd = time_forward(model, steps, graph=not args.no_graph)
+        fwd = time_forward(model, steps, graph=not args.no_graph,
+                           config=None if args.sort_every is None else SolverConfig(sort_every=args.sort_every))
         # the same step without the cell sort and warp sums (CUDA, sort_every=0); the plain reference step to
         # compare with is ../shared/tools/ref_mpm.py, run in the same job
         plain = time_forward(model, steps, graph=not args.no_graph, config=SolverConfig(sort_every=0)) \
