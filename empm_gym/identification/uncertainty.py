@@ -345,6 +345,7 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     if finer is not None:
         variants.append((f"grid dx = {finer.dx:.3g} m", finer))
     coarser = coarser_grid_scene(scene) if refine_grid else None
+    coarse_dropped = False
     if coarser is not None:
         variants.append((f"coarser grid dx = {coarser.dx:.3g} m", coarser))
     for b, (label, sc) in enumerate(variants):
@@ -362,6 +363,12 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
         nb = newton_bootstrap(L, dz, n_boot=n_boot, seed=seed + b)
         nbs.append(nb)
         labels.append(label)
+        if sc is coarser is not None and (not np.all(np.isfinite(nb["step"])) or
+                                          np.mean(~np.all(np.isfinite(nb["draws"]), 1)) > (1.0 - level) / 2.0):
+            # the grid's share is how far the minimum moves; where the coarser grid's loss has none (or its own
+            # interval is open), no shift is measured: its runaway draws say only that that grid is too coarse
+            coarse_dropped = True
+            continue
         draws_all.append(nb["draws"])
     nb = nbs[0]
     pooled = np.concatenate(draws_all)
@@ -433,6 +440,9 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                         f"of the body's shape")
     if shape_note:
         warnings.append(shape_note)
+    if coarse_dropped:
+        warnings.append(f"on the coarser grid (dx = {coarser.dx:.3g} m) the loss has no minimum near the fit: the "
+                        f"interval leaves out the grid's share")
     if nb["residual"] > 0.2:
         warnings.append(f"the loss is far from quadratic within +-{2 * step:g} of the optimum (misfit "
                         f"{nb['residual']:.0%}): the intervals are approximate")
@@ -454,7 +464,8 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                            f"sampled by {1 + int(resample_bodies)} particle lattices"
                            + (f" and rebuilt from other views or completions ({n_shape} bodies)" if n_shape else "")
                            + (f", and on a finer grid (dx = {finer.dx:.3g} m)" if finer is not None else "")
-                           + (f", and on a coarser grid (dx = {coarser.dx:.3g} m)" if coarser is not None else "")
+                           + (f", and on a coarser grid (dx = {coarser.dx:.3g} m)" if coarser is not None
+                              and not coarse_dropped else "")
                            + "; assumes the model is right up to stationary, weakly dependent noise"
                            + ("" if n_shape else " and the frame-0 body's shape")),
                 # per body: where the loss's local model puts the minimum (None: it has none, the loss runs on)
