@@ -171,7 +171,7 @@ def chamfer_frames(pred, obs, *, direction: str = "both", device=None, first: in
             return np.array([chamfer_numpy(p, o, direction=direction) for p, o in zip(pred, obs[first:])])
         obs = padded
     P = torch.as_tensor(np.asarray(pred, np.float64), device=obs.points.device) \
-        if not isinstance(pred, torch.Tensor) else pred.detach()
+        if not isinstance(pred, torch.Tensor) else pred.detach().to(obs.points.device, torch.float64)
     return _padded_chamfer(P, obs, direction, first, max_pairs, eps=None).cpu().numpy()
 
 
@@ -202,16 +202,16 @@ def _padded_chamfer(P: torch.Tensor, obs: PaddedFrames, direction: str, first: i
         valid, count = obs.valid[first + a:first + b], obs.count[first + a:first + b]
         with torch.no_grad():
             d = torch.cdist(p.detach(), o, compute_mode="use_mm_for_euclid_dist")  # [c, S, M]
-            d_po = d.masked_fill(~valid[:, None, :], float("inf")).min(2)
-            d_op = d.min(1)
         parts = []
         if direction in ("both", "pred_to_obs"):
+            d_po = d.masked_fill(~valid[:, None, :], float("inf")).min(2)
             if eps is None:
                 parts.append(d_po.values.mean(1))
             else:
                 near = torch.gather(o, 1, d_po.indices[..., None].expand(-1, -1, 3))
                 parts.append(torch.sqrt(((p - near) ** 2).sum(-1) + eps).mean(1))
         if direction in ("both", "obs_to_pred"):
+            d_op = d.min(1)
             if eps is None:
                 dist = d_op.values
             else:
