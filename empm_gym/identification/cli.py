@@ -207,7 +207,8 @@ def _identify(args) -> int:
         others = view_jackknife_bodies(args.rec_dir, scene, particles_per_cell=ppc, symmetry=body_info.get("symmetry"))
         a = assess_fit(res, scene, obs, other_bodies=others, body_note=body_info.get("body_completion"),
                        resample_bodies=2 if plan is None else plan.resample_bodies,
-                       # the grid's share (a finer or coarser grid) costs probe batches that a time budget's estimate leaves out
+                       # the grid's share (a finer or coarser grid) costs probe batches that a time budget's
+                       # estimate leaves out
                        refine_grid=plan is None or plan.budget_s is None)
         res.extra.update(a)
         undetermined = [k for k, u in a["uncertainty"].items() if not u["determined"]]
