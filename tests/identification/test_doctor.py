@@ -220,3 +220,44 @@ def test_variant_refits_also_start_from_the_base_model_inside_each_candidate():
             assert absent[p] == pytest.approx(want), (effect, p)
             assert moved[p] == params[p]
         assert all(bounds[k][0] <= v <= bounds[k][1] for st in (absent, moved) for k, v in st.items())
+
+
+def test_each_candidate_at_its_absent_start_moves_as_the_base_model():
+    """Every candidate holds the base model at the start where its effect vanishes (:data:`_ABSENT`, clipped to
+    its search box): a stiff body (the top of the doctor's E box), gripped at both ends and pulled apart, moves
+    as the elastic base model does. The grip friction's box once ended at 30, where a gripper holding a stiff
+    body slips: the gripper-slip candidate could not reproduce the rigid grip it is meant to relax."""
+    import dataclasses
+
+    from empm_gym.identification.doctor.core import _ABSENT, _search_box
+    from empm_gym.identification.problem import _ForwardSim
+    from empm_gym.perception.scripts import ObjectGeometry, run_script
+    from empm_gym.sim import MaterialConfig, sample_box
+
+    T, dx = 8, 0.01
+    size = (0.06, 0.04, 0.03)
+    s = run_script("pull-apart", T, ObjectGeometry(size))
+    # the body pulled to its full stretch within these frames
+    x, vol = sample_box((-size[0] / 2, -size[1] / 2, 0.0), (size[0] / 2, size[1] / 2, size[2]), dx, 8, seed=1)
+    pos = s.positions.copy()
+    pos[:, 0, 0] = np.linspace(pos[0, 0, 0], pos[-1, 0, 0], T)
+    pos[:, 1, 0] = np.linspace(pos[0, 1, 0], pos[-1, 1, 0], T)
+    lo, hi = s.reach
+    scene = Scene(x, vol, fps=30.0, ee_configs=[EndEffectorConfig(**e) for e in s.end_effectors], ee_positions=pos,
+                  ee_grip=s.grip, dx=dx, motion_bounds=(lo, hi))
+    E = DoctorConfig().E_bounds[1]
+    base = MaterialConfig(E=E, nu=0.3, density=1000.0)
+    mats = [base]
+    for effect in EFFECTS:
+        vals = {}
+        for p in candidate_params(effect):
+            lo_p, hi_p = _search_box(p, base, dx)
+            vals[p] = float(np.clip(_ABSENT[p], lo_p, hi_p))
+        mats.append(base.replace(**{k: v for k, v in vals.items() if k != "friction"}))
+    sc = dataclasses.replace(scene.with_material(base), dt_materials=tuple(mats))
+    X, _, _ = _ForwardSim(sc, mats, [0.5] * len(mats)).run(T)
+    stretch = np.ptp(X[-1, 0, :, 0]) - np.ptp(X[0, 0, :, 0])
+    assert stretch > 0.01  # the base model is pulled apart by the rigid grips
+    for k, effect in enumerate(EFFECTS, start=1):
+        gap = np.abs(X[:, k] - X[:, 0]).max()
+        assert gap < 1e-4, f"{effect} at its absent start moves {1e3 * gap:.3f} mm away from the base model"
