@@ -42,6 +42,26 @@ def test_recording_without_motion_gets_no_verdict(tmp_path):
     assert json.loads((tmp_path / "doctor.json").read_text())["decidable"] is False
 
 
+def test_motion_that_end_effectors_drive_counts_without_centroid_motion():
+    """A body pulled apart symmetrically or pressed in one place keeps its centroid still, yet the controls act on
+    it: the doctor counts how far an end-effector travels while it touches the observed points (the gate of
+    ``test_recording_without_motion_gets_no_verdict`` once refused every rope recording of pull-apart,
+    press-release and squeeze-lift as "hardly moves"). An end-effector moving clear of the body drives nothing."""
+    import dataclasses
+
+    from empm_gym.identification.doctor.core import _driven_m, _motion_m
+
+    T = 20
+    scene, obs = _still_scene(T=T)
+    assert _motion_m(obs) < 2e-3 and _driven_m(scene, obs, T) == 0.0  # touching but still
+    pos = scene.ee_positions.copy()
+    pos[:, 0, 2] = 0.045  # the sphere dips 5 mm into the top and slides 3 cm along x
+    pos[:, 0, 0] = np.linspace(0.0, 0.03, T)
+    assert _driven_m(dataclasses.replace(scene, ee_positions=pos), obs, T) == pytest.approx(0.03, abs=2e-3)
+    pos[:, 0, 2] = 0.1  # the same slide 6 cm above the body
+    assert _driven_m(dataclasses.replace(scene, ee_positions=pos), obs, T) == 0.0
+
+
 def test_measurement_noise_recovers_the_depth_noise():
     rng = np.random.default_rng(0)
     xy = rng.uniform(-0.05, 0.05, (6000, 2))

@@ -126,6 +126,11 @@ _ABSENT = {"yield_stress": math.inf, "viscosity": 0.0, "friction": BASE_TABLE_FR
            "stiffness_slope_1": 0.0, "stiffness_slope_2": 0.0, "stiffness_slope_3": 0.0, "fracture_strain": math.inf,
            "fracture_softening": 0.0}
 
+#: Gap [m] between an end-effector's surface and the nearest observed object point that counts as contact: a
+#: pressing plate hides the surface it touches from the cameras, so the nearest observed points lie about a
+#: cell below it.
+CONTACT_GAP_M = 0.015
+
 #: Feature that a real effect should move, and the direction (+1: larger than in the base simulation).
 SIGNATURE_FEATURES = {
     "plasticity": ("residual_after_release_vs_contact", 1.0),
@@ -192,6 +197,34 @@ def _motion_m(obs: Observations) -> float:
     """Largest displacement [m] of the observed centroid from its frame-0 position."""
     c = np.array([p.mean(0) for p in obs.points])
     return float(np.max(np.linalg.norm(c - c[0], axis=1)))
+
+
+def _ee_sizes(scene: Scene) -> list:
+    """End-effector sizes as the doctor's features take them: spheres by their radius, boxes by their half
+    extents (capsules as spheres of their radius)."""
+    return [tuple(c.half_extents) if c.shape == "box" else c.radius for c in scene.ee_configs]
+
+
+def _driven_m(scene: Scene, obs: Observations, T: int, contact_m: float = CONTACT_GAP_M) -> float:
+    """Largest distance [m] an end-effector travels while it touches the observed object (its surface within
+    ``contact_m`` of the nearest observed point), from where that contact began.
+
+    A body pulled apart symmetrically, pressed in one place, or left behind by grippers that slip off it keeps
+    its centroid nearly still; the controls still act on it, and the base model must explain what they did."""
+    from .phases import contact_distances
+
+    ee = np.asarray(scene.ee_positions[:T], np.float64)
+    gap = contact_distances(ee, _ee_sizes(scene), obs.points[:T])
+    best = 0.0
+    for k in range(ee.shape[1]):
+        start = None
+        for t in range(T):
+            if gap[t, k] <= contact_m:
+                start = t if start is None else start
+                best = max(best, float(np.linalg.norm(ee[t, k] - ee[start, k])))
+            else:
+                start = None
+    return best
 
 
 def _per_frame_losses(objective: Objective, X: np.ndarray) -> Dict[str, np.ndarray]:
@@ -334,6 +367,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     heldout = list(range(F, T))
     noise = measurement_noise(obs.points[:T:max(1, T // 10)])
     motion = _motion_m(obs)
+    driven = _driven_m(scene, obs, T)
 
     if scene.motion_bounds is not None:
         scene = dataclasses.replace(scene, motion_margin=cfg.motion_margin)
@@ -347,11 +381,13 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     if unknown:
         raise DoctorError(f"unknown effects {unknown}; known: {', '.join(EFFECTS)}")
     result = {"schema": 1, "frames": T, "fit_frames": [0, F - 1], "heldout_frames": [F, T - 1], "fps": obs.fps,
-              "noise_sigma_m": noise, "observed_motion_m": motion}
-    if motion < max(3.0 * noise, 2e-3):
+              "noise_sigma_m": noise, "observed_motion_m": motion, "driven_motion_m": driven}
+    still = max(3.0 * noise, 2e-3)
+    if motion < still and driven < still:
         result.update(effect="none", decidable=False, confidence=0.0,
                       reason=f"the object hardly moves (largest centroid displacement {motion * 1e3:.2f} mm against "
-                             f"depth noise {noise * 1e3:.2f} mm): no model can be judged on it")
+                             f"depth noise {noise * 1e3:.2f} mm) and no end-effector moves it (at most "
+                             f"{driven * 1e3:.2f} mm while touching it): no model can be judged on it")
         _write_outputs(result, None, None, scene, obs, out_dir)
         return result
 
@@ -579,12 +615,9 @@ def _localise(scene: Scene, obs: Observations, objective: Objective, X_base: np.
     from .features import localise, summary_features
     from .phases import segment_phases
 
-    # spheres by their radius, boxes by their half extents (capsules as spheres of their radius)
-    radius = [tuple(c.half_extents) if c.shape == "box" else c.radius for c in scene.ee_configs]
-    # a pressing plate hides the surface it touches from the cameras: the nearest observed points then lie
-    # about a cell below it, so contact is counted within 1.5 cm
+    radius = _ee_sizes(scene)
     phases = segment_phases(scene.ee_positions[:T], scene.ee_grip[:T], obs.fps, obs.points[:T], radius,
-                            contact_dist_m=0.015)
+                            contact_dist_m=CONTACT_GAP_M)
     P_base = objective.predicted_points(np.asarray(X_base[:T], np.float64))
     kw = {}
     if objective.track_index is not None:
