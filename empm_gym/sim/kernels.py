@@ -67,6 +67,75 @@ def damaged_kirchhoff(F: wp.mat33, mu: float, lam: float, damage: float):
     return (2.0 * mu * keep) * (F - R) * wp.transpose(F) + wp.identity(n=3, dtype=float) * vol
 
 
+#: Smallest |s_i + s_j| the polar rotation's adjoint divides by (signed singular values; the rotation is
+#: undefined where two of them cancel, as when F flattens or inverts so that s_2 = -s_3).
+POLAR_ADJOINT_EPS = wp.constant(1.0e-6)
+
+
+@wp.func
+def polar_pair_denominator(d: float):
+    """s_i + s_j kept at least POLAR_ADJOINT_EPS away from zero, on its own side."""
+    out = d
+    if wp.abs(d) < POLAR_ADJOINT_EPS:
+        out = POLAR_ADJOINT_EPS
+        if d < 0.0:
+            out = -POLAR_ADJOINT_EPS
+    return out
+
+
+@wp.func
+def cofactor(F: wp.mat33):
+    """d det(F) / dF = det(F) F^{-T}, without dividing: row i is the cross product of the two other rows."""
+    r0 = F[0]
+    r1 = F[1]
+    r2 = F[2]
+    return wp.matrix_from_rows(wp.cross(r1, r2), wp.cross(r2, r0), wp.cross(r0, r1))
+
+
+@wp.func_grad(damaged_kirchhoff)
+def adj_damaged_kirchhoff(F: wp.mat33, mu: float, lam: float, damage: float, adj_ret: wp.mat33):
+    """Analytic adjoint of damaged_kirchhoff, in place of Warp's automatic one through svd3's adjoint: that
+    one costs more and divides by s_j^2 - s_i^2 (clamped), which put its dL/dF 4-15 % off where two singular
+    values are equal (F = I, a rotation, an axisymmetric stretch). With G = dL/dtau, a = 2 mu (1 - damage)
+    and R = U V^T: dL/dF = a (G F + G^T (F - R)) + U Y V^T + tr(G) lam k' (2J - 1) cof(F), where
+    Mt = U^T M V of M = dL/dR = -a G F and Y_ij = (Mt_ij - Mt_ji) / (s_i + s_j) (U^T dR V is the skew
+    matrix (K_ij - K_ji) / (s_i + s_j) of K = U^T dF V; this holds for svd3's signed SVD, whose U and V are
+    rotations and whose last singular value is negative when det F < 0), and k' = 1 - damage under tension
+    (J > 1), else 1. func_grad passes no forward intermediates, so svd3 runs again here. p2g_affine's
+    inline=True only force-inlines the generated functions: its adjoint calls this one."""
+    U = wp.mat33()
+    s = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F, U, s, V)
+    R = U * wp.transpose(V)
+    J = wp.determinant(F)
+    keep = 1.0 - damage
+    G = adj_ret
+    a = 2.0 * mu * keep
+    FmR = F - R
+    GF = G * F
+    dev = wp.ddot(G, FmR * wp.transpose(F))  # G : ((F - R) F^T)
+    trG = wp.trace(G)
+    vol_keep = 1.0
+    if J > 1.0:
+        vol_keep = keep
+    # polar rotation: M = -a G F
+    Mt = (-a) * (wp.transpose(U) * GF * V)
+    y01 = (Mt[0, 1] - Mt[1, 0]) / polar_pair_denominator(s[0] + s[1])
+    y02 = (Mt[0, 2] - Mt[2, 0]) / polar_pair_denominator(s[0] + s[2])
+    y12 = (Mt[1, 2] - Mt[2, 1]) / polar_pair_denominator(s[1] + s[2])
+    Y = wp.mat33(0.0, y01, y02, -y01, 0.0, y12, -y02, -y12, 0.0)
+    dF = a * (GF + wp.transpose(G) * FmR) + U * Y * wp.transpose(V)
+    dF = dF + (trG * lam * vol_keep * (2.0 * J - 1.0)) * cofactor(F)
+    wp.adjoint[F] += dF
+    wp.adjoint[mu] += 2.0 * keep * dev
+    wp.adjoint[lam] += trG * J * (J - 1.0) * vol_keep
+    d_keep = 2.0 * mu * dev
+    if J > 1.0:
+        d_keep = d_keep + trG * lam * J * (J - 1.0)
+    wp.adjoint[damage] += -d_keep
+
+
 @wp.func
 def fixed_corotated_kirchhoff(F: wp.mat33, mu: float, lam: float):
     """Kirchhoff stress tau = P F^T of the fixed-corotated model [Pa] (an undamaged particle)."""

@@ -1,11 +1,14 @@
-"""Tape gradients of rollouts against central finite differences (as warp.autograd.gradcheck does)."""
+"""Tape gradients of rollouts, and the Kirchhoff stress's adjoint, against central finite differences (as
+warp.autograd.gradcheck does)."""
 
 import numpy as np
 import pytest
+import warp as wp
 
 from empm_gym.sim import EndEffectorConfig, MaterialConfig, Rollout, SolverMPM, TableConfig
+from empm_gym.sim import kernels as K
 
-from .conftest import block_model
+from .conftest import DEVICE, block_model
 
 DT = 5e-4
 
@@ -238,3 +241,107 @@ def test_grid_update_thread_count_and_packed_atomics_change_nothing():
         np.testing.assert_array_equal(x, out[0][0])
         np.testing.assert_allclose(gE, out[0][1], rtol=1e-6)
         np.testing.assert_allclose(gv, out[0][2], rtol=1e-6, atol=1e-9)
+
+
+# -- the Kirchhoff stress's hand-written adjoint (wp.func_grad) against central differences of a float64
+# reference: tau = 2 mu k (F - R) F^T + lam J (J - 1) I (times k when J > 1), k = 1 - damage, R the rotation
+# of F's signed SVD (U and V rotations, the last singular value negative when det F < 0, as wp.svd3 does).
+
+
+@wp.kernel
+def _kirchhoff_kernel(F: wp.array(dtype=wp.mat33), mu: wp.array(dtype=float), lam: wp.array(dtype=float),
+                      damage: wp.array(dtype=float), tau: wp.array(dtype=wp.mat33)):
+    i = wp.tid()
+    tau[i] = K.damaged_kirchhoff(F[i], mu[i], lam[i], damage[i])
+
+
+def _kirchhoff_reference(F, mu, lam, damage):
+    u, _, vt = np.linalg.svd(F)
+    R = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    J = np.linalg.det(F)
+    k = 1.0 - damage
+    return 2.0 * mu * k * (F - R) @ F.T + lam * J * (J - 1.0) * (k if J > 1.0 else 1.0) * np.eye(3)
+
+
+def _rotation(rng):
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q * np.sign(np.linalg.det(q))
+
+
+def _kirchhoff_cases(rng):
+    """(name, F, damage): at rest and rotated (repeated singular values, where the polar rotation's adjoint
+    differs most from svd3's), near them, stretched (J > 1), compressed (J < 1), mixed, inverted."""
+    def turned(s):
+        return _rotation(rng) @ np.diag(s) @ _rotation(rng)
+    cases = [("identity", np.eye(3), 0.0), ("rotation", _rotation(rng), 0.0)]  # J = 1: the damage kink
+    for d in (0.0, 0.5):
+        cases += [("near identity", np.eye(3) + 0.02 * rng.normal(size=(3, 3)), d),
+                  ("near rotation", _rotation(rng) @ (np.eye(3) + 0.02 * rng.normal(size=(3, 3))), d),
+                  ("stretched", turned([1.3, 1.15, 1.05]), d),
+                  ("compressed", turned([0.8, 0.9, 0.7]), d),
+                  ("two equal stretches", turned([1.2, 1.2, 0.8]), d),
+                  ("mixed", np.eye(3) + 0.3 * rng.normal(size=(3, 3)), d),
+                  ("inverted", turned([1.1, 0.9, -0.4]), d)]
+    return cases
+
+
+def test_kirchhoff_adjoint_matches_finite_difference():
+    rng = np.random.default_rng(2)
+    cases = _kirchhoff_cases(rng)
+    n = len(cases)
+    F = np.array([c[1] for c in cases], np.float32)
+    damage = np.array([c[2] for c in cases], np.float32)
+    mu = rng.uniform(5e3, 1e4, n).astype(np.float32)
+    lam = rng.uniform(5e3, 2e4, n).astype(np.float32)
+    G = rng.normal(size=(n, 3, 3)).astype(np.float32)  # dL/dtau, not symmetric (as P2G's is not)
+    inputs = [wp.array(F, dtype=wp.mat33, device=DEVICE, requires_grad=True)]
+    inputs += [wp.array(a, dtype=float, device=DEVICE, requires_grad=True) for a in (mu, lam, damage)]
+    tau = wp.zeros(n, dtype=wp.mat33, device=DEVICE, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        wp.launch(_kirchhoff_kernel, dim=n, inputs=inputs, outputs=[tau], device=DEVICE)
+    tape.backward(grads={tau: wp.array(G, dtype=wp.mat33, device=DEVICE)})
+    grads = [a.grad.numpy() for a in inputs]
+    h = 1e-6
+    for i, (name, _, _) in enumerate(cases):
+        x = [F[i].astype(np.float64), float(mu[i]), float(lam[i]), float(damage[i])]
+        np.testing.assert_allclose(tau.numpy()[i], _kirchhoff_reference(*x), rtol=1e-4, atol=1e-5 * lam.max())
+
+        def loss(j, delta):
+            y = list(x)
+            y[j] = y[j] + delta
+            return float(np.sum(G[i] * _kirchhoff_reference(*y)))
+
+        dF = np.zeros((3, 3))
+        for a in range(3):
+            for b in range(3):
+                e = np.zeros((3, 3))
+                e[a, b] = h
+                dF[a, b] = (loss(0, e) - loss(0, -e)) / (2 * h)
+        what = f"{name} (det F {np.linalg.det(x[0]):.3f}, damage {x[3]})"
+        np.testing.assert_allclose(grads[0][i], dF, rtol=1e-3, atol=1e-6 * np.abs(dF).max(), err_msg=f"dL/dF, {what}")
+        # float32 round-off of tau's two parts: |G| |F|^2 per unit modulus, times the modulus for damage
+        unit = np.abs(G[i]).sum()
+        for j, param, scale in ((1, "mu", unit), (2, "lambda", unit), (3, "damage", unit * max(mu[i], lam[i]))):
+            numeric = (loss(j, h) - loss(j, -h)) / (2 * h)
+            assert abs(grads[j][i] - numeric) <= 1e-3 * abs(numeric) + 1e-5 * scale, \
+                f"dL/d{param}, {what}: adjoint {grads[j][i]:.6g}, finite difference {numeric:.6g}"
+
+
+def test_kirchhoff_adjoint_stays_finite_where_the_rotation_is_undefined():
+    # F = 0, rank one, two singular values that cancel (s_2 = -s_3: flattened, or inverted by a reflection)
+    F = np.array([np.zeros((3, 3)), np.outer([1.0, 2.0, 3.0], [0.3, -0.2, 0.1]), np.diag([1.0, 1e-8, -1e-8]),
+                  np.diag([1.0, 0.5, -0.5]), np.diag([-1.0, -1.0, -1.0])], np.float32)
+    n = len(F)
+    inputs = [wp.array(F, dtype=wp.mat33, device=DEVICE, requires_grad=True)]
+    inputs += [wp.array(np.full(n, v, np.float32), dtype=float, device=DEVICE, requires_grad=True)
+               for v in (7e3, 1e4, 0.3)]
+    tau = wp.zeros(n, dtype=wp.mat33, device=DEVICE, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        wp.launch(_kirchhoff_kernel, dim=n, inputs=inputs, outputs=[tau], device=DEVICE)
+    G = np.random.default_rng(4).normal(size=(n, 3, 3)).astype(np.float32)
+    tape.backward(grads={tau: wp.array(G, dtype=wp.mat33, device=DEVICE)})
+    for a in inputs:
+        assert np.all(np.isfinite(a.grad.numpy()))
