@@ -88,7 +88,11 @@ def make(args):
                 synthesize(rec, args.object, script=script, effect=effect, frames=args.frames, cameras=args.cameras,
                            width=args.width, height=args.height, seed=seed, overwrite=True, progress=False)
                 truth = [e["name"] for e in json.loads((rec / "ground_truth.json").read_text())["effects"]]
-                scene, obs, _ = load_recording(rec, dx=args.dx, particles_per_cell=args.ppc, progress=False)
+                try:
+                    scene, obs, _ = load_recording(rec, dx=args.dx, particles_per_cell=args.ppc, progress=False)
+                except ValueError as e:  # e.g. squeeze-ring's plate hides a rope from every camera
+                    print(f"{name}: skipped, the recording cannot be loaded: {e}", flush=True)
+                    continue
                 # observations in float32, at most --max-points per frame: what the doctor's loss uses anyway
                 rng = np.random.default_rng(seed)
                 obs.points = [p if len(p) <= args.max_points else p[rng.choice(len(p), args.max_points, replace=False)]
