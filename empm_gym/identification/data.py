@@ -295,6 +295,17 @@ AXIS_SHIFT_PIXELS = 1.0
 AXIS_VARIANT = "half-turn axis moved"
 
 
+def _frame_ranges(frames) -> str:
+    """"3-5, 9" for [3, 4, 5, 9]."""
+    out, start = [], None
+    for i, t in enumerate(frames):
+        start = t if start is None else start
+        if i + 1 == len(frames) or frames[i + 1] != t + 1:
+            out.append(f"{start}" if start == t else f"{start}-{t}")
+            start = None
+    return ", ".join(out)
+
+
 def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27, voxel_m: float = 0.003,
                    material: Optional[MaterialConfig] = None, table_friction: float = 0.5,
                    ee_friction: float = 0.8, use_tracks: bool = True, frames: Optional[int] = None,
@@ -343,12 +354,16 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
                          f"the simulator needs a z-up world frame with a horizontal table (recalibrate c2w)")
     height = -off / n[2]
     plane = (np.array([0.0, 0.0, 1.0]), -height)
-    pts = []
-    for t in tqdm(range(T), desc="fuse point clouds", disable=not progress, leave=False):
-        p = fuse_frame(rec, t, voxel_m=voxel_m, table_plane=plane, min_height_m=0.5 * voxel_m)
-        if len(p) == 0:
-            raise ValueError(f"{rec.path}: frame {t} has no object points (check the masks and depth)")
-        pts.append(p)
+    pts = [fuse_frame(rec, t, voxel_m=voxel_m, table_plane=plane, min_height_m=0.5 * voxel_m)
+           for t in tqdm(range(T), desc="fuse point clouds", disable=not progress, leave=False)]
+    empty = [t for t, p in enumerate(pts) if len(p) == 0]
+    if empty:
+        hint = (f"; the first {empty[0]} frames all see it: load only those (`empm identify --frames {empty[0]}`, or frames={empty[0]})" if empty[0] >= 2
+                else "")
+        raise ValueError(f"{rec.path}: {len(empty)} of {T} frames have no object points (frames "
+                         f"{_frame_ranges(empty)}): the object is hidden there (an end-effector over it, or no "
+                         f"mask or depth on it). Every loaded frame is compared with the simulation, so each must "
+                         f"see part of the object{hint}")
     controls = load_controls(rec)
     cfgs, pos, grip = controls_to_end_effectors(controls, friction=ee_friction)
     orient = controls.get("orientations")

@@ -65,9 +65,10 @@ def _cylinder_hits(centre, R, radius, half_len):
     return hit
 
 
-def _one_camera_recording(path, hit, *, azimuth_deg=30.0, elevation_deg=40.0, seed=0):
-    """A 2-frame recording of a still object on the table z = 0 from one camera 0.55 m away (320 x 240):
-    depth with 1 mm noise, none at grazing incidence (|cos| < 0.25, as a depth sensor), exact mask."""
+def _one_camera_recording(path, hit, *, azimuth_deg=30.0, elevation_deg=40.0, seed=0, frames=2, hidden=()):
+    """A recording (2 frames) of a still object on the table z = 0 from one camera 0.55 m away (320 x 240):
+    depth with 1 mm noise, none at grazing incidence (|cos| < 0.25, as a depth sensor), exact mask (empty in the
+    ``hidden`` frames)."""
     rng = np.random.default_rng(seed)
     az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
     target = np.array([0.0, 0.0, 0.02])
@@ -83,10 +84,12 @@ def _one_camera_recording(path, hit, *, azimuth_deg=30.0, elevation_deg=40.0, se
     ray = d / np.linalg.norm(d, axis=-1, keepdims=True)
     cos = np.abs(np.where(obj, np.einsum("ijk,ijk->ij", n_obj, ray), ray[..., 2]))
     depth = np.where(np.isfinite(depth) & (cos >= 0.25), depth + rng.normal(0.0, 0.001, depth.shape), 0.0)
-    w = RecordingWriter(path, intrinsics=cam.K[None], c2w=cam.c2w[None], width=W, height=H, fps=30.0, frame_num=2)
-    for t in range(2):
-        w.write_frame(0, t, color=np.full((H, W, 3), 128, np.uint8), depth_m=depth, mask=obj)
-    np.savez(path / "controls.npz", positions=np.zeros((2, 0, 3)), grip=np.zeros((2, 0)))
+    w = RecordingWriter(path, intrinsics=cam.K[None], c2w=cam.c2w[None], width=W, height=H, fps=30.0,
+                        frame_num=frames)
+    for t in range(frames):
+        w.write_frame(0, t, color=np.full((H, W, 3), 128, np.uint8), depth_m=depth,
+                      mask=np.zeros_like(obj) if t in hidden else obj)
+    np.savez(path / "controls.npz", positions=np.zeros((frames, 0, 3)), grip=np.zeros((frames, 0)))
     return path
 
 
@@ -139,6 +142,16 @@ def test_a_view_that_shows_too_little_says_so(tmp_path):
     rec = _one_camera_recording(tmp_path / "low", hit, elevation_deg=12.0)
     with pytest.raises(ValueError, match="cannot be completed from views on one side.*record from higher"):
         load_recording(rec, frames=2, progress=False)
+
+
+def test_frames_that_do_not_see_the_object_are_named(tmp_path):
+    """A recording whose object is hidden in its last frames (a plate over it, say) is refused with the hidden
+    frames listed and the frames that do see it offered; loaded up to there, it loads."""
+    rec = _one_camera_recording(tmp_path / "hidden", CONSTRUCTED["box"][0], frames=6, hidden=(3, 4, 5))
+    with pytest.raises(ValueError, match=r"3 of 6 frames have no object points \(frames 3-5\).*--frames 3"):
+        load_recording(rec, progress=False)
+    _, obs, _ = load_recording(rec, frames=3, progress=False)
+    assert obs.num_frames == 3
 
 
 def test_view_gap_and_the_occluder_test():
