@@ -51,14 +51,21 @@ def von_mises_return(F: wp.mat33, mu: float, yield_stress: float, min_singular: 
 
 
 @wp.func
-def damaged_kirchhoff(F: wp.mat33, mu: float, lam: float, damage: float):
-    """Fixed-corotated Kirchhoff stress [Pa] with the deviatoric part, and the volumetric part under
-    tension (J > 1), scaled by (1 - damage): a broken particle resists compression but not pulling."""
+def svd_polar(F: wp.mat33):
+    """svd3's signed SVD of F (U and V rotations, the last singular value negative when det F < 0) and the
+    polar rotation R = U V^T."""
     U = wp.mat33()
     s = wp.vec3()
     V = wp.mat33()
     wp.svd3(F, U, s, V)
-    R = U * wp.transpose(V)
+    return U, s, V, U * wp.transpose(V)
+
+
+@wp.func
+def damaged_kirchhoff(F: wp.mat33, mu: float, lam: float, damage: float):
+    """Fixed-corotated Kirchhoff stress [Pa] with the deviatoric part, and the volumetric part under
+    tension (J > 1), scaled by (1 - damage): a broken particle resists compression but not pulling."""
+    U, s, V, R = svd_polar(F)
     J = wp.determinant(F)
     keep = 1.0 - damage
     vol = lam * J * (J - 1.0)
@@ -103,11 +110,7 @@ def adj_damaged_kirchhoff(F: wp.mat33, mu: float, lam: float, damage: float, adj
     rotations and whose last singular value is negative when det F < 0), and k' = 1 - damage under tension
     (J > 1), else 1. func_grad passes no forward intermediates, so svd3 runs again here. p2g_affine's
     inline=True only force-inlines the generated functions: its adjoint calls this one."""
-    U = wp.mat33()
-    s = wp.vec3()
-    V = wp.mat33()
-    wp.svd3(F, U, s, V)
-    R = U * wp.transpose(V)
+    U, s, V, R = svd_polar(F)
     J = wp.determinant(F)
     keep = 1.0 - damage
     G = adj_ret
