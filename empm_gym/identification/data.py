@@ -358,8 +358,9 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
            for t in tqdm(range(T), desc="fuse point clouds", disable=not progress, leave=False)]
     empty = [t for t, p in enumerate(pts) if len(p) == 0]
     if empty:
-        hint = (f"; the first {empty[0]} frames all see it: load only those (`empm identify --frames {empty[0]}`, or frames={empty[0]})" if empty[0] >= 2
-                else "")
+        k = empty[0]
+        hint = f"; the first {k} frames all see it: load only those (`empm identify --frames {k}`, frames={k})" \
+            if k >= 2 else ""
         raise ValueError(f"{rec.path}: {len(empty)} of {T} frames have no object points (frames "
                          f"{_frame_ranges(empty)}): the object is hidden there (an end-effector over it, or no "
                          f"mask or depth on it). Every loaded frame is compared with the simulation, so each must "

@@ -125,7 +125,7 @@ _register(Effect(
                       off=None, array="world_table_friction", kernel_off=BASE_TABLE_FRICTION),),
 ))
 #: The grip friction's search box reaches the rigid grip: at 1e4 a closed gripper may remove about 10 m/s of
-#: relative velocity per substep, more than a body as stiff as 500 kPa ever builds up, so a fit (and the doctor's
+#: relative velocity per 0.1 ms substep, more than a body as stiff as 500 kPa builds up, so a fit (and the doctor's
 #: slip candidate) can hold the base model's rigid grip. A box ending at 30 did not: a gripper pulling such a body
 #: apart slipped by about 1 cm in ``test_each_candidate_at_its_absent_start_moves_as_the_base_model``.
 _register(Effect(
