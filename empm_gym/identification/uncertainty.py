@@ -95,8 +95,8 @@ def paired_gain_test(base: Sequence[float], candidate: Sequence[float], *, added
 
 def gain_is_significant(test: Dict[str, float]) -> bool:
     """The verdict of :func:`paired_gain_test` from its ``gain``, ``lower`` and ``threshold``: the whole interval
-    lies above the threshold."""
-    g, lo, thr = (float(test.get(k, float("nan"))) for k in ("gain", "lower", "threshold"))
+    lies above the threshold (a value missing or null, as ``doctor.json`` writes a non-finite one, is NaN)."""
+    g, lo, thr = (float("nan") if test.get(k) is None else float(test[k]) for k in ("gain", "lower", "threshold"))
     return bool(np.isfinite(g) and lo > thr and g > thr)
 
 

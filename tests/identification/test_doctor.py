@@ -281,3 +281,29 @@ def test_each_candidate_at_its_absent_start_moves_as_the_base_model():
     for k, effect in enumerate(EFFECTS, start=1):
         gap = np.abs(X[:, k] - X[:, 0]).max()
         assert gap < 1e-4, f"{effect} at its absent start moves {1e3 * gap:.3f} mm away from the base model"
+
+
+def test_the_verdict_is_taken_again_from_doctor_json_with_non_finite_gains():
+    """``select_verdict`` reads ``doctor.json`` (``bench_doctor.py --rescore`` does), where a non-finite gain, a
+    candidate or a variant whose simulation diverged, is written as null: it counts as not holding, as in the
+    doctor itself, instead of raising."""
+    from empm_gym.identification.doctor.core import _jsonable, select_verdict
+
+    def test(gain):
+        return {"gain": gain, "lower": gain - 0.01, "upper": gain + 0.01, "threshold": 0.04}
+
+    cands = [{"effect": "fracture", "heldout": {"loss": 1.0}, "gain": test(0.5)},
+             {"effect": "plasticity", "heldout": {"loss": 1.1}, "gain": test(0.45)},
+             {"effect": "viscosity", "heldout": {"loss": 2.0}, "gain": test(float("nan"))}]
+    labels = [("grid shifted (1)", "discretisation"), ("grid shifted (2)", "discretisation"),
+              ("without camera 0", "body")]
+
+    def tests(gains):
+        return {"tests": [{"variant": v, "kind": k, **test(g)} for (v, k), g in zip(labels, gains)]}
+
+    variants = {"variants": [v for v, _ in labels],
+                "candidates": {"fracture": tests([0.5, float("nan"), 0.5]), "plasticity": tests([0.4, 0.4, 0.4])}}
+    live = select_verdict(cands, variants)
+    stored = json.loads(json.dumps(_jsonable({"c": cands, "v": variants})))
+    assert stored["v"]["candidates"]["fracture"]["tests"][1]["gain"] is None
+    assert select_verdict(stored["c"], stored["v"]) == live == ("plasticity", "fracture", ["plasticity"])

@@ -550,8 +550,15 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
     return out
 
 
+def _gain(t: dict) -> float:
+    """A variant test's gain, NaN where it is not finite (``doctor.json`` writes those as null)."""
+    g = t.get("gain")
+    return float("nan") if g is None else float(g)
+
+
 def _holds(t: dict) -> bool:
-    return bool(np.isfinite(t["gain"]) and t["gain"] > t["threshold"])
+    g = _gain(t)
+    return bool(np.isfinite(g) and g > t["threshold"])
 
 
 def _robust(tests: List[dict]) -> dict:
@@ -562,9 +569,9 @@ def _robust(tests: List[dict]) -> dict:
     failed_disc = [t for t in disc if not _holds(t)]
     robust = not failed_disc and (not body or sum(map(_holds, body)) > len(body) / 2)
     holds_on = f"{sum(map(_holds, tests))} of {len(tests)} variants"
-    worst = failed_disc[0] if failed_disc else min(body, key=lambda t: np.nan_to_num(t["gain"], nan=-1e9), default=None)
+    worst = failed_disc[0] if failed_disc else min(body, key=lambda t: np.nan_to_num(_gain(t), nan=-1e9), default=None)
     why = "" if robust or worst is None else (
-        f"it holds on {holds_on}; on '{worst['variant']}' it gains {100 * worst['gain']:.1f} % against a threshold "
+        f"it holds on {holds_on}; on '{worst['variant']}' it gains {100 * _gain(worst):.1f} % against a threshold "
         f"of {100 * worst['threshold']:.0f} %")
     return {"robust": robust, "holds_on": holds_on, "why": why}
 
