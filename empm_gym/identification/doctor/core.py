@@ -211,20 +211,13 @@ def _driven_m(scene: Scene, obs: Observations, T: int, contact_m: float = CONTAC
 
     A body pulled apart symmetrically, pressed in one place, or left behind by grippers that slip off it keeps
     its centroid nearly still; the controls still act on it, and the base model must explain what they did."""
+    from .features import _segments
     from .phases import contact_distances
 
     ee = np.asarray(scene.ee_positions[:T], np.float64)
-    gap = contact_distances(ee, _ee_sizes(scene), obs.points[:T])
-    best = 0.0
-    for k in range(ee.shape[1]):
-        start = None
-        for t in range(T):
-            if gap[t, k] <= contact_m:
-                start = t if start is None else start
-                best = max(best, float(np.linalg.norm(ee[t, k] - ee[start, k])))
-            else:
-                start = None
-    return best
+    touching = contact_distances(ee, _ee_sizes(scene), obs.points[:T]) <= contact_m
+    return max((float(np.linalg.norm(ee[s:e, k] - ee[s, k], axis=1).max())
+                for k in range(ee.shape[1]) for s, e in _segments(touching[:, k])), default=0.0)
 
 
 def _per_frame_losses(objective: Objective, X: np.ndarray) -> Dict[str, np.ndarray]:
