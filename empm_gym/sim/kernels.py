@@ -159,6 +159,18 @@ def damage_from_stretch(F: wp.mat33, strain: float, softening: float):
 
 
 @wp.func
+def broken_deformation(F: wp.mat33, min_singular: float):
+    """The deformation gradient a fully broken particle keeps: J^(1/3) I with J = det F capped at 1 (and kept
+    at least min_singular^3). Its stress (damaged_kirchhoff with damage 1: the volumetric part under
+    compression alone) depends on J only and is the same for both; without the reset, the stretch that no
+    stress resists any more accumulates in F without bound (principal stretches of thousands within a second
+    in a torn rope) until the SVD and then the state turn non-finite. A torn piece pressed back resists
+    compression from its current volume, not from the volume it had before it was pulled open."""
+    J = wp.clamp(wp.determinant(F), min_singular * min_singular * min_singular, 1.0)
+    return wp.identity(n=3, dtype=float) * wp.pow(J, 1.0 / 3.0)
+
+
+@wp.func
 def grip_hold(v_rel: wp.vec3, limit: float):
     """Relative velocity left after a grip that can remove at most ``limit`` [m/s] of it (Coulomb: sticks
     when |v_rel| <= limit)."""
@@ -737,6 +749,8 @@ def g2p_finish(
     strain = particle_fracture_strain[p]
     if strain < 1.0e20:
         dmg = wp.max(dmg, damage_from_stretch(Fn, strain, particle_fracture_softening[p]))
+        if dmg >= 1.0:
+            Fn = broken_deformation(Fn, min_singular)
     damage_out[p] = dmg
     xn = x[p] + dt * new_v
     # keep every particle's stencil inside the grid

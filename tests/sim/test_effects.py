@@ -3,10 +3,12 @@ tape gradients of every new effect parameter against central finite differences.
 
 import numpy as np
 import pytest
+import warp as wp
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from empm_gym.sim import kernels as K
 from empm_gym.sim import (EndEffectorConfig, GridConfig, MaterialConfig, ModelBuilder, SolverMPM, sample_box)
 from empm_gym.sim.effects import EFFECTS, PARAMETERS
 from empm_gym.sim.model import principal_coords
@@ -188,6 +190,47 @@ def test_fracture_notched_bar_breaks_in_two_at_the_notch():
     assert _pieces(x0, 0.75 * DX) == 2
     broken_x = _bar(_FRACTURE, notch=True).state().particle_x.numpy()[d > 0.5, 0]
     assert np.all(np.abs(broken_x) < 0.015), f"damage away from the notch at x = {np.unique(broken_x.round(3))}"
+
+
+def test_torn_bar_pulled_far_keeps_a_bounded_deformation_gradient():
+    """Past full damage nothing resists stretching, so F would grow without bound and, in a torn rope that
+    kept being lifted, reach principal stretches of thousands and then NaN. A fully broken particle keeps
+    F = J^(1/3) I with J <= 1 instead (kernels.broken_deformation), and the bar stays finite."""
+    state, _ = _pull(_bar(_FRACTURE, notch=True), 1.0, speed=0.1, hold=0.05)
+    d = state.particle_damage.numpy()
+    F = state.particle_F.numpy()
+    assert np.all(np.isfinite(F)) and np.all(np.isfinite(state.particle_x.numpy()))
+    broken = d >= 1.0
+    assert broken.sum() > 10, "the bar should tear"
+    J = np.linalg.det(F[broken])
+    np.testing.assert_allclose(F[broken], J[:, None, None] ** (1 / 3) * np.eye(3), atol=1e-5)
+    assert J.max() <= 1.0 + 1e-6
+    # what damage < 1 leaves alone: those particles' stretch is below full damage
+    stretch = np.linalg.svd(F[~broken], compute_uv=False).max(1)
+    assert stretch.max() < 1.0 + 0.2 + 0.05 + 1e-3
+
+
+@wp.kernel
+def _broken_kernel(F: wp.array(dtype=wp.mat33), mu: float, lam: float, tau: wp.array(dtype=wp.mat33),
+                   tau_reset: wp.array(dtype=wp.mat33)):
+    i = wp.tid()
+    tau[i] = K.damaged_kirchhoff(F[i], mu, lam, 1.0)
+    tau_reset[i] = K.damaged_kirchhoff(K.broken_deformation(F[i], 1.0e-3), mu, lam, 1.0)
+
+
+def test_reset_of_a_broken_particle_keeps_its_stress():
+    """A fully broken particle's stress depends on J alone (compression only): the reset to J^(1/3) I leaves
+    it unchanged, compressed or stretched, sheared or not."""
+    rng = np.random.default_rng(3)
+    F = np.eye(3) + 0.4 * rng.normal(size=(64, 3, 3))
+    F[:8] = np.eye(3) * 0.9  # pure compression
+    F = F[np.linalg.det(F) > 0.05].astype(np.float32)
+    Fw = wp.array(F, dtype=wp.mat33, device="cpu")
+    tau, tau_reset = (wp.zeros(len(F), dtype=wp.mat33, device="cpu") for _ in range(2))
+    wp.launch(_broken_kernel, dim=len(F), inputs=[Fw, 3.0e4, 5.0e4], outputs=[tau, tau_reset], device="cpu")
+    a, b = tau.numpy(), tau_reset.numpy()
+    assert np.abs(a).max() > 1e3, "some cases should be compressed (a nonzero stress)"
+    np.testing.assert_allclose(b, a, atol=1e-3 * np.abs(a).max())
 
 
 def test_no_fracture_leaves_damage_zero():
