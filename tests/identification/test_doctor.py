@@ -1,5 +1,6 @@
 """The discrepancy doctor: bad input, the noise test, and hidden-effect recordings named end to end."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -87,6 +88,56 @@ def test_paired_gain_test_separates_a_real_gain_from_noise():
     wobbly = base * (0.95 + 0.06 * np.random.default_rng(0).standard_normal(30))
     t = paired_gain_test(base, wobbly, added_params=1, penalty_per_param=0.04)
     assert t["gain"] > 0.04 and 0.0 < t["lower"] < 0.04 and not t["significant"], t
+
+
+def test_a_fit_at_the_edge_of_its_window_is_widened_to_the_optimum():
+    """A candidate refits E within E_refit_factor of the base fit; an effect can move the stiffness that explains
+    a recording far from that (a torn rope's elastic fit ends at the softest E of its box while the material is
+    25 times stiffer). A fit that ends at an edge of its window inside the box is fitted again with the window
+    stretched to the box on that side, and reaches the optimum beyond the old edge; a fit inside its window,
+    or at the box's own bound, stays as it is."""
+    from empm_gym.identification.doctor.core import _fit_candidate, _widened, _window_edge
+    from empm_gym.sim import MaterialConfig
+
+    from .test_effect_params import _observe, _scene
+
+    truth = MaterialConfig(E=3.0e3, nu=0.3, density=1000.0)
+    start = truth.replace(E=600.0)
+    scene, obs = _scene(start), _observe(truth)
+    cfg = DoctorConfig(candidate_iters=4, popsize=6, seed=1)
+    narrow = _fit_candidate("base", scene, obs, start, (300.0, 1000.0), 7, cfg, False)
+    assert narrow.params["E"] > 1000.0 / 1.05 and _window_edge(narrow, (100.0, 3e4)) == 1
+    assert _window_edge(narrow, (100.0, 1000.0)) == 0  # the window's edge is the box's bound: nothing beyond
+    wide = _widened(narrow, scene, obs, start, (100.0, 3e4), 7, cfg, False)
+    assert wide.bounds["E"] == (300.0, 3e4)
+    assert wide.params["E"] == pytest.approx(3.0e3, rel=0.1) and wide.fit_loss < 0.5 * narrow.fit_loss
+    assert _window_edge(wide, (100.0, 3e4)) == 0
+    assert _widened(wide, scene, obs, start, (100.0, 3e4), 7, cfg, False) is wide
+
+
+def test_candidates_search_the_whole_box_when_the_base_fit_ends_at_its_bound():
+    """The base fit's E at a bound of its box measures nothing (the block is softer than the box allows): the
+    candidates then refit E over the whole box, not within E_refit_factor of that bound; inside the box they
+    keep the window."""
+    from empm_gym.sim import MaterialConfig
+
+    from .test_effect_params import _observe, _scene
+
+    truth = MaterialConfig(E=3.0e3, nu=0.3, density=1000.0)
+    scene, obs = _scene(truth), _observe(truth)
+    obs = Observations(obs.fps, obs.points + obs.points[-3:], tracks=np.concatenate([obs.tracks, obs.tracks[-3:]]),
+                       visibility=np.concatenate([obs.visibility, obs.visibility[-3:]]))  # 13 frames: 4 held out
+    scene = dataclasses.replace(scene, ee_positions=np.concatenate([scene.ee_positions, scene.ee_positions[-3:]]),
+                                ee_grip=np.concatenate([scene.ee_grip, scene.ee_grip[-3:]]))
+    for box, at_bound in (((6.0e3, 6.0e4), True), ((3.0e2, 6.0e4), False)):
+        cfg = DoctorConfig(base_iters=3, candidate_iters=1, popsize=5, variants=0, E_bounds=box, base_E=1.2e4)
+        res = diagnose(scene, obs, effects=["viscosity"], config=cfg, progress=False)
+        window = res["candidates"][0]["E_window"]
+        assert res["base"]["E_window"] == window
+        if at_bound:  # (the base fit on the box ended at 6 kPa; the null candidate's refit is reported)
+            assert window == pytest.approx(list(box))
+        else:
+            assert window[0] > box[0] and window[1] < box[1] and window[0] < 3.0e3 < window[1]
 
 
 def test_every_effect_is_a_candidate():

@@ -297,6 +297,50 @@ def _fit_candidate(name: str, scene: Scene, obs: Observations, base_material: Ma
     return f
 
 
+#: A fit whose E ends within this factor of an edge of its refit window is at that edge (see :func:`_widened`).
+_EDGE_FACTOR = 1.05
+
+
+def _window_edge(f: "_Fit", box: Tuple[float, float]) -> int:
+    """+1 (-1) when fit ``f``'s E ends at the upper (lower) edge of its refit window and that edge lies inside
+    the base model's box ``box``; else 0. An edge of the window is not a bound of the physics: there the fit
+    has not found its optimum."""
+    lo, hi = f.bounds["E"]
+    E = f.params["E"]
+    if E > hi / _EDGE_FACTOR and hi < box[1] / _EDGE_FACTOR:
+        return 1
+    if E < lo * _EDGE_FACTOR and lo > box[0] * _EDGE_FACTOR:
+        return -1
+    return 0
+
+
+def _widened(f: "_Fit", scene: Scene, obs: Observations, base_material: MaterialConfig, box: Tuple[float, float],
+             F: int, cfg: DoctorConfig, progress: bool) -> "_Fit":
+    """``f`` itself, or, when its E ended at an edge of its refit window (:func:`_window_edge`), ``f`` fitted
+    again with the window stretched on that side to the edge of the base model's box ``box``.
+
+    The window (``E_refit_factor`` around the base fit's E) keeps candidates cheap, but an effect can move the
+    stiffness that explains a recording far from the elastic model's: a torn body looks softer than it is
+    (the elastic fit ends at the box's soft end while the material is 25 times stiffer), a body sliding on a
+    slippery table looks stiffer. Such a candidate, held at the window's edge, predicts the held-out frames
+    worse than its effect can. The refit's first generation holds ``f``'s optimum and E spread in log
+    space from the old edge to the new one (the effect's parameters at ``f``'s values)."""
+    side = _window_edge(f, box)
+    if side == 0:
+        return f
+    lo, hi = f.bounds["E"]
+    window = (lo, box[1]) if side > 0 else (box[0], hi)
+    edge, far = (hi, box[1]) if side > 0 else (lo, box[0])
+    sweep = [{**f.params, "E": float(edge * (far / edge) ** (k / 3))} for k in (1, 2, 3)]
+    starts = ([dict(f.params)] + sweep)[:max(0, cfg.popsize - 2)]
+    g = _fit_candidate(f.name, scene, obs, base_material, window, F, cfg, progress, starts=starts)
+    if not g.fit_loss < f.fit_loss:  # nothing better beyond the edge: keep the fit (and its substeps)
+        f.wall_s += g.wall_s
+        return f
+    g.wall_s += f.wall_s
+    return g
+
+
 def _variant_scene(scene: Scene, k: int) -> Scene:
     """The same recording on another discretisation: the grid shifted sideways by part of a cell (a different
     fraction for each ``k``; the table keeps its node layer) and the particles moved to another lattice."""
@@ -397,10 +441,24 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     # candidate, the base model itself, which from here on is the base model: what a candidate gains from a
     # second search of E is then not credited to its effect. Each fit keeps one substep count throughout, from
     # the stiffest corners of its box (Scene.dt_materials), and is scored with it.
+    # When the base fit ends at a bound of its box, its E is no measurement of the stiffness (a torn body looks
+    # as soft as the box allows): every candidate then searches the whole box, its first generation spread over
+    # it in log E (the effect's parameters at their starts).
     E_range = (max(lo, E_base / cfg.E_refit_factor), min(hi, E_base * cfg.E_refit_factor))
-    fits: List[_Fit] = [_fit_candidate(name, scene, obs, base_fit.material, E_range, F, cfg, progress)
+    spread: List[float] = []
+    if E_base < lo * _EDGE_FACTOR or E_base > hi / _EDGE_FACTOR:
+        E_range = (lo, hi)
+        spread = [float(lo * (hi / lo) ** (k / 4)) for k in (1, 2, 3)][:max(0, cfg.popsize - 2)]
+
+    def first_generation(name: str) -> List[Dict[str, float]]:
+        ps = () if name == "base" else candidate_params(name)
+        return [{"E": E, **{p: PARAMETERS[p].start for p in ps}} for E in spread]
+
+    fits: List[_Fit] = [_fit_candidate(name, scene, obs, base_fit.material, E_range, F, cfg, progress,
+                                       starts=first_generation(name))
                         for name in tqdm(["base"] + names, desc="doctor: candidates", disable=not progress,
                                          leave=False)]
+    fits = [_widened(f, scene, obs, base_fit.material, (lo, hi), F, cfg, progress) for f in fits]
     fits[0].wall_s += base_fit.wall_s
     base_fit = fits[0]
     # the base model reported is the null candidate's refit: its E at the search box's edge is no measurement
@@ -593,7 +651,8 @@ def _nan_list(a) -> list:
 def _fit_dict(f: _Fit) -> dict:
     return {"effect": f.name, "params": f.params, "added_params": f.added, "fit_loss": f.fit_loss,
             "heldout": f.heldout, "gain": f.test or None, "fit_wall_time_s": round(f.wall_s, 2),
-            "material": f.material.to_dict(), "table_friction": f.friction}
+            "material": f.material.to_dict(), "table_friction": f.friction,
+            "E_window": list(f.bounds["E"]) if "E" in f.bounds else None}
 
 
 def _confidence(base, cands: List[np.ndarray], added: List[int], cfg: DoctorConfig, winner: Optional[int],
