@@ -12,8 +12,10 @@ Pipeline (:func:`diagnose`):
 3. **Candidates.** Every effect of :data:`empm_gym.sim.effects.EFFECTS` that the base model lacks is added
    and refitted together with E (CMA-ES, the same loss, from the base fit's E), each candidate in its own
    batched simulation. The base model is refitted the same way (the null candidate) and is the base model
-   from then on: a candidate must gain by its effect, not by a second search of E. Every fit keeps one
-   substep count, from the stiffest corners of its search box, and is scored with it.
+   from then on: a candidate must gain by its effect, not by a second search of E. A fit whose E ends at an
+   edge of that window is fitted again with the window stretched to the base box on that side, and when the
+   base fit itself ends at a bound of its box every candidate searches the whole box (:func:`_widened`). Every
+   fit keeps one substep count, from the stiffest corners of its search box, and is scored with it.
 4. **Scores.** Base and candidates are simulated over all frames; the per-frame score on the held-out
    frames (Chamfer plus the median tracking error, metres) is compared pairwise with :func:`empm_gym.identification.uncertainty.paired_gain_test` (block
    bootstrap over frames, a relative-gain penalty per added parameter).
