@@ -155,7 +155,8 @@ _register(Effect(
     name="fracture",
     summary="a per-particle damage d in [0, 1] grows smoothly from 0 to 1 as the largest principal stretch "
             "of the elastic F exceeds 1 + fracture_strain by up to fracture_softening, and scales the "
-            "deviatoric and tensile stress by (1 - d), so the body tears into pieces",
+            "deviatoric and tensile stress by (1 - d), so the body tears into pieces; a fully broken particle "
+            "keeps only its volume (F = J^(1/3) I with J <= 1), the stretch it no longer resists being forgotten",
     signature="separation into pieces: points that moved together drift apart where the body was pulled",
     params=(Parameter("fracture_strain", "-", "principal strain at which damage starts", valid=(1e-4, 1e30),
                       search=(0.02, 1.5), start=0.3, scale=0.1, off=None, array="world_fracture_strain",
