@@ -57,8 +57,9 @@ def plot_residual_timeline(frames_residual_base, frames_residual_best, phases, f
                    label=None if p.name in seen else p.name.replace("_", " "))
         seen.add(p.name)
         if p.stop - p.start >= max(2, T // 40):
-            ax.text(0.5 * (p.start + p.stop - 1), top * 1.12, p.name.replace("_", " "), ha="center", va="bottom",
-                    fontsize=7, rotation=0 if p.stop - p.start > T / 10 else 90)
+            wide = p.stop - p.start > T / 10  # a narrow phase's name stands upright, hanging from the top
+            ax.text(0.5 * (p.start + p.stop - 1), top * (1.12 if wide else 1.47), p.name.replace("_", " "),
+                    ha="center", va="bottom" if wide else "top", fontsize=7, rotation=0 if wide else 90)
     t = np.arange(T)
     ax.plot(t, base, "-", color="k", lw=1.5, label=labels[0])
     if frames_residual_best is not None:
@@ -70,7 +71,7 @@ def plot_residual_timeline(frames_residual_base, frames_residual_best, phases, f
         ax.annotate("\u2190 fitted", (fit_frames - 0.5, top * 0.98), xytext=(-4, 0), textcoords="offset points",
                     color="tab:blue", fontsize=8, va="top", ha="right")
     ax.set_xlim(-0.5, T - 0.5)
-    ax.set_ylim(0, top * 1.35)
+    ax.set_ylim(0, top * 1.5)
     ax.set_xlabel("frame")
     ax.set_ylabel("residual (mm)")
     if fps:
