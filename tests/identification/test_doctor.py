@@ -198,6 +198,10 @@ def doctor_names_the_hidden_effect(tmp_path, effect, script):
         assert best["heldout"]["loss"] < res["base"]["heldout"]["loss"]
         assert (tmp_path / "doctor" / "material.json").exists()
     assert (tmp_path / "doctor" / "report.md").exists() and (tmp_path / "doctor" / "doctor.rrd").exists()
+    # each candidate's E window: the report's table and doctor.json agree
+    lo, hi = res["candidates"][0]["E_window"]
+    assert "E searched [Pa]" in (tmp_path / "doctor" / "report.md").read_text()
+    assert f"{lo:.3g} to {hi:.3g}" in (tmp_path / "doctor" / "report.md").read_text()
 
 
 def test_doctor_cli_reports_bad_input(tmp_path, capsys):

@@ -770,6 +770,7 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
              second_sim=None if best_w is None else X[:, best_w], second_name=f"simulated_{effect}")
     rows = [{"candidate": c["effect"], "added parameters": c["added_params"],
              "fitted": ", ".join(f"{k}={v:.4g}" for k, v in c["params"].items()),
+             "E searched [Pa]": "" if not c.get("E_window") else "{:.3g} to {:.3g}".format(*c["E_window"]),
              "held-out Chamfer [mm]": 1e3 * c["heldout"]["chamfer_m"],
              "held-out loss gain [%]": 100 * (c["gain"] or {}).get("gain", float("nan")),
              "significant": (c["gain"] or {}).get("significant")} for c in cands]
