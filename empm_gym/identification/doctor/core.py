@@ -303,6 +303,11 @@ def _fit_candidate(name: str, scene: Scene, obs: Observations, base_material: Ma
 _EDGE_FACTOR = 1.05
 
 
+def _at_bound(E: float, box: Tuple[float, float]) -> bool:
+    """E lies at (within _EDGE_FACTOR of) a bound of ``box``: a fit there measured no stiffness."""
+    return E < box[0] * _EDGE_FACTOR or E > box[1] / _EDGE_FACTOR
+
+
 def _window_edge(f: "_Fit", box: Tuple[float, float]) -> int:
     """+1 (-1) when fit ``f``'s E ends at the upper (lower) edge of its refit window and that edge lies inside
     the base model's box ``box``; else 0. An edge of the window is not a bound of the physics: there the fit
@@ -333,7 +338,7 @@ def _widened(f: "_Fit", scene: Scene, obs: Observations, base_material: Material
     lo, hi = f.bounds["E"]
     window = (lo, box[1]) if side > 0 else (box[0], hi)
     edge, far = (hi, box[1]) if side > 0 else (lo, box[0])
-    sweep = [{**f.params, "E": float(edge * (far / edge) ** (k / 3))} for k in (1, 2, 3)]
+    sweep = [{**f.params, "E": float(E)} for E in np.geomspace(edge, far, 4)[1:]]
     starts = ([dict(f.params)] + sweep)[:max(0, cfg.popsize - 2)]
     g = _fit_candidate(f.name, scene, obs, base_material, window, F, cfg, progress, starts=starts)
     if not g.fit_loss < f.fit_loss:  # nothing better beyond the edge: keep the fit (and its substeps)
@@ -448,9 +453,9 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     # it in log E (the effect's parameters at their starts).
     E_range = (max(lo, E_base / cfg.E_refit_factor), min(hi, E_base * cfg.E_refit_factor))
     spread: List[float] = []
-    if E_base < lo * _EDGE_FACTOR or E_base > hi / _EDGE_FACTOR:
+    if _at_bound(E_base, (lo, hi)):
         E_range = (lo, hi)
-        spread = [float(lo * (hi / lo) ** (k / 4)) for k in (1, 2, 3)][:max(0, cfg.popsize - 2)]
+        spread = [float(E) for E in np.geomspace(lo, hi, 5)[1:-1]][:max(0, cfg.popsize - 2)]
 
     def first_generation(name: str) -> List[Dict[str, float]]:
         ps = () if name == "base" else candidate_params(name)
@@ -464,7 +469,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     fits[0].wall_s += base_fit.wall_s
     base_fit = fits[0]
     # the base model reported is the null candidate's refit: its E at the search box's edge is no measurement
-    if base_fit.params["E"] < lo * 1.05 or base_fit.params["E"] > hi / 1.05:
+    if _at_bound(base_fit.params["E"], (lo, hi)):
         warnings.append(f"the base model's E = {base_fit.params['E']:.4g} Pa lies at its search bound ({lo:g}, "
                         f"{hi:g}) Pa: the elastic model cannot explain the recording with any stiffness in it")
 
