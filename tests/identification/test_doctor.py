@@ -140,6 +140,23 @@ def test_candidates_search_the_whole_box_when_the_base_fit_ends_at_its_bound():
             assert window[0] > box[0] and window[1] < box[1] and window[0] < 3.0e3 < window[1]
 
 
+def test_fitted_values_at_their_search_bound_are_flagged():
+    """A fit's parameter at a bound of its box (log-scaled: within 5 %; linear: within 2.5 % of the width) is
+    listed, a value inside is not, whatever the sign of a linear parameter."""
+    from empm_gym.identification.doctor.core import _Fit, _params_at_bound
+    from empm_gym.sim import MaterialConfig
+
+    def fit(**params):
+        bounds = {"E": (1e3, 1e5), "friction": (0.0, 1.0), "stiffness_slope_1": (-1.2, 1.2), "yield_stress": (1e2, 1e5)}
+        return _Fit("x", params, MaterialConfig(E=params["E"]), 0.5, 0.0, 0.0, bounds={k: bounds[k] for k in params})
+
+    assert _params_at_bound(fit(E=1.04e3, friction=0.5)) == ["E"]
+    assert _params_at_bound(fit(E=9.7e4, friction=0.02)) == ["E", "friction"]
+    assert _params_at_bound(fit(E=5e3, friction=0.1, stiffness_slope_1=-1.19)) == ["stiffness_slope_1"]
+    assert _params_at_bound(fit(E=5e3, stiffness_slope_1=0.0, yield_stress=9.6e4)) == ["yield_stress"]
+    assert _params_at_bound(fit(E=1.1e3, friction=0.04, yield_stress=1.1e2)) == []
+
+
 def test_every_effect_is_a_candidate():
     for name in EFFECTS:
         assert candidate_params(name), name

@@ -308,6 +308,22 @@ def _at_bound(E: float, box: Tuple[float, float]) -> bool:
     return E < box[0] * _EDGE_FACTOR or E > box[1] / _EDGE_FACTOR
 
 
+def _params_at_bound(f: "_Fit") -> List[str]:
+    """Parameters of fit ``f`` that end at a bound of their search box: within :data:`_EDGE_FACTOR` of it for a
+    parameter the optimiser sees in log space (E, yield stress, ...), within 2.5 % of the box's width for a
+    linear one (friction, stiffness slopes). A fitted value there is no measurement: the optimum may lie
+    beyond the box."""
+    out = []
+    for k, v in f.params.items():
+        if k not in f.bounds:
+            continue
+        lo, hi = f.bounds[k]
+        log = k == "E" or PARAMETERS[k].transform == "log"
+        if (_at_bound(v, (lo, hi)) if log and lo > 0 else min(v - lo, hi - v) <= 0.025 * (hi - lo)):
+            out.append(k)
+    return out
+
+
 def _window_edge(f: "_Fit", box: Tuple[float, float]) -> int:
     """+1 (-1) when fit ``f``'s E ends at the upper (lower) edge of its refit window and that edge lies inside
     the base model's box ``box``; else 0. An edge of the window is not a bound of the physics: there the fit
@@ -524,6 +540,13 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         val = loc["features"].get(feat)
         checks = {"feature": feat, "value": val}
     ranked = sorted(cands, key=lambda f: f.heldout["loss"])
+    if winner is not None and _params_at_bound(winner):
+        warnings.append(
+            f"{winner.name}'s fit ends at the bound of its search box in "
+            + ", ".join(f"{k} = {winner.params[k]:.4g} (box {winner.bounds[k][0]:.4g} to {winner.bounds[k][1]:.4g})"
+                        for k in _params_at_bound(winner))
+            + ": the effect is named from its held-out gain, but that value is no measurement (the best fit may "
+              "lie beyond the box), and the material file holds it as fitted")
     result.update({
         "effect": winner.name if winner else "none",
         "decidable": True,
@@ -659,7 +682,7 @@ def _fit_dict(f: _Fit) -> dict:
     return {"effect": f.name, "params": f.params, "added_params": f.added, "fit_loss": f.fit_loss,
             "heldout": f.heldout, "gain": f.test or None, "fit_wall_time_s": round(f.wall_s, 2),
             "material": f.material.to_dict(), "table_friction": f.friction,
-            "E_window": list(f.bounds["E"]) if "E" in f.bounds else None}
+            "E_window": list(f.bounds["E"]) if "E" in f.bounds else None, "at_search_bound": _params_at_bound(f)}
 
 
 def _confidence(base, cands: List[np.ndarray], added: List[int], cfg: DoctorConfig, winner: Optional[int],
@@ -774,7 +797,8 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
                                             **({f"chamfer_{effect}": per[best_w]["chamfer"].tolist()} if best_w else {})},
              second_sim=None if best_w is None else X[:, best_w], second_name=f"simulated_{effect}")
     rows = [{"candidate": c["effect"], "added parameters": c["added_params"],
-             "fitted": ", ".join(f"{k}={v:.4g}" for k, v in c["params"].items()),
+             "fitted": ", ".join(f"{k}={v:.4g}" + (" (at bound)" if k in c.get("at_search_bound", ()) else "")
+                                 for k, v in c["params"].items()),
              "E searched [Pa]": "" if not c.get("E_window") else "{:.3g} to {:.3g}".format(*c["E_window"]),
              "held-out Chamfer [mm]": 1e3 * c["heldout"]["chamfer_m"],
              "held-out loss gain [%]": 100 * (c["gain"] or {}).get("gain", float("nan")),
