@@ -115,6 +115,46 @@ def test_a_fit_at_the_edge_of_its_window_is_widened_to_the_optimum():
     assert _widened(wide, scene, obs, start, (100.0, 3e4), 7, cfg, False) is wide
 
 
+def test_a_fit_near_the_edge_of_its_window_is_widened_with_fresh_effect_starts(monkeypatch):
+    """Where the base model's E measures nothing (``loose``), a short CMA-ES run whose optimum lies beyond its
+    window's edge stops short of it: E in the window's outer quarter (log E), with the box reaching further,
+    counts as at that edge; elsewhere only E within 5 % of it. The widened refit starts from the fit, from E
+    spread to the box's edge with the fitted effect parameters, and from the same E with the effect's
+    registry starts (a fracture strain fitted beside a wrong E is no start at another E)."""
+    from empm_gym.identification.doctor import core
+    from empm_gym.sim import MaterialConfig
+
+    def fit(E, name="fracture", window=(2e3, 6.4e3), strain=0.58):
+        return core._Fit(name, {"E": E, "fracture_strain": strain}, MaterialConfig(E=E), 0.5, 1.0, 0.0,
+                         bounds={"E": window, "fracture_strain": (0.02, 1.5)})
+
+    box = (2e3, 5e5)
+    assert core._window_edge(fit(5.4e3), box, loose=True) == 1  # 86 % of the way up in log E
+    assert core._window_edge(fit(5.4e3), box) == 0
+    assert core._window_edge(fit(6.2e3), box) == 1  # within 5 %
+    assert core._window_edge(fit(3.6e3), box, loose=True) == 0  # 51 %
+    assert core._window_edge(fit(2.1e3), box, loose=True) == 0  # near the lower edge, but that is the box's bound
+    assert core._window_edge(fit(2.9e3, window=(2.4e3, 6.4e3)), (1e3, 5e5), loose=True) == -1
+    assert core._window_edge(fit(6.3e3, window=(2e3, 5e5 / 1.01)), box, loose=True) == 0  # nearly the box's bound
+
+    seen = {}
+
+    def fake(name, scene, obs, base_material, window, F, cfg, progress, starts=()):
+        seen.update(window=window, starts=list(starts))
+        return dataclasses.replace(fit(5.0e4, window=window, strain=0.2), fit_loss=0.2)
+
+    monkeypatch.setattr(core, "_fit_candidate", fake)
+    g = core._widened(fit(5.4e3), None, None, MaterialConfig(E=2e3), box, 7, DoctorConfig(popsize=8), False, True)
+    assert seen["window"] == (2e3, 5e5) and g.params["E"] == 5.0e4
+    starts = seen["starts"]
+    assert len(starts) == 6 and starts[0] == {"E": 5.4e3, "fracture_strain": 0.58}
+    assert {st["fracture_strain"] for st in starts[1:]} == {0.58, core.PARAMETERS["fracture_strain"].start}
+    assert all(6.4e3 < st["E"] <= 5e5 for st in starts[1:])
+    core._widened(fit(6.2e3), None, None, MaterialConfig(E=2e3), box, 7, DoctorConfig(popsize=8), False)
+    assert len(seen["starts"]) == 4 and {st["fracture_strain"] for st in seen["starts"]} == {0.58}
+    assert core._widened(fit(5.4e3), None, None, MaterialConfig(E=2e3), box, 7, DoctorConfig(), False).params["E"] == 5.4e3
+
+
 def test_candidates_search_the_whole_box_when_the_base_fit_ends_at_its_bound():
     """The base fit's E at a bound of its box measures nothing (the block is softer than the box allows): the
     candidates then refit E over the whole box, not within E_refit_factor of that bound; inside the box they
