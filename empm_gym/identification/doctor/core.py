@@ -367,10 +367,10 @@ def _widened(f: "_Fit", scene: Scene, obs: Observations, base_material: Material
     lo, hi = f.bounds["E"]
     window = (lo, box[1]) if side > 0 else (box[0], hi)
     edge, far = (hi, box[1]) if side > 0 else (lo, box[0])
-    registry = {**f.params, **({} if f.name == "base" else {p: float(np.clip(PARAMETERS[p].start, *f.bounds[p]))
-                                                             for p in candidate_params(f.name)})}
-    sweep = [{**at, "E": float(E)} for E in np.geomspace(edge, far, 4)[1:]
-             for at in ((f.params, registry) if loose else (f.params,))]
+    sets = [f.params]
+    if loose and f.name != "base":  # the effect's registry starts as well
+        sets.append({**f.params, **{p: float(np.clip(PARAMETERS[p].start, *f.bounds[p])) for p in candidate_params(f.name)}})
+    sweep = [{**at, "E": float(E)} for E in np.geomspace(edge, far, 4)[1:] for at in sets]
     starts = [dict(f.params)]
     for st in sweep:
         if st not in starts:
@@ -562,11 +562,12 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         val = loc["features"].get(feat)
         checks = {"feature": feat, "value": val}
     ranked = sorted(cands, key=lambda f: f.heldout["loss"])
-    if winner is not None and _params_at_bound(winner):
+    at_bound = _params_at_bound(winner) if winner is not None else []
+    if at_bound:
         warnings.append(
             f"{winner.name}'s fit ends at the bound of its search box in "
             + ", ".join(f"{k} = {winner.params[k]:.4g} (box {winner.bounds[k][0]:.4g} to {winner.bounds[k][1]:.4g})"
-                        for k in _params_at_bound(winner))
+                        for k in at_bound)
             + ": the effect is named from its held-out gain, but that value is no measurement (the best fit may "
               "lie beyond the box), and the material file holds it as fitted")
     result.update({
