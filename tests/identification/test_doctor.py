@@ -35,6 +35,22 @@ def test_recording_without_controls_is_refused():
         diagnose(scene, obs, progress=False)
 
 
+def test_the_doctor_says_when_its_grid_is_too_coarse_for_the_body():
+    """doctor.json gives the body's thickness in cells of the grid, with a note when that is marginal (under
+    3 cells: a fitted stiffness biased by some per cent) or too coarse (under 1.5); a block 4 cells thick
+    gets no note."""
+    T = 20
+    for height, cells, says in ((0.04, 4.0, None), (0.024, 2.4, "stiffness may be biased"),
+                                (0.012, 1.2, "too coarse for the body")):
+        x, vol = sample_box((-0.03, -0.03, 0.0), (0.03, 0.03, height), 0.01, 8, seed=1)
+        scene = Scene(x, vol, fps=30.0, dx=0.01, ee_configs=[EndEffectorConfig(shape="sphere", radius=0.01)],
+                      ee_positions=np.tile([[[0.0, 0.0, 0.08]]], (T, 1, 1)), ee_grip=np.zeros((T, 1)))
+        res = diagnose(scene, Observations(30.0, [x] * T, surface=True), progress=False)
+        assert res["grid"]["dx_m"] == 0.01 and res["grid"]["cells_across"] == pytest.approx(cells, rel=0.15)
+        notes = [n for n in res["notes"] if n.startswith("the doctor's body")]
+        assert (notes == []) if says is None else (len(notes) == 1 and says in notes[0]), notes
+
+
 def test_recording_without_motion_gets_no_verdict(tmp_path):
     scene, obs = _still_scene()
     res = diagnose(scene, obs, progress=False, out_dir=tmp_path)

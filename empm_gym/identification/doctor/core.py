@@ -29,7 +29,9 @@ Pipeline (:func:`diagnose`):
    whose gain is significant and holds on the variants, else ``none``; its confidence is the fraction of
    bootstrap resamples in which it stays the best and significant, times the share of variants it holds on.
 6. **Report.** ``doctor.json``, ``material.json`` (with the effect), ``report.md`` with figures, and a
-   rerun recording of the measured points against both simulations.
+   rerun recording of the measured points against both simulations. Its notes say what may make the verdict
+   wrong: the base model's E or the named effect's parameters at a bound of their search box, a grid too
+   coarse for the body (``grid``: the body's thin parts in cells, :func:`_grid_notes`).
 
 Nothing here reads a synthesiser's answer file, file names or script timing: only what
 :func:`empm_gym.identification.data.load_recording` extracts from images, depth, masks, tracks and controls.
@@ -384,6 +386,22 @@ def _widened(f: "_Fit", scene: Scene, obs: Observations, base_material: Material
     return g
 
 
+def _grid_notes(scene: Scene) -> Tuple[dict, List[str]]:
+    """The doctor's body against its grid (:func:`~empm_gym.identification.uncertainty.grid_resolution`):
+    ``({thickness_m, dx_m, cells_across}, notes)``, a note where the grid is too coarse for the body or
+    marginal. Every candidate is fitted through the stiffness that grid lets the body have, so the verdict
+    carries the same caveat as a fitted E."""
+    from ..uncertainty import grid_resolution
+
+    res, problem, marginal = grid_resolution(scene)
+    if problem:
+        return res, [f"the doctor's body: {problem}. Every candidate is fitted on this grid: their stiffness is no "
+                     f"measurement, and the verdict may be wrong"]
+    if marginal:
+        return res, [f"the doctor's body: {marginal}; every candidate's fit carries that bias"]
+    return res, []
+
+
 def _variant_scene(scene: Scene, k: int) -> Scene:
     """The same recording on another discretisation: the grid shifted sideways by part of a cell (a different
     fraction for each ``k``; the table keeps its node layer) and the particles moved to another lattice."""
@@ -460,8 +478,10 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     unknown = [e for e in names if e not in EFFECTS]
     if unknown:
         raise DoctorError(f"unknown effects {unknown}; known: {', '.join(EFFECTS)}")
+    grid, grid_notes = _grid_notes(scene)
     result = {"schema": 1, "frames": T, "fit_frames": [0, F - 1], "heldout_frames": [F, T - 1], "fps": obs.fps,
-              "noise_sigma_m": noise, "observed_motion_m": motion, "driven_motion_m": driven}
+              "noise_sigma_m": noise, "observed_motion_m": motion, "driven_motion_m": driven, "grid": grid,
+              "notes": grid_notes}
     still = max(3.0 * noise, 2e-3)
     if motion < still and driven < still:
         result.update(effect="none", decidable=False, confidence=0.0,
@@ -597,7 +617,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                               **({"best": {k: _nan_list(v[heldout]) for k, v in per[fits.index(winner)].items()}}
                                  if winner else {}),
                               "loss_by_candidate": {f.name: _nan_list(pf["loss"][heldout]) for f, pf in zip(fits, per)}},
-        "notes": warnings + ["density is not fitted: from motion alone only E / density is determined "
+        "notes": grid_notes + warnings + ["density is not fitted: from motion alone only E / density is determined "
                              f"(assumed density {base_mat.density:g} kg/m^3)"],
         "wall_time_s": None,
     })
