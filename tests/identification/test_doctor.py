@@ -196,6 +196,22 @@ def test_candidates_search_the_whole_box_when_the_base_fit_ends_at_its_bound():
             assert window[0] > box[0] and window[1] < box[1] and window[0] < 3.0e3 < window[1]
 
 
+def test_a_candidate_refuted_by_the_variants_is_no_rival_in_the_confidence():
+    """The confidence is the share of resampled held-out frames on which the verdict stays: a candidate whose
+    gain failed on the variants is out of the verdict on every resample, so its larger gain does not count
+    against the winner (dough push-slide-0: viscosity named with confidence 0.01 beside a refuted plasticity)."""
+    from empm_gym.identification.doctor.core import _confidence
+
+    rng = np.random.default_rng(0)
+    base = 1.0 + 0.02 * rng.standard_normal(12)
+    winner = 0.90 * base + 0.005 * rng.standard_normal(12)  # gains 10 %
+    refuted = 0.85 * base + 0.005 * rng.standard_normal(12)  # gains 15 %, but not on the variants
+    cfg = DoctorConfig()
+    assert _confidence(base, [winner, refuted], [1, 1], cfg, 0) < 0.05
+    assert _confidence(base, [winner, refuted], [1, 1], cfg, 0, refuted=[1]) > 0.95
+    assert _confidence(base, [winner, refuted], [1, 1], cfg, None, refuted=[0, 1]) == 1.0  # none: nothing left
+
+
 def test_fitted_values_at_their_search_bound_are_flagged():
     """A fit's parameter at a bound of its box (log-scaled: within 5 %; linear: within 2.5 % of the width) is
     listed, a value inside is not, whatever the sign of a linear parameter."""
