@@ -37,9 +37,9 @@ $(STAMP): pyproject.toml | $(VPY)
 install: $(STAMP)
 
 # two workers (Warp's CPU backend runs a launch on one core); a file's tests stay on one worker, so its
-# module fixtures are made once
+# module fixtures are made once; files are handed out in collection order, the long ones first (tests/conftest.py)
 test: install
-	$(VPY) -m pytest -q -x -n 2 --dist loadfile --durations=15 tests
+	$(VPY) -m pytest -q -x -n 2 --dist loadfile --no-loadscope-reorder --durations=15 tests
 
 demo: install
 	$(VPY) -m empm_gym.demo --out demo_out
