@@ -297,11 +297,13 @@ def run_doctor_demo(out: Path, *, device: str = "cpu", effect: str = "gripper_sl
     print(f"   hidden effect: {hidden[0]['name'] if hidden else 'none'}; the doctor says: {res['effect']} "
           f"(confidence {res['confidence']:.2f}); report in {out / 'doctor' / 'report.md'}, the held-out gap "
           f"before and after in {out / 'doctor' / 'residual_timeline.png'}")
+    from .identification.uncertainty import MARGINAL_CELLS_ACROSS
+
     grid = res.get("grid") or {}
-    if grid.get("cells_across", 3.0) < 3.0:  # the doctor's note says what the reduced grid costs
+    if grid.get("cells_across", MARGINAL_CELLS_ACROSS) < MARGINAL_CELLS_ACROSS:  # the doctor's note on its grid
         print(f"   (the demo's {100 * grid['dx_m']:g} cm grid keeps the doctor within minutes on one CPU core; it "
-              f"puts {grid['cells_across']:.1f} cells across the body, hence the doctor's note: on a GPU, diagnose "
-              f"with --dx {grid['thickness_m'] / 3.0:.2g} or finer)", flush=True)
+              f"puts {grid['cells_across']:.1f} cells across the body, hence the doctor's note on the grid and the "
+              f"--dx it gives for a GPU)", flush=True)
     return {"hidden": hidden, "verdict": res["effect"], "confidence": res["confidence"]}
 
 

@@ -4,7 +4,8 @@
 #: 2026-11-25, a clean clone: 1130, 1073, 772, 634, 299 and 237 of the suite's 4785). They run first, so that under
 #: ``make test`` (pytest-xdist, 2 workers, ``--dist loadfile --no-loadscope-reorder``: files handed out in this
 #: order) each worker starts on long files and the short ones fill in the end. xdist's default order (files
-#: with the most tests first) left these few-test files for last: one worker ran 47 minutes, the other 33.
+#: with the most tests first) left these few-test files for last; replaying its rule on the measured times gives
+#: one worker 47 minutes and the other 33 (benchmarks/RESULTS.md, session 19).
 LONG_FIRST = (
     "identification/test_synth_recovery.py",
     "identification/test_doctor.py",
