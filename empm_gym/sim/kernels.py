@@ -80,13 +80,11 @@ POLAR_NEWTON_MIN_DET = wp.constant(1.0e-3)
 
 
 @wp.func
-def polar_rotation(F: wp.mat33):
-    """The rotation R of F's polar decomposition F = R S (S symmetric), as svd_polar's U V^T.
-
-    Higham's scaled Newton iteration X <- (g X + (g X)^-T) / 2, g = |det X|^(-1/3), from X = F: a few
-    iterations, about three times cheaper than Warp's svd3 on the CPU, and more accurate (svd3's R is off by
-    up to 4e-5 at 1 % strain, 1e-7 here). An inverted or nearly flat F (det F <= POLAR_NEWTON_MIN_DET), or
-    one not converged in POLAR_NEWTON_ITERS iterations, takes svd_polar's signed rotation instead."""
+def polar_newton(F: wp.mat33):
+    """Higham's scaled Newton iteration for the rotation R of F = R S (S symmetric): X <- (g X + (g X)^-T) / 2,
+    g = |det X|^(-1/3) in the first three iterations, from X = F. Returns (R, 1) once an iterate changes by
+    less than POLAR_NEWTON_TOL, and (F, 0) when det F <= POLAR_NEWTON_MIN_DET (an inverted or nearly flat F,
+    whose signed rotation this iteration does not give) or it did not converge in POLAR_NEWTON_ITERS."""
     X = F
     done = int(0)
     if wp.determinant(F) > POLAR_NEWTON_MIN_DET:
@@ -102,9 +100,60 @@ def polar_rotation(F: wp.mat33):
                 if wp.ddot(diff, diff) < POLAR_NEWTON_TOL * POLAR_NEWTON_TOL:
                     done = 1
     if done == 0:
-        U, s, V, R = svd_polar(F)
-        X = R
-    return X
+        X = F
+    return X, done
+
+
+@wp.func
+def polar_rotation(F: wp.mat33):
+    """The rotation R of F's polar decomposition F = R S (S symmetric), as svd_polar's U V^T.
+
+    polar_newton's few iterations are about three times cheaper than Warp's svd3 on the CPU and more
+    accurate (svd3's R is off by up to 4e-5 at 1 % strain, 1e-7 here); where they do not apply (inverted,
+    nearly flat, not converged) it is svd_polar's signed rotation."""
+    R, ok = polar_newton(F)
+    if ok == 0:
+        U, s, V, Rs = svd_polar(F)
+        R = Rs
+    return R
+
+
+@wp.func
+def vee(A: wp.mat33):
+    """The axial vector a of a skew matrix A = [a]x (A v = a x v)."""
+    return wp.vec3(A[2, 1], A[0, 2], A[1, 0])
+
+
+@wp.func
+def skew(a: wp.vec3):
+    """[a]x, the matrix of v -> a x v."""
+    return wp.mat33(0.0, -a[2], a[1], a[2], 0.0, -a[0], -a[1], a[0], 0.0)
+
+
+@wp.func
+def polar_rotation_adjoint(F: wp.mat33, R: wp.mat33, newton: int, M: wp.mat33):
+    """dL/dF through the polar rotation R of F (``newton``: polar_newton's flag), given M = dL/dR: R [z]x with z = (tr(S) I - S)^-1 vee(N - N^T),
+    N = R^T M, S = R^T F (R^T dR = [w]x with (tr(S) I - S) w = vee(R^T dF - dF^T R); tr(S) I - S has the
+    eigenvalues s_i + s_j). Where polar_newton does not apply, the same derivative from svd3's signed SVD:
+    U Y V^T with Y_ij = (Mt_ij - Mt_ji) / (s_i + s_j), Mt = U^T M V, which holds because U and V are rotations
+    and the last singular value is negative when det F < 0."""
+    out = wp.mat33()
+    if newton != 0:
+        S = wp.transpose(R) * F
+        S = 0.5 * (S + wp.transpose(S))
+        K = wp.identity(n=3, dtype=float) * wp.trace(S) - S
+        N = wp.transpose(R) * M
+        z = wp.inverse(K) * vee(N - wp.transpose(N))
+        out = R * skew(z)
+    else:
+        U, s, V, Rs = svd_polar(F)
+        Mt = wp.transpose(U) * M * V
+        y01 = (Mt[0, 1] - Mt[1, 0]) / polar_pair_denominator(s[0] + s[1])
+        y02 = (Mt[0, 2] - Mt[2, 0]) / polar_pair_denominator(s[0] + s[2])
+        y12 = (Mt[1, 2] - Mt[2, 1]) / polar_pair_denominator(s[1] + s[2])
+        Y = wp.mat33(0.0, y01, y02, -y01, 0.0, y12, -y02, -y12, 0.0)
+        out = U * Y * wp.transpose(V)
+    return out
 
 
 @wp.func
@@ -141,16 +190,14 @@ def polar_pair_denominator(d: float):
 def adj_damaged_kirchhoff(F: wp.mat33, mu: float, lam: float, damage: float, adj_ret: wp.mat33):
     """Analytic adjoint of damaged_kirchhoff, in place of Warp's automatic one through svd3's adjoint: that
     one costs more and divides by s_j^2 - s_i^2 (clamped), which put its dL/dF 4-15 % off where two singular
-    values are equal (F = I, a rotation, an axisymmetric stretch). With G = dL/dtau, a = 2 mu (1 - damage)
-    and R = U V^T: dL/dF = a (G F + G^T (F - R)) + U Y V^T + tr(G) lam k' (2J - 1) cof(F), where
-    Mt = U^T M V of M = dL/dR = -a G F and Y_ij = (Mt_ij - Mt_ji) / (s_i + s_j) (U^T dR V is the skew
-    matrix (K_ij - K_ji) / (s_i + s_j) of K = U^T dF V; this holds for svd3's signed SVD, whose U and V are
-    rotations and whose last singular value is negative when det F < 0), and k' = 1 - damage under tension
-    (J > 1), else 1. func_grad passes no forward intermediates, so svd3 runs again here, for U, s and V; R
-    is the forward's polar_rotation (svd3's own U V^T is less accurate). p2g_affine's inline=True only
-    force-inlines the generated functions: its adjoint calls this one."""
-    U, s, V, R_svd = svd_polar(F)
-    R = polar_rotation(F)
+    values are equal (F = I, a rotation, an axisymmetric stretch). With G = dL/dtau, a = 2 mu (1 - damage):
+    dL/dF = a (G F + G^T (F - R)) + polar_rotation_adjoint(F, -a G F) + tr(G) lam k' (2J - 1) cof(F), with
+    k' = 1 - damage under tension (J > 1), else 1 (-a G F is dL/dR). func_grad passes no forward
+    intermediates, so R is computed again here. p2g_affine's inline=True only force-inlines the generated
+    functions: its adjoint calls this one."""
+    R, newton = polar_newton(F)
+    if newton == 0:
+        R = polar_rotation(F)
     J = wp.determinant(F)
     keep = 1.0 - damage
     G = adj_ret
@@ -162,13 +209,7 @@ def adj_damaged_kirchhoff(F: wp.mat33, mu: float, lam: float, damage: float, adj
     vol_keep = 1.0
     if J > 1.0:
         vol_keep = keep
-    # polar rotation: M = -a G F
-    Mt = (-a) * (wp.transpose(U) * GF * V)
-    y01 = (Mt[0, 1] - Mt[1, 0]) / polar_pair_denominator(s[0] + s[1])
-    y02 = (Mt[0, 2] - Mt[2, 0]) / polar_pair_denominator(s[0] + s[2])
-    y12 = (Mt[1, 2] - Mt[2, 1]) / polar_pair_denominator(s[1] + s[2])
-    Y = wp.mat33(0.0, y01, y02, -y01, 0.0, y12, -y02, -y12, 0.0)
-    dF = a * (GF + wp.transpose(G) * FmR) + U * Y * wp.transpose(V)
+    dF = a * (GF + wp.transpose(G) * FmR) + polar_rotation_adjoint(F, R, newton, (-a) * GF)
     dF = dF + (trG * lam * vol_keep * (2.0 * J - 1.0)) * cofactor(F)
     wp.adjoint[F] += dF
     wp.adjoint[mu] += 2.0 * keep * dev
