@@ -129,6 +129,50 @@ def test_fixed_corotated_stress_of_general_small_and_large_strains_matches_float
     assert (np.abs(tau - ref).max(axis=(1, 2)) / scale).max() < 1e-2
 
 
+@wp.kernel
+def _eigenvalues_kernel(A: wp.array(dtype=wp.mat33), out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    out[i] = K.symmetric_eigenvalues(A[i])
+
+
+def test_closed_form_symmetric_eigenvalues_match_numpy(rng):
+    """The eigenvalues von_mises_return's elastic check uses, on C = F^T F of small and large strains, and on
+    degenerate ones (identity, an axisymmetric stretch, a scaled identity)."""
+    F = np.concatenate([np.eye(3) + st * rng.standard_normal((200, 3, 3)) for st in (1e-4, 1e-2, 0.5)])
+    C = np.concatenate([np.swapaxes(F, 1, 2) @ F, [np.eye(3), np.diag([1.2, 1.2, 0.7]), 3.0 * np.eye(3)]])
+    A = wp.array(C.astype(np.float32), dtype=wp.mat33, device=DEVICE)
+    out = wp.zeros(len(C), dtype=wp.vec3, device=DEVICE)
+    wp.launch(_eigenvalues_kernel, dim=len(C), inputs=[A], outputs=[out], device=DEVICE)
+    ref = np.linalg.eigvalsh(C)[:, ::-1]
+    err = np.abs(out.numpy() - ref).max(axis=1) / np.abs(C).max(axis=(1, 2))
+    assert err[:600].max() < 2e-6, err[:600].max()
+    assert err[600:].max() < 1e-4, err[600:]  # two equal eigenvalues: acos at +-1
+
+
+def test_return_mapping_of_states_at_the_yield_surface(rng):
+    """Trial states from 0.9 to 1.1 of the yield stress, where the cheap elastic check hands over to the SVD:
+    those above land on the surface, those below keep F."""
+    E, nu, ys = 1.0e5, 0.3, 2.0e3
+    mu, _ = MaterialConfig(E=E, nu=nu).lame
+    # a random rotation times a deviatoric stretch scaled to a chosen von Mises stress, times a volume change
+    n = 400
+    d = rng.standard_normal((n, 3))
+    d -= d.mean(1, keepdims=True)
+    target = ys * np.linspace(0.9, 1.1, n)
+    d *= (target / (np.sqrt(1.5) * 2 * mu * np.linalg.norm(d, axis=1)))[:, None]
+    Q, _ = np.linalg.qr(rng.standard_normal((n, 3, 3)))
+    F = Q @ (np.exp(d)[:, :, None] * np.eye(3)) * np.exp(rng.uniform(-0.01, 0.01, n))[:, None, None]
+    Fa = wp.array(F.astype(np.float32), dtype=wp.mat33, device=DEVICE)
+    out = wp.zeros(n, dtype=wp.mat33, device=DEVICE)
+    wp.launch(K.eval_return_mapping_kernel, dim=n, inputs=[Fa, E, nu, ys], outputs=[out], device=DEVICE)
+    Fe = out.numpy().astype(np.float64)
+    vm = _hencky_vm(Fe, mu)
+    above = target > ys * (1 + 1e-3)
+    np.testing.assert_allclose(vm[above], ys, rtol=2e-3)
+    below = target < ys * (1 - 1e-3)
+    np.testing.assert_allclose(Fe[below], F[below], atol=2e-6)
+
+
 def _hencky_vm(F, mu):
     s = np.linalg.svd(F, compute_uv=False)
     eps = np.log(s)
