@@ -97,8 +97,9 @@ class SolverMPM:
             self.sort_particles(model.state())  # also allocates the sort's scratch outside any graph capture
         self._flags = wp.zeros(model.world_count, dtype=int, device=model.device)
         self._grid_kernel = _grid_kernel(model.ee_count)
-        # threads of the grid update, striding over the active nodes (the CPU runs a launch as one loop)
-        self._grid_threads = min(nodes, 2**17) if model.device.is_cuda else nodes
+        # threads of the grid update, striding over the active nodes (on the CPU, which runs a launch as one
+        # loop, as many as there are active nodes: step reads the count, which costs no transfer there)
+        self._grid_threads = min(nodes, 2**17) if model.device.is_cuda else None
 
     # -- guards --------------------------------------------------------------
     def max_stable_dt(self, max_speed: float = 0.0) -> float:
@@ -207,15 +208,16 @@ class SolverMPM:
         table_z = float(m.table.height) if m.table is not None else 0.0
         wp.launch(K.active_columns_kernel, dim=g.columns.size, inputs=[g.columns.flatten(), g.columns.size],
                   outputs=[g.active, g.active_count], device=m.device, record_tape=False)
+        threads = self._grid_threads or max(int(g.active_count.numpy()[0]) * m.grid_res[2], 1)
         wp.launch(
             self._grid_kernel,
-            dim=self._grid_threads,
+            dim=threads,
             inputs=[
                 g.mvm, g.active, g.active_count, origin, m.dx, res, dt, wp.vec3(*m.gravity), m.grid.boundary_cells,
                 has_table, table_z, m.world_table_friction,
                 m.ee_shape, m.ee_radius, m.ee_half_height, m.ee_half_extents, m.ee_friction,
                 m.ee_gripper, state_in.ee_pos, state_in.ee_rot, control.ee_vel, control.ee_omega, control.ee_grip,
-                m.world_grip_friction, int(fused), self._grid_threads,
+                m.world_grip_friction, int(fused), threads,
             ],
             outputs=[g.v],
             device=m.device,
