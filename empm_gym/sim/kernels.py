@@ -441,15 +441,40 @@ def cell_base(x: wp.vec3, origin: wp.vec3, inv_dx: float, res: wp.vec3i):
 
 
 @wp.func(inline=True)
-def p2g_affine(Fp: wp.mat33, Cp: wp.mat33, damage: float, E: float, nu: float, viscosity: float, vol: float,
-               mass: float, dt: float, inv_dx: float):
-    """APIC's affine matrix of one particle [kg/s]: its stress impulse over dt and mass * C."""
-    mu, lam = lame_parameters(E, nu)
-    tau = damaged_kirchhoff(Fp, mu, lam, damage)
+def p2g_affine_scaled(Fp: wp.mat33, Cp: wp.mat33, damage: float, mu_vol: float, lam_vol: float, eta_vol: float,
+                      mass: float, dt: float, inv_dx: float):
+    """APIC's affine matrix of one particle [kg/s]: its stress impulse over dt and mass * C, from the Lame
+    parameters and the viscosity times the particle's volume (the stress is linear in all three)."""
+    tau_vol = damaged_kirchhoff(Fp, mu_vol, lam_vol, damage)
     # Kelvin-Voigt viscous stress (zero when eta = 0); APIC's C is the velocity gradient, so
     # tau_v = J eta (C + C^T). No branch: a data-dependent branch here slows the adjoint kernel.
-    tau = tau + (viscosity * wp.determinant(Fp)) * (Cp + wp.transpose(Cp))
-    return (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * Cp
+    tau_vol = tau_vol + (eta_vol * wp.determinant(Fp)) * (Cp + wp.transpose(Cp))
+    return (-dt * 4.0 * inv_dx * inv_dx) * tau_vol + mass * Cp
+
+
+@wp.func(inline=True)
+def p2g_affine(Fp: wp.mat33, Cp: wp.mat33, damage: float, E: float, nu: float, viscosity: float, vol: float,
+               mass: float, dt: float, inv_dx: float):
+    """APIC's affine matrix of one particle [kg/s] from its material (p2g_affine_scaled)."""
+    mu, lam = lame_parameters(E, nu)
+    return p2g_affine_scaled(Fp, Cp, damage, mu * vol, lam * vol, viscosity * vol, mass, dt, inv_dx)
+
+
+@wp.kernel
+def pack_p2g_materials_kernel(
+    particle_vol: wp.array(dtype=float),
+    particle_E: wp.array(dtype=float),
+    particle_nu: wp.array(dtype=float),
+    particle_density: wp.array(dtype=float),
+    particle_viscosity: wp.array(dtype=float),
+    packed: wp.array(dtype=wp.vec4),
+):
+    """What the sorted P2G reads of a particle's material, in one 16-byte load: (mu V, lambda V, eta V, mass)
+    (five scattered 4-byte loads otherwise, each a 32-byte memory sector)."""
+    p = wp.tid()
+    mu, lam = lame_parameters(particle_E[p], particle_nu[p])
+    vol = particle_vol[p]
+    packed[p] = wp.vec4(mu * vol, lam * vol, particle_viscosity[p] * vol, particle_density[p] * vol)
 
 
 @wp.func
@@ -701,11 +726,7 @@ def p2g_sorted_kernel(
     F: wp.array(dtype=wp.mat33),
     damage: wp.array(dtype=float),
     particle_world: wp.array(dtype=int),
-    particle_vol: wp.array(dtype=float),
-    particle_E: wp.array(dtype=float),
-    particle_nu: wp.array(dtype=float),
-    particle_density: wp.array(dtype=float),
-    particle_viscosity: wp.array(dtype=float),
+    particle_p2g: wp.array(dtype=wp.vec4),
     origin: wp.vec3,
     dx: float,
     inv_dx: float,
@@ -716,14 +737,15 @@ def p2g_sorted_kernel(
     columns: wp.array3d(dtype=int),
 ):
     """p2g_kernel for CUDA with warp-summed atomics; thread t scatters particle order[t] (one thread per
-    particle: no grid-stride loop, so the lanes of a warp are the consecutive threads below ``count``)."""
+    particle: no grid-stride loop, so the lanes of a warp are the consecutive threads below ``count``). The
+    material comes packed (pack_p2g_materials_kernel): in cell order a particle's reads scatter, and each
+    read costs a memory sector."""
     t = wp.tid()
     p = order[t]
     w = particle_world[p]
-    vol = particle_vol[p]
-    mass = particle_density[p] * vol
-    affine = p2g_affine(F[p], C[p], damage[p], particle_E[p], particle_nu[p], particle_viscosity[p], vol, mass, dt,
-                        inv_dx)
+    mat = particle_p2g[p]
+    mass = mat[3]
+    affine = p2g_affine_scaled(F[p], C[p], damage[p], mat[0], mat[1], mat[2], mass, dt, inv_dx)
     mv = mass * v[p]
     base, fx = cell_base(x[p], origin, inv_dx, res)
     seg = warp_segment(stencil_key(w, base, res), t, count)

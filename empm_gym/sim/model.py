@@ -311,6 +311,9 @@ class Model:
         self.particle_viscosity = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
         self.particle_fracture_strain = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
         self.particle_fracture_softening = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
+        self.particle_p2g = wp.zeros(n, dtype=wp.vec4, device=d)
+        """(mu V, lambda V, eta V, mass) per particle, packed for the sorted P2G (no gradient; see
+        update_particle_materials)."""
         self.set_materials(self.materials)
 
         K, W = self.ee_count, self.world_count
@@ -386,7 +389,8 @@ class Model:
     def update_particle_materials(self):
         """Copy the world material arrays (and stiffness multipliers) to the per-particle arrays the kernels read.
 
-        Call after writing ``world_E`` & co. directly; ``set_materials`` and ``Rollout.forward`` do it.
+        Call after writing ``world_E`` & co. directly; ``set_materials`` and ``Rollout.forward`` do it. It also
+        refreshes ``particle_p2g``, the packed copy that the untaped CUDA step reads.
         """
         wp.launch(
             _kernels.expand_materials_kernel,
@@ -399,6 +403,10 @@ class Model:
                      self.particle_fracture_softening],
             device=self.device,
         )
+        wp.launch(_kernels.pack_p2g_materials_kernel, dim=self.particle_count,
+                  inputs=[self.particle_vol, self.particle_E, self.particle_nu, self.particle_density,
+                          self.particle_viscosity],
+                  outputs=[self.particle_p2g], device=self.device, record_tape=False)
 
     def accumulate_material_grads(self):
         """Add the per-particle parameter gradients into the world arrays' gradients (adjoint of the copy)."""

@@ -202,7 +202,9 @@ class SolverMPM:
             if sort:
                 self.sort_particles(state_in)
             wp.launch(K.p2g_sorted_kernel, dim=m.particle_count,
-                      inputs=[self._order, *particles, origin, m.dx, m.inv_dx, res, dt, m.particle_count],
+                      inputs=[self._order, state_in.particle_x, state_in.particle_v, state_in.particle_C,
+                              state_in.particle_F, state_in.particle_damage, m.particle_world, m.particle_p2g,
+                              origin, m.dx, m.inv_dx, res, dt, m.particle_count],
                       outputs=[g.mvm, g.columns], device=m.device)
         has_table = 1 if m.table is not None else 0
         table_z = float(m.table.height) if m.table is not None else 0.0

@@ -37,6 +37,29 @@ def test_batched_worlds_equal_separate_runs():
     assert np.abs(x[m.world_slice(0)] - x[m.world_slice(1)]).max() > 1e-3
 
 
+def test_packed_p2g_materials_follow_every_material_change():
+    """Model.particle_p2g, which the sorted CUDA P2G reads instead of the per-particle arrays, is (mu V,
+    lambda V, eta V, rho V) of each particle after set_materials and after a direct write of the world arrays
+    followed by update_particle_materials (the documented contract), heterogeneous stiffness included."""
+    m = block_model(worlds=3, materials=MATERIALS)
+
+    def check():
+        E, nu = m.particle_E.numpy(), m.particle_nu.numpy()
+        vol, rho, eta = m.particle_vol.numpy(), m.particle_density.numpy(), m.particle_viscosity.numpy()
+        mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+        np.testing.assert_allclose(m.particle_p2g.numpy(), np.stack([mu * vol, lam * vol, eta * vol, rho * vol], 1),
+                                   rtol=1e-5)
+
+    check()
+    m.set_materials([MATERIALS[2].replace(viscosity=1.5, stiffness_slope_1=0.4), MATERIALS[0], MATERIALS[1]])
+    assert np.ptp(m.particle_E.numpy()[m.world_slice(0)]) > 0  # the stiffness field varies over world 0
+    check()
+    m.world_E.assign(np.array([5e4, 7e4, 9e4], np.float32))
+    m.update_particle_materials()
+    check()
+    assert np.isclose(m.particle_E.numpy()[m.world_slice(1)].mean(), 7e4, rtol=1e-6)
+
+
 def test_same_inputs_give_bit_identical_trajectories():
     _, a = _batched_run([0, 1])
     _, b = _batched_run([0, 1])

@@ -60,6 +60,27 @@ def test_cell_sorted_p2g_matches_per_particle_atomics():
 
 
 @cuda
+def test_sorted_p2g_reads_materials_set_after_the_solver_was_made():
+    # the sorted P2G reads a packed copy of the materials (Model.particle_p2g): a change of material after
+    # the solvers exist must reach it as it reaches the per-particle arrays that the unsorted P2G reads
+    m = block_model(material=MaterialConfig(E=3e4, nu=0.3, density=1000.0), worlds=3, device="cuda:0")
+    solvers = [SolverMPM(m, SolverConfig()), SolverMPM(m, SolverConfig(sort_every=0))]
+    m.set_materials([MaterialConfig(E=1e4, nu=0.2, density=800.0), MaterialConfig(E=8e4, nu=0.4, density=1200.0),
+                     MaterialConfig(E=3e4, nu=0.3, density=1000.0, viscosity=2.0)])
+    out = []
+    for solver in solvers:
+        a, b = m.state(), m.state()
+        v = np.zeros((m.particle_count, 3), np.float32)
+        v[:, 2] = -0.5
+        a.particle_v.assign(v)
+        for _ in range(40):
+            solver.step(a, b, m.control(), 2e-4)
+            a, b = b, a
+        out.append(a.particle_x.numpy())
+    np.testing.assert_allclose(out[0], out[1], atol=2e-5)
+
+
+@cuda
 def test_cuda_material_gradient_matches_cpu():
     from empm_gym.sim import Rollout
 
