@@ -303,6 +303,27 @@ def test_doctor_cli_reports_bad_input(tmp_path, capsys):
     assert all(name in out for name in EFFECTS)
 
 
+def test_doctor_cli_marks_fits_at_their_search_bound(tmp_path, capsys, monkeypatch):
+    """The CLI's summary gives every fit's parameters and says which lie at their search bound (the demo's
+    base model sat at its lowest E and the summary printed it as a plain number)."""
+    import empm_gym.identification.doctor as doctor
+    from empm_gym.cli import main
+
+    fit = {"heldout": {"chamfer_m": 0.02, "loss": 0.05}, "gain": None}
+    res = {"effect": "gripper_slip", "confidence": 1.0, "reason": "it lowers the held-out loss", "notes": [],
+           "base": {**fit, "params": {"E": 2000.0}, "at_search_bound": ["E"]},
+           "candidates": [{**fit, "effect": "gripper_slip", "params": {"E": 29936.1, "grip_friction": 0.8967},
+                           "at_search_bound": [], "gain": {"gain": 0.85, "significant": True}},
+                          {**fit, "effect": "fracture", "params": {"E": 2003.0, "fracture_strain": 0.02},
+                           "at_search_bound": ["E", "fracture_strain"], "gain": {"gain": -0.12, "significant": False}}]}
+    monkeypatch.setattr(doctor, "diagnose_recording", lambda *a, **k: res)
+    assert main(["doctor", str(tmp_path), "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert "base model: E=2000 (at bound)" in out
+    assert "fitted E=2.994e+04, grip_friction=0.8967\n" in out
+    assert "fitted E=2003 (at bound), fracture_strain=0.02 (at bound)" in out
+
+
 def test_variants_are_the_same_body_on_another_discretisation():
     """The doctor's variants (a named effect must hold its gain on them): the grid moved sideways by part of a
     cell, still covering the original box and keeping the node layer on the table; the particles moved by at

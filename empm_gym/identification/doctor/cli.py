@@ -10,6 +10,7 @@ __all__ = ["register"]
 
 def _doctor(args) -> int:
     from . import DoctorConfig, DoctorError, diagnose_recording
+    from .core import fitted_text
 
     cfg = DoctorConfig(train_fraction=args.train_fraction, base_iters=args.iters, candidate_iters=args.iters,
                        popsize=args.popsize, variants=args.variants, variant_iters=args.variant_iters)
@@ -25,11 +26,12 @@ def _doctor(args) -> int:
     print(f"  {res['reason']}")
     if res.get("decidable", True) and "candidates" in res:
         b = res["base"]["heldout"]
-        print(f"  base model: E = {res['base']['params']['E']:.4g} Pa, held-out Chamfer {1e3 * b['chamfer_m']:.2f} mm")
+        print(f"  base model: {fitted_text(res['base'])} [Pa], held-out Chamfer {1e3 * b['chamfer_m']:.2f} mm")
         for c in res["candidates"]:
             g = c["gain"] or {}
             print(f"  {c['effect']:24s} held-out Chamfer {1e3 * c['heldout']['chamfer_m']:.2f} mm, loss gain "
-                  f"{100 * g.get('gain', float('nan')):+.1f} % {'(significant)' if g.get('significant') else ''}")
+                  f"{100 * g.get('gain', float('nan')):+.1f} % {'(significant)' if g.get('significant') else ''}; "
+                  f"fitted {fitted_text(c)}")
     for n in res.get("notes", []):
         print(f"  note: {n}")
     print(f"wrote {', '.join(res.get('files', {}).values())}")

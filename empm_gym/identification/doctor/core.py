@@ -302,6 +302,13 @@ def _fit_candidate(name: str, scene: Scene, obs: Observations, base_material: Ma
     return f
 
 
+def fitted_text(fit: dict) -> str:
+    """A fit's parameters as ``E=2.99e+04, grip_friction=0.8967``, each marked ``(at bound)`` where it lies
+    at its search bound (report.md's table and the CLI)."""
+    return ", ".join(f"{k}={v:.4g}" + (" (at bound)" if k in fit.get("at_search_bound", ()) else "")
+                     for k, v in fit["params"].items())
+
+
 #: E within this factor of a bound of its box is at that bound (:func:`_at_bound`).
 _EDGE_FACTOR = 1.05
 #: Where the base model's E is no measurement (its refit ends at a bound of the box), a fit whose E ends in this
@@ -850,8 +857,7 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
                                             **({f"chamfer_{effect}": per[best_w]["chamfer"].tolist()} if best_w else {})},
              second_sim=None if best_w is None else X[:, best_w], second_name=f"simulated_{effect}")
     rows = [{"candidate": c["effect"], "added parameters": c["added_params"],
-             "fitted": ", ".join(f"{k}={v:.4g}" + (" (at bound)" if k in c.get("at_search_bound", ()) else "")
-                                 for k, v in c["params"].items()),
+             "fitted": fitted_text(c),
              "E searched [Pa]": "" if not c.get("E_window") else "{:.3g} to {:.3g}".format(*c["E_window"]),
              "held-out Chamfer [mm]": 1e3 * c["heldout"]["chamfer_m"],
              "held-out loss gain [%]": 100 * (c["gain"] or {}).get("gain", float("nan")),
