@@ -2,9 +2,10 @@
 
 #: Test files that take minutes on the CPU, longest first (seconds on the 2-core development machine,
 #: 2026-11-25, a clean clone: 1130, 1073, 772, 634, 299 and 237 of the suite's 4785; after the stress stopped
-#: calling svd3, about 880, 600, 550, 380, 200 and 150 of 3400; test_doctor_e2e then gained a 400 s test). They run first, so that under
-#: ``make test`` (pytest-xdist, 2 workers, ``--dist loadfile --no-loadscope-reorder``: files handed out in this
-#: order) each worker starts on long files and the short ones fill in the end. xdist's default order (files
+#: calling svd3, about 880, 600, 550, 380, 200 and 150 of 3400; test_doctor_e2e then gained a 400 s test).
+#: They run first, so that under ``make test`` (pytest-xdist, 2 workers, ``--dist loadfile
+#: --no-loadscope-reorder``: files handed out in this order) each worker starts on long files and the short
+#: ones fill in the end. xdist's default order (files
 #: with the most tests first) left these few-test files for last; replaying its rule on the measured times gives
 #: one worker 47 minutes and the other 33 (benchmarks/RESULTS.md, session 19).
 LONG_FIRST = (

@@ -199,7 +199,8 @@ def skew(a: wp.vec3):
 
 @wp.func
 def polar_rotation_adjoint(F: wp.mat33, R: wp.mat33, newton: int, M: wp.mat33):
-    """dL/dF through the polar rotation R of F (``newton``: polar_newton's flag), given M = dL/dR: R [z]x with z = (tr(S) I - S)^-1 vee(N - N^T),
+    """dL/dF through the polar rotation R of F (``newton``: polar_newton's flag), given M = dL/dR:
+    R [z]x with z = (tr(S) I - S)^-1 vee(N - N^T),
     N = R^T M, S = R^T F (R^T dR = [w]x with (tr(S) I - S) w = vee(R^T dF - dF^T R); tr(S) I - S has the
     eigenvalues s_i + s_j). Where polar_newton does not apply, the same derivative from svd3's signed SVD:
     U Y V^T with Y_ij = (Mt_ij - Mt_ji) / (s_i + s_j), Mt = U^T M V, which holds because U and V are rotations
