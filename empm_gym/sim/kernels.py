@@ -259,13 +259,14 @@ def adj_damaged_kirchhoff(F: wp.mat33, mu: float, lam: float, damage: float, adj
     """Analytic adjoint of damaged_kirchhoff, in place of Warp's automatic one through svd3's adjoint: that
     one costs more and divides by s_j^2 - s_i^2 (clamped), which put its dL/dF 4-15 % off where two singular
     values are equal (F = I, a rotation, an axisymmetric stretch). With G = dL/dtau, a = 2 mu (1 - damage):
-    dL/dF = a (G F + G^T (F - R)) + polar_rotation_adjoint(F, -a G F) + tr(G) lam k' (2J - 1) cof(F), with
+    dL/dF = a (G F + G^T (F - R)) + polar_rotation_adjoint(F, R, ., -a G F) + tr(G) lam k' (2J - 1) cof(F), with
     k' = 1 - damage under tension (J > 1), else 1 (-a G F is dL/dR). func_grad passes no forward
     intermediates, so R is computed again here. p2g_affine's inline=True only force-inlines the generated
     functions: its adjoint calls this one."""
     R, newton = polar_newton(F)
     if newton == 0:
-        R = polar_rotation(F)
+        U, s, V, Rs = svd_polar(F)  # polar_rotation's fallback, without running the iteration again
+        R = Rs
     J = wp.determinant(F)
     keep = 1.0 - damage
     G = adj_ret
