@@ -12,7 +12,7 @@ from . import kernels as _kernels
 from .config import SHAPE_IDS, EndEffectorConfig, GridConfig, MaterialConfig, TableConfig, as_vec3
 from .effects import PARAMETERS as _EFFECT_PARAMS
 
-__all__ = ["Model", "ModelBuilder", "State", "Control"]
+__all__ = ["Model", "ModelBuilder", "State", "StateBlock", "Control"]
 
 
 def _arr(a, dtype, device, requires_grad=False):
@@ -24,18 +24,23 @@ class State:
     [-] (0 intact .. 1 broken; the fracture effect), end-effector positions [m] and orientations
     (quaternion x, y, z, w)."""
 
-    def __init__(self, model: "Model", requires_grad: bool = False):
-        n, e, d = model.particle_count, model.world_count * model.ee_count, model.device
+    def __init__(self, model: "Model", requires_grad: bool = False, *, arrays: Optional[dict] = None):
+        """Zeroed arrays of their own, or (``arrays``, from :class:`StateBlock`) the given ones."""
         self.requires_grad = requires_grad
-        self.particle_x = wp.zeros(n, dtype=wp.vec3, device=d, requires_grad=requires_grad)
-        self.particle_v = wp.zeros(n, dtype=wp.vec3, device=d, requires_grad=requires_grad)
-        self.particle_C = wp.zeros(n, dtype=wp.mat33, device=d, requires_grad=requires_grad)
-        self.particle_F = wp.zeros(n, dtype=wp.mat33, device=d, requires_grad=requires_grad)
-        self.particle_damage = wp.zeros(n, dtype=float, device=d, requires_grad=requires_grad)
-        self.ee_pos = wp.zeros(max(e, 1), dtype=wp.vec3, device=d, requires_grad=requires_grad)
-        self.ee_rot = wp.zeros(max(e, 1), dtype=wp.quat, device=d, requires_grad=requires_grad)
+        if arrays is None:
+            arrays = {name: wp.zeros(size, dtype=dtype, device=model.device, requires_grad=requires_grad)
+                      for name, dtype, size in self.fields(model)}
+        for name in self.ARRAYS:
+            setattr(self, name, arrays[name])
 
     ARRAYS = ("particle_x", "particle_v", "particle_C", "particle_F", "particle_damage", "ee_pos", "ee_rot")
+
+    @classmethod
+    def fields(cls, model: "Model"):
+        """(name, dtype, length) of each array, in the order of ``ARRAYS``."""
+        n, e = model.particle_count, max(model.world_count * model.ee_count, 1)
+        dtypes = (wp.vec3, wp.vec3, wp.mat33, wp.mat33, float, wp.vec3, wp.quat)
+        return [(name, dtype, n if name.startswith("particle") else e) for name, dtype in zip(cls.ARRAYS, dtypes)]
 
     def arrays(self):
         return [getattr(self, a) for a in self.ARRAYS]
@@ -65,6 +70,25 @@ class State:
             arr.assign(wp.array(val, dtype=arr.dtype, device=arr.device))
         return self
 
+
+
+class StateBlock:
+    """``count`` states whose arrays are the rows of one array per field: a rollout of thousands of substeps
+    allocates, and zeroes the gradients of, all its states with one call per field instead of one per state
+    and field (on a GPU each call costs tens of microseconds, and each zeroing one node of a CUDA graph)."""
+
+    def __init__(self, model: "Model", count: int, requires_grad: bool = False):
+        if count <= 0:
+            raise ValueError(f"StateBlock: count must be a positive number of states, got {count}")
+        self.blocks = [wp.zeros((count, size), dtype=dtype, device=model.device, requires_grad=requires_grad)
+                       for _, dtype, size in State.fields(model)]
+        self.states = [State(model, requires_grad, arrays={name: b[i] for name, b in zip(State.ARRAYS, self.blocks)})
+                       for i in range(count)]
+
+    def zero_grad(self):
+        for b in self.blocks:
+            if b.grad is not None:
+                b.grad.zero_()
 
 class Control:
     """Action of one step: end-effector linear velocity [m/s], angular velocity [rad/s], grip flag."""

@@ -25,8 +25,8 @@ import logging
 import numpy as np
 import warp as wp
 
-from .model import Control, Model, State
-from .solver import GridScratch, SolverMPM
+from .model import Control, Model, State, StateBlock
+from .solver import GridScratchBlock, SolverMPM
 
 __all__ = ["Rollout"]
 
@@ -92,8 +92,10 @@ class Rollout:
         self.segment = int(checkpoint_every) if checkpoint_every else self.steps
         self.checkpointed = checkpoint_every is not None and checkpoint_every < steps
         S = self.segment
-        self._states = [State(model, requires_grad=True) for _ in range(S + 1)]
-        self._grids = [GridScratch(model, requires_grad=True) for _ in range(S)]
+        # one array per field for all states (and grids): allocated, and their gradients zeroed, at once
+        self._state_block = StateBlock(model, S + 1, requires_grad=True)
+        self._grid_block = GridScratchBlock(model, S, requires_grad=True)
+        self._states, self._grids = self._state_block.states, self._grid_block.grids
         self.control_count = -(-self.steps // self.substeps_per_control)
         self.record_steps = list(range(0, self.steps + 1, self.record_every))
         self._checkpoints: List[State] = []
@@ -179,13 +181,15 @@ class Rollout:
     # -- backward --------------------------------------------------------------
     def _taped_backward(self, seeds: dict):
         """The adjoint of :meth:`_taped_steps` from the seed gradients ``{record step: gradient}``."""
-        for s in self._states:
-            s.zero_grad()
-        for g in self._grids:
-            g.zero_grad()
+        self._zero_rollout_grads()
         for t, g in seeds.items():
             _add_grad(self._states[t].particle_x, g)
         self._tape.backward()
+
+    def _zero_rollout_grads(self):
+        """Zero the gradients of every state and grid of the rollout."""
+        self._state_block.zero_grad()
+        self._grid_block.zero_grad()
 
     def zero_grad(self, controls: Optional[Sequence[Control]] = None):
         """Zero the gradients of the model's parameters and of the controls."""
@@ -231,10 +235,7 @@ class Rollout:
             adj = None
             for seg in reversed(range(len(self._checkpoints))):
                 t0, t1 = seg * S, min(seg * S + S, self.steps)
-                for s in states:
-                    s.zero_grad()
-                for g in grids:
-                    g.zero_grad()
+                self._zero_rollout_grads()
                 states[0].assign(self._checkpoints[seg])
                 tape = wp.Tape()
                 with tape:

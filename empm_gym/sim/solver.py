@@ -12,7 +12,7 @@ from . import kernels as K
 from .config import SolverConfig, stable_dt
 from .model import Control, Model, State
 
-__all__ = ["SolverMPM", "GridScratch", "SimulationDiverged", "UnstableTimeStep"]
+__all__ = ["SolverMPM", "GridScratch", "GridScratchBlock", "SimulationDiverged", "UnstableTimeStep"]
 
 
 class SimulationDiverged(RuntimeError):
@@ -40,24 +40,58 @@ class GridScratch:
     arrays' current values.
     """
 
-    def __init__(self, model: Model, requires_grad: bool = False):
-        shape = (model.world_count, *model.grid_res)
-        d = model.device
+    def __init__(self, model: Model, requires_grad: bool = False, *, arrays: Optional[dict] = None):
+        """Zeroed arrays of their own, or (``arrays``, from :class:`GridScratchBlock`) the given ones."""
+        if arrays is None:
+            arrays = {name: wp.zeros(shape, dtype=dtype, device=model.device, requires_grad=requires_grad and grad)
+                      for name, dtype, shape, grad in self.fields(model)}
         self.clean = True
         """The mass and momentum arrays are known to be zero (freshly allocated or cleared in place)."""
-        self.mvm = wp.zeros(shape, dtype=wp.vec4, device=d, requires_grad=requires_grad)
-        self.columns = wp.zeros(shape[:3], dtype=int, device=d)
+        self.mvm = arrays["mvm"]
+        self.columns = arrays["columns"]
         """1 where P2G reached a column (world, i, j) of nodes; cleared before every P2G."""
-        self.active = wp.zeros(self.columns.size, dtype=int, device=d)
+        self.active = arrays["active"]
         """The flagged columns' flat indices, ``active_count[0]`` of them (in any order)."""
-        self.active_count = wp.zeros(1, dtype=int, device=d)
-        self.v = wp.zeros(shape, dtype=wp.vec3, device=d, requires_grad=requires_grad)
+        self.active_count = arrays["active_count"]
+        self.v = arrays["v"]
+
+    @staticmethod
+    def fields(model: Model):
+        """(name, dtype, shape, differentiable) of each array."""
+        shape = (model.world_count, *model.grid_res)
+        return [("mvm", wp.vec4, shape, True), ("columns", int, shape[:3], False),
+                ("active", int, (int(np.prod(shape[:3])),), False), ("active_count", int, (1,), False),
+                ("v", wp.vec3, shape, True)]
 
     def zero_grad(self):
         for a in (self.mvm, self.v):
             if a.grad is not None:
                 a.grad.zero_()
 
+
+
+class GridScratchBlock:
+    """``count`` grids whose arrays are consecutive slices of one array per field (see StateBlock): a taped
+    rollout keeps one grid per substep."""
+
+    def __init__(self, model: Model, count: int, requires_grad: bool = False):
+        if count <= 0:
+            raise ValueError(f"GridScratchBlock: count must be a positive number of grids, got {count}")
+        self.blocks = {}
+        views = [{} for _ in range(count)]
+        for name, dtype, shape, grad in GridScratch.fields(model):
+            # warp arrays have at most 4 dimensions: stack the grids along the first one
+            block = wp.zeros((count * shape[0], *shape[1:]), dtype=dtype, device=model.device,
+                             requires_grad=requires_grad and grad)
+            self.blocks[name] = block
+            for i in range(count):
+                views[i][name] = block[i * shape[0]:(i + 1) * shape[0]]
+        self.grids = [GridScratch(model, arrays=a) for a in views]
+
+    def zero_grad(self):
+        for b in self.blocks.values():
+            if b.grad is not None:
+                b.grad.zero_()
 
 _GRID_KERNELS = {}
 

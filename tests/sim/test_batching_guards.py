@@ -223,6 +223,39 @@ def test_in_place_grid_clearing_equals_explicit_clearing():
     assert not scratch.clean and solver.scratch.clean
 
 
+
+def test_blocks_of_states_and_grids_step_like_separate_ones_and_zero_their_gradients_together():
+    # a rollout's states and grids are rows of one array per field: stepping through them must give the
+    # trajectory that separate arrays give (no row overlaps another), and zero_grad must clear every row
+    from empm_gym.sim import GridScratch
+    from empm_gym.sim.model import StateBlock
+    from empm_gym.sim.solver import GridScratchBlock
+
+    m = block_model(end_effectors=[GRIPPER], material=MATERIALS[1])
+    c = m.control().set(velocity=[[[0.1, 0.0, 0.2]]], grip=[[1]])
+    steps = 6
+    states, grids = StateBlock(m, steps + 1, requires_grad=True), GridScratchBlock(m, steps, requires_grad=True)
+    solver, scratch = SolverMPM(m), GridScratch(m)
+    states.states[0].assign(m.state())
+    a, b = m.state(), m.state()
+    for t in range(steps):
+        solver.step(states.states[t], states.states[t + 1], c, 4e-4, grids.grids[t])
+        solver.step(a, b, c, 4e-4, scratch)
+        a, b = b, a
+        assert np.array_equal(states.states[t + 1].particle_x.numpy(), a.particle_x.numpy())
+        assert np.array_equal(grids.grids[t].v.numpy(), scratch.v.numpy())
+    # the first state still holds the initial one: no later step wrote into it
+    assert np.array_equal(states.states[0].particle_x.numpy(), m.state().particle_x.numpy())
+    for s in states.states:
+        s.particle_F.grad.fill_(1.0)
+    grids.grids[-1].v.grad.fill_(1.0)
+    states.zero_grad()
+    grids.zero_grad()
+    assert all(not s.particle_F.grad.numpy().any() for s in states.states)
+    assert not any(g.v.grad.numpy().any() for g in grids.grids)
+    with pytest.raises(ValueError, match="count"):
+        StateBlock(m, 0)
+
 def test_solver_config_rejects_bad_values():
     from empm_gym.sim import SolverConfig
 
