@@ -981,6 +981,211 @@ def g2p_kernel(
                x_out, v_out, C_out, F_out, damage_out)
 
 
+# -- Transfers with hand-written adjoints (taped steps). Warp's own adjoint of the 27-node loops above keeps
+# every unrolled iteration's intermediates alive from its forward replay into the reverse sweep; these
+# recompute each node's weight in the reverse sweep instead. The forward code is the loops' own arithmetic.
+# Their atomics bypass Warp's deterministic mode, which therefore keeps the loops above.
+
+mat34 = wp.types.matrix(shape=(3, 4), dtype=wp.float32)
+"""Gathered APIC fields of one particle: columns 0-2 the affine velocity C [1/s], column 3 the velocity [m/s]."""
+
+_BSPLINE_AND_DERIVATIVE = """
+    float wt[3][3], dw[3][3];  // [node offset][axis]: quadratic B-spline weights and their d/dfx
+    for (int a = 0; a < 3; ++a) {
+        const float p = 1.5f - fx[a], q = fx[a] - 1.0f, r = fx[a] - 0.5f;
+        wt[0][a] = 0.5f * (p * p); wt[1][a] = 0.75f - q * q; wt[2][a] = 0.5f * (r * r);
+        dw[0][a] = -p; dw[1][a] = -2.0f * q; dw[2][a] = r;
+    }
+"""
+
+_NODES_BEGIN = """
+    for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+    for (int k = 0; k < 3; ++k) {
+        const float weight = wt[i][0] * wt[j][1] * wt[k][2];
+        const float dpos[3] = {((float)i - fx[0]) * dx, ((float)j - fx[1]) * dx, ((float)k - fx[2]) * dx};
+"""
+
+_WEIGHT_GRADIENT = """
+        const float gw[3] = {dw[i][0] * wt[j][1] * wt[k][2], wt[i][0] * dw[j][1] * wt[k][2],
+                             wt[i][0] * wt[j][1] * dw[k][2]};
+"""
+
+
+@wp.func_native(
+    snippet=_BSPLINE_AND_DERIVATIVE + """
+    const float cscale = 4.0f * inv_dx * inv_dx;
+    wp::mat_t<3, 4, wp::float32> out;
+""" + _NODES_BEGIN + """
+        const wp::vec3 gv = wp::index(grid_v, w, base[0] + i, base[1] + j, base[2] + k);
+        const float cw = cscale * weight;
+        for (int r = 0; r < 3; ++r) {
+            out.data[r][3] += weight * gv[r];
+            for (int c = 0; c < 3; ++c)
+                out.data[r][c] += cw * (gv[r] * dpos[c]);
+        }
+    }
+    return out;
+""",
+    adj_snippet=_BSPLINE_AND_DERIVATIVE + """
+    const float cscale = 4.0f * inv_dx * inv_dx;
+    float gfx[3] = {0.0f, 0.0f, 0.0f};
+""" + _NODES_BEGIN + _WEIGHT_GRADIENT + """
+        const wp::vec3 gv = wp::index(grid_v, w, base[0] + i, base[1] + j, base[2] + k);
+        const float cw = cscale * weight;
+        // new_v += weight gv, new_C += cw gv dpos^T; A = adj new_C, a = adj new_v
+        float aw = 0.0f;
+        wp::vec3 g;
+        for (int r = 0; r < 3; ++r) {
+            const float Ad = adj_ret.data[r][0] * dpos[0] + adj_ret.data[r][1] * dpos[1] + adj_ret.data[r][2] * dpos[2];
+            g[r] = weight * adj_ret.data[r][3] + cw * Ad;
+            aw += gv[r] * (adj_ret.data[r][3] + cscale * Ad);
+        }
+        if (adj_grid_v.data)
+            wp::adj_atomic_add(&wp::index(adj_grid_v, w, base[0] + i, base[1] + j, base[2] + k), g);
+        else if (grid_v.grad)
+            wp::adj_atomic_add(&wp::index_grad(grid_v, w, base[0] + i, base[1] + j, base[2] + k), g);
+        for (int c = 0; c < 3; ++c) {
+            const float atg = adj_ret.data[0][c] * gv[0] + adj_ret.data[1][c] * gv[1] + adj_ret.data[2][c] * gv[2];
+            gfx[c] += aw * gw[c] - dx * cw * atg;  // d dpos / d fx = -dx
+        }
+    }
+    adj_fx[0] += gfx[0]; adj_fx[1] += gfx[1]; adj_fx[2] += gfx[2];
+""",
+)
+def apic_gather(grid_v: wp.array4d(dtype=wp.vec3), w: int, base: wp.vec3i, fx: wp.vec3, dx: float,
+                inv_dx: float) -> mat34:
+    """G2P's gather over the 27 nodes of the stencil at ``base`` (fractional position fx in cells): the
+    particle's new velocity (column 3) and affine velocity C (columns 0-2), as g2p_kernel's loop computes
+    them. Differentiable in grid_v and fx."""
+    ...
+
+
+@wp.func_native(
+    snippet=_BSPLINE_AND_DERIVATIVE + _NODES_BEGIN + """
+        float m[3];
+        for (int r = 0; r < 3; ++r)
+            m[r] = weight * (mv[r] + (affine.data[r][0] * dpos[0] + affine.data[r][1] * dpos[1]
+                                      + affine.data[r][2] * dpos[2]));
+        wp::vec4* node = &wp::index(grid, w, base[0] + i, base[1] + j, base[2] + k);
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+        if (packed) {
+            atomicAdd(reinterpret_cast<float4*>(node), make_float4(m[0], m[1], m[2], weight * mass));
+            continue;
+        }
+#endif
+        wp::atomic_add(node, wp::vec4(m[0], m[1], m[2], weight * mass));
+    }
+""",
+    adj_snippet=_BSPLINE_AND_DERIVATIVE + """
+    float gfx[3] = {0.0f, 0.0f, 0.0f}, gmv[3] = {0.0f, 0.0f, 0.0f}, gaff[3][3] = {}, gmass = 0.0f;
+""" + _NODES_BEGIN + _WEIGHT_GRADIENT + """
+        wp::vec4 G;
+        if (adj_grid.data)
+            G = wp::index(adj_grid, w, base[0] + i, base[1] + j, base[2] + k);
+        else if (grid.grad)
+            G = wp::index_grad(grid, w, base[0] + i, base[1] + j, base[2] + k);
+        // node += (weight (mv + affine dpos), weight mass)
+        float aw = G[3] * mass;
+        for (int r = 0; r < 3; ++r) {
+            const float u = mv[r] + (affine.data[r][0] * dpos[0] + affine.data[r][1] * dpos[1]
+                                     + affine.data[r][2] * dpos[2]);
+            aw += G[r] * u;
+            gmv[r] += weight * G[r];
+            for (int c = 0; c < 3; ++c)
+                gaff[r][c] += weight * G[r] * dpos[c];
+        }
+        gmass += weight * G[3];
+        for (int c = 0; c < 3; ++c) {
+            const float atg = affine.data[0][c] * G[0] + affine.data[1][c] * G[1] + affine.data[2][c] * G[2];
+            gfx[c] += aw * gw[c] - dx * weight * atg;
+        }
+    }
+    for (int r = 0; r < 3; ++r) {
+        adj_fx[r] += gfx[r];
+        adj_mv[r] += gmv[r];
+        for (int c = 0; c < 3; ++c)
+            adj_affine.data[r][c] += gaff[r][c];
+    }
+    adj_mass += gmass;
+""",
+    replay_snippet="",
+)
+def apic_scatter(grid: wp.array4d(dtype=wp.vec4), w: int, base: wp.vec3i, fx: wp.vec3, dx: float, mv: wp.vec3,
+                 affine: wp.mat33, mass: float, packed: int):
+    """P2G's scatter over the 27 nodes of the stencil at ``base``: momentum weight (mv + affine dpos) and
+    mass weight mass per node, as p2g_kernel's loop adds them (``packed``: one 16-byte atomic per node on
+    sm_90). Differentiable in mv, affine, mass and fx."""
+    ...
+
+
+@wp.kernel
+def p2g_native_kernel(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    damage: wp.array(dtype=float),
+    particle_world: wp.array(dtype=int),
+    particle_vol: wp.array(dtype=float),
+    particle_E: wp.array(dtype=float),
+    particle_nu: wp.array(dtype=float),
+    particle_density: wp.array(dtype=float),
+    particle_viscosity: wp.array(dtype=float),
+    origin: wp.vec3,
+    dx: float,
+    inv_dx: float,
+    res: wp.vec3i,
+    dt: float,
+    packed: int,
+    grid_mvm: wp.array4d(dtype=wp.vec4),
+):
+    """p2g_kernel with the hand-written adjoint of its scatter (apic_scatter): taped steps."""
+    p = wp.tid()
+    vol = particle_vol[p]
+    mass = particle_density[p] * vol
+    affine = p2g_affine(F[p], C[p], damage[p], particle_E[p], particle_nu[p], particle_viscosity[p], vol, mass, dt,
+                        inv_dx)
+    base, fx = cell_base(x[p], origin, inv_dx, res)
+    apic_scatter(grid_mvm, particle_world[p], base, fx, dx, mass * v[p], affine, mass, packed)
+
+
+@wp.kernel
+def g2p_native_kernel(
+    x: wp.array(dtype=wp.vec3),
+    F: wp.array(dtype=wp.mat33),
+    damage: wp.array(dtype=float),
+    particle_world: wp.array(dtype=int),
+    particle_E: wp.array(dtype=float),
+    particle_nu: wp.array(dtype=float),
+    particle_yield: wp.array(dtype=float),
+    particle_plastic: wp.array(dtype=int),
+    particle_fracture_strain: wp.array(dtype=float),
+    particle_fracture_softening: wp.array(dtype=float),
+    grid_v: wp.array4d(dtype=wp.vec3),
+    origin: wp.vec3,
+    dx: float,
+    inv_dx: float,
+    res: wp.vec3i,
+    dt: float,
+    min_singular: float,
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    C_out: wp.array(dtype=wp.mat33),
+    F_out: wp.array(dtype=wp.mat33),
+    damage_out: wp.array(dtype=float),
+):
+    """g2p_kernel with the hand-written adjoint of its gather (apic_gather): taped steps."""
+    p = wp.tid()
+    base, fx = cell_base(x[p], origin, inv_dx, res)
+    R = apic_gather(grid_v, particle_world[p], base, fx, dx, inv_dx)
+    new_v = wp.vec3(R[0, 3], R[1, 3], R[2, 3])
+    new_C = wp.mat33(R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2])
+    g2p_finish(p, new_v, new_C, x, F, damage, particle_E, particle_nu, particle_yield, particle_plastic,
+               particle_fracture_strain, particle_fracture_softening, origin, dx, res, dt, min_singular,
+               x_out, v_out, C_out, F_out, damage_out)
+
+
 @wp.kernel
 def expand_materials_kernel(
     particle_world: wp.array(dtype=int),

@@ -224,8 +224,10 @@ class SolverMPM:
         # the warp-summed P2G serves untaped steps only: on one H100 an identification fit taped through it
         # gave non-finite material gradients in blocks of 32 threads (not reproduced on the CPU, not yet
         # understood); taped steps keep the per-particle atomics, whose gradients are tested
+        # a taped step's transfers come with hand-written adjoints (Warp's deterministic mode keeps its own)
+        native = not fused and not self.config.deterministic
         if self._order is None or not fused:
-            wp.launch(K.p2g_kernel, dim=m.particle_count, inputs=[*particles, origin, m.dx, m.inv_dx, res, dt,
+            wp.launch(K.p2g_native_kernel if native else K.p2g_kernel, dim=m.particle_count, inputs=[*particles, origin, m.dx, m.inv_dx, res, dt,
                                                                  self._packed], outputs=[g.mvm], device=m.device)
             wp.launch(K.mark_columns_kernel, dim=m.particle_count,
                       inputs=[state_in.particle_x, m.particle_world, origin, m.inv_dx, res], outputs=[g.columns],
@@ -261,7 +263,7 @@ class SolverMPM:
         g.clean = fused
         # G2P keeps the particles' own order: in cell order its reads and writes scatter (measured slower)
         wp.launch(
-            K.g2p_kernel,
+            K.g2p_native_kernel if native else K.g2p_kernel,
             dim=m.particle_count,
             inputs=[
                 state_in.particle_x, state_in.particle_F, state_in.particle_damage, m.particle_world,
