@@ -172,6 +172,7 @@ class Rollout:
         """Every substep on ``self._tape``, each into its own state and grid (the rollout taped at once)."""
         states = self._states
         with self._tape:
+            self._grid_block.clear()
             for t in range(self.steps):
                 self.solver.step(states[t], states[t + 1], self._control(controls, t), self.dt, self._grids[t],
                                  guards=False)

@@ -47,6 +47,9 @@ class GridScratch:
                       for name, dtype, shape, grad in self.fields(model)}
         self.clean = True
         """The mass and momentum arrays are known to be zero (freshly allocated or cleared in place)."""
+        self.cleared = False
+        """Mass, momentum, column flags and count were zeroed for the next step (GridScratchBlock.clear), which
+        then skips its own memsets."""
         self.mvm = arrays["mvm"]
         self.columns = arrays["columns"]
         """1 where P2G reached a column (world, i, j) of nodes; cleared before every P2G."""
@@ -87,6 +90,14 @@ class GridScratchBlock:
             for i in range(count):
                 views[i][name] = block[i * shape[0]:(i + 1) * shape[0]]
         self.grids = [GridScratch(model, arrays=a) for a in views]
+
+    def clear(self):
+        """Zero every grid's mass, momentum, column flags and count with one memset per field: the next step
+        on each grid skips its own three (a taped rollout's forward has one grid per substep)."""
+        for name in ("mvm", "columns", "active_count"):
+            self.blocks[name].zero_()
+        for g in self.grids:
+            g.cleared = True
 
     def zero_grad(self):
         for b in self.blocks.values():
@@ -210,10 +221,13 @@ class SolverMPM:
         # the solver's own grid, outside any tape, is cleared inside the grid kernel (saves two passes);
         # a taped substep keeps its grid values for the backward pass and is cleared here instead
         fused = scratch is None and _wp_context.runtime.tape is None
-        if not (fused and g.clean):
-            g.mvm.zero_()
-        g.columns.zero_()
-        g.active_count.zero_()
+        if g.cleared:
+            g.cleared = False
+        else:
+            if not (fused and g.clean):
+                g.mvm.zero_()
+            g.columns.zero_()
+            g.active_count.zero_()
         origin = wp.vec3(*m.grid_origin)
         res = wp.vec3i(*m.grid_res)
         particles = [
