@@ -1062,7 +1062,11 @@ def apic_gather(grid_v: wp.array4d(dtype=wp.vec3), w: int, base: wp.vec3i, fx: w
 
 
 @wp.func_native(
-    snippet=_BSPLINE_AND_DERIVATIVE + _NODES_BEGIN + """
+    snippet="""
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            wp::index(columns, w, base[0] + i, base[1] + j) = 1;
+""" + _BSPLINE_AND_DERIVATIVE + _NODES_BEGIN + """
         float m[3];
         for (int r = 0; r < 3; ++r)
             m[r] = weight * (mv[r] + (affine.data[r][0] * dpos[0] + affine.data[r][1] * dpos[1]
@@ -1111,11 +1115,12 @@ def apic_gather(grid_v: wp.array4d(dtype=wp.vec3), w: int, base: wp.vec3i, fx: w
 """,
     replay_snippet="",
 )
-def apic_scatter(grid: wp.array4d(dtype=wp.vec4), w: int, base: wp.vec3i, fx: wp.vec3, dx: float, mv: wp.vec3,
-                 affine: wp.mat33, mass: float, packed: int):
+def apic_scatter(grid: wp.array4d(dtype=wp.vec4), columns: wp.array3d(dtype=int), w: int, base: wp.vec3i,
+                 fx: wp.vec3, dx: float, mv: wp.vec3, affine: wp.mat33, mass: float, packed: int):
     """P2G's scatter over the 27 nodes of the stencil at ``base``: momentum weight (mv + affine dpos) and
     mass weight mass per node, as p2g_kernel's loop adds them (``packed``: one 16-byte atomic per node on
-    sm_90). Differentiable in mv, affine, mass and fx."""
+    sm_90), and the stencil's columns flagged (mark_columns; not replayed in the adjoint). Differentiable
+    in mv, affine, mass and fx."""
     ...
 
 
@@ -1139,15 +1144,17 @@ def p2g_native_kernel(
     dt: float,
     packed: int,
     grid_mvm: wp.array4d(dtype=wp.vec4),
+    columns: wp.array3d(dtype=int),
 ):
-    """p2g_kernel with the hand-written adjoint of its scatter (apic_scatter): taped steps."""
+    """p2g_kernel with the hand-written adjoint of its scatter (apic_scatter), which also flags the columns:
+    taped steps."""
     p = wp.tid()
     vol = particle_vol[p]
     mass = particle_density[p] * vol
     affine = p2g_affine(F[p], C[p], damage[p], particle_E[p], particle_nu[p], particle_viscosity[p], vol, mass, dt,
                         inv_dx)
     base, fx = cell_base(x[p], origin, inv_dx, res)
-    apic_scatter(grid_mvm, particle_world[p], base, fx, dx, mass * v[p], affine, mass, packed)
+    apic_scatter(grid_mvm, columns, particle_world[p], base, fx, dx, mass * v[p], affine, mass, packed)
 
 
 @wp.kernel

@@ -57,6 +57,7 @@ class GridScratch:
         """The flagged columns' flat indices, ``active_count[0]`` of them (in any order)."""
         self.active_count = arrays["active_count"]
         self.v = arrays["v"]
+        self.columns_flat = self.columns.flatten()
 
     @staticmethod
     def fields(model: Model):
@@ -235,14 +236,19 @@ class SolverMPM:
             state_in.particle_damage, m.particle_world, m.particle_vol, m.particle_E, m.particle_nu, m.particle_density,
             m.particle_viscosity,
         ]
-        # the warp-summed P2G serves untaped steps only: on one H100 an identification fit taped through it
-        # gave non-finite material gradients in blocks of 32 threads (not reproduced on the CPU, not yet
-        # understood); taped steps keep the per-particle atomics, whose gradients are tested
-        # a taped step's transfers come with hand-written adjoints (Warp's deterministic mode keeps its own)
+        # taped steps: per-particle atomics and transfers with hand-written adjoints (Warp's deterministic mode
+        # keeps Warp's own adjoints). The warp-summed P2G serves untaped steps only: on one H100 an
+        # identification fit taped through it gave non-finite material gradients in blocks of 32 threads (not
+        # reproduced on the CPU, not yet understood)
         native = not fused and not self.config.deterministic
-        if self._order is None or not fused:
-            wp.launch(K.p2g_native_kernel if native else K.p2g_kernel, dim=m.particle_count, inputs=[*particles, origin, m.dx, m.inv_dx, res, dt,
-                                                                 self._packed], outputs=[g.mvm], device=m.device)
+        if native:
+            wp.launch(K.p2g_native_kernel, dim=m.particle_count,
+                      inputs=[*particles, origin, m.dx, m.inv_dx, res, dt, self._packed], outputs=[g.mvm, g.columns],
+                      device=m.device)
+        elif self._order is None or not fused:
+            wp.launch(K.p2g_kernel, dim=m.particle_count,
+                      inputs=[*particles, origin, m.dx, m.inv_dx, res, dt, self._packed], outputs=[g.mvm],
+                      device=m.device)
             wp.launch(K.mark_columns_kernel, dim=m.particle_count,
                       inputs=[state_in.particle_x, m.particle_world, origin, m.inv_dx, res], outputs=[g.columns],
                       device=m.device, record_tape=False)
@@ -258,7 +264,7 @@ class SolverMPM:
                       outputs=[g.mvm, g.columns], device=m.device)
         has_table = 1 if m.table is not None else 0
         table_z = float(m.table.height) if m.table is not None else 0.0
-        wp.launch(K.active_columns_kernel, dim=g.columns.size, inputs=[g.columns.flatten(), g.columns.size],
+        wp.launch(K.active_columns_kernel, dim=g.columns.size, inputs=[g.columns_flat, g.columns.size],
                   outputs=[g.active, g.active_count], device=m.device, record_tape=False)
         threads = self._grid_threads or max(int(g.active_count.numpy()[0]) * m.grid_res[2], 1)
         wp.launch(
