@@ -142,6 +142,7 @@ class SolverMPM:
             self._order = self._values[:n]
             self.sort_particles(model.state())  # also allocates the sort's scratch outside any graph capture
         self._flags = wp.zeros(model.world_count, dtype=int, device=model.device)
+        self._adjoint_sink = None
         self._grid_kernel = _grid_kernel(model.ee_count)
         # threads of the grid update, striding over the active nodes (on the CPU, which runs a launch as one
         # loop, as many as there are active nodes: step reads the count, which costs no transfer there)
@@ -203,6 +204,22 @@ class SolverMPM:
                   inputs=[state.particle_x, m.particle_world, wp.vec3(*m.grid_origin), m.inv_dx, wp.vec3i(*m.grid_res)],
                   outputs=[self._keys, self._values], device=m.device, record_tape=False)
         wp.utils.radix_sort_pairs(self._keys, self._values, n, end_bit=self._key_bits)
+
+    def _sink(self) -> wp.array:
+        """The grid-shaped vec4 array into which a taped step's G2P adjoint adds the grid velocity's gradient
+        (zero between backward steps: each flush zeroes what it moves)."""
+        if self._adjoint_sink is None:
+            m = self.model
+            self._adjoint_sink = wp.zeros((m.world_count, *m.grid_res), dtype=wp.vec4, device=m.device)
+        return self._adjoint_sink
+
+    def _flush_sink(self, g: GridScratch, threads: int):
+        m = self.model
+        grad = g.v.grad
+        wp.launch(K.flush_adjoint_sink_kernel, dim=threads,
+                  inputs=[g.active, g.active_count, wp.vec3i(*m.grid_res), threads, int(grad is not None),
+                          self._adjoint_sink, grad if grad is not None else g.v],
+                  device=m.device, record_tape=False)
 
     # -- step ----------------------------------------------------------------
     def step(self, state_in: State, state_out: State, control: Control, dt: float,
@@ -281,6 +298,13 @@ class SolverMPM:
             device=m.device,
         )
         g.clean = fused
+        if native:
+            # G2P's adjoint leaves grid_v's gradient in the solver's sink (16-byte atomics); the tape, replayed
+            # backwards, moves it into this grid's gradient right after G2P's adjoint
+            sink = self._sink()
+            tape = _wp_context.runtime.tape
+            if tape is not None:
+                tape.record_func(backward=lambda: self._flush_sink(g, threads), arrays=[])
         # G2P keeps the particles' own order: in cell order its reads and writes scatter (measured slower)
         wp.launch(
             K.g2p_native_kernel if native else K.g2p_kernel,
@@ -289,7 +313,8 @@ class SolverMPM:
                 state_in.particle_x, state_in.particle_F, state_in.particle_damage, m.particle_world,
                 m.particle_E, m.particle_nu, m.particle_yield, m.particle_plastic,
                 m.particle_fracture_strain, m.particle_fracture_softening,
-                g.v, origin, m.dx, m.inv_dx, res, dt, self.config.plasticity_min_singular,
+                g.v, *([sink] if native else []), origin, m.dx, m.inv_dx, res, dt,
+                self.config.plasticity_min_singular,
             ],
             outputs=[state_out.particle_x, state_out.particle_v, state_out.particle_C, state_out.particle_F,
                      state_out.particle_damage],
