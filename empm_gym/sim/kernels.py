@@ -814,17 +814,27 @@ def make_grid_update_kernel(ee_count: int):
         clear_inputs: int,
         threads: int,
         grid_v: wp.array4d(dtype=wp.vec3),
+        ee_pos_out: wp.array(dtype=wp.vec3),
+        ee_rot_out: wp.array(dtype=wp.quat),
     ):
         """Grid velocity update: momentum / mass, gravity, end-effectors, table and walls, on the nodes of
         the columns listed in ``active`` (see active_columns_kernel): ``threads`` threads stride over them,
         so that the work follows the nodes particles reached, not the grid's size (a heavy kernel launched
-        over every node, most of them empty, was the step's largest cost for many small worlds).
+        over every node, most of them empty, was the step's largest cost for many small worlds). The first
+        worlds x ee_count threads also advance the kinematic end-effector poses by their commanded velocities
+        (a launch of its own cost a CUDA graph node per substep, forward and backward).
 
         With ``clear_inputs`` the touched mass and momentum nodes are zeroed once read, which saves the
         next substep a full-grid clear (only when no tape needs those values again). Nodes no particle
         reached (mass exactly 0) are neither read further nor written.
         """
         t = wp.tid()
+        if wp.static(EE > 0):
+            if t < ee_pos.shape[0]:
+                ee_pos_out[t] = ee_pos[t] + dt * ee_vel[t]
+                q0 = ee_rot[t]
+                om = ee_omega[t]
+                ee_rot_out[t] = wp.normalize(q0 + (0.5 * dt) * (wp.quat(om[0], om[1], om[2], 0.0) * q0))
         for q in range(t, active_count[0] * res[2], threads):
             col = active[q / res[2]]
             k = q - (q / res[2]) * res[2]
@@ -1317,26 +1327,6 @@ def reduce_material_grads_kernel(
         wp.atomic_add(world_stiffness_slope_grad, w, wp.vec3(s0, s1, s2))
         wp.atomic_add(world_fracture_strain_grad, w, sfs)
         wp.atomic_add(world_fracture_softening_grad, w, sfw)
-
-
-@wp.kernel
-def ee_integrate_kernel(
-    pos: wp.array(dtype=wp.vec3),
-    rot: wp.array(dtype=wp.quat),
-    vel: wp.array(dtype=wp.vec3),
-    omega: wp.array(dtype=wp.vec3),
-    dt: float,
-    pos_out: wp.array(dtype=wp.vec3),
-    rot_out: wp.array(dtype=wp.quat),
-):
-    """Advance kinematic end-effector poses by one step of their commanded velocities."""
-    s = wp.tid()
-    pos_out[s] = pos[s] + dt * vel[s]
-    q = rot[s]
-    w = omega[s]
-    dq = wp.quat(w[0], w[1], w[2], 0.0) * q
-    qn = q + (0.5 * dt) * dq
-    rot_out[s] = wp.normalize(qn)
 
 
 @wp.kernel

@@ -284,6 +284,7 @@ class SolverMPM:
         wp.launch(K.active_columns_kernel, dim=g.columns.size, inputs=[g.columns_flat, g.columns.size],
                   outputs=[g.active, g.active_count], device=m.device, record_tape=False)
         threads = self._grid_threads or max(int(g.active_count.numpy()[0]) * m.grid_res[2], 1)
+        threads = max(threads, m.world_count * m.ee_count)  # its first threads also move the end-effectors
         wp.launch(
             self._grid_kernel,
             dim=threads,
@@ -294,7 +295,7 @@ class SolverMPM:
                 m.ee_gripper, state_in.ee_pos, state_in.ee_rot, control.ee_vel, control.ee_omega, control.ee_grip,
                 m.world_grip_friction, int(fused), threads,
             ],
-            outputs=[g.v],
+            outputs=[g.v, state_out.ee_pos, state_out.ee_rot],
             device=m.device,
         )
         g.clean = fused
@@ -320,14 +321,6 @@ class SolverMPM:
                      state_out.particle_damage],
             device=m.device,
         )
-        if m.ee_count > 0:
-            wp.launch(
-                K.ee_integrate_kernel,
-                dim=m.world_count * m.ee_count,
-                inputs=[state_in.ee_pos, state_in.ee_rot, control.ee_vel, control.ee_omega, dt],
-                outputs=[state_out.ee_pos, state_out.ee_rot],
-                device=m.device,
-            )
         self.step_count += 1
         ce = self.config.check_every
         if guards and ce > 0 and self.step_count % ce == 0:
