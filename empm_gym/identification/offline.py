@@ -363,11 +363,13 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
     each simulated as one member of the first generation in place of a random sample: the search keeps the
     best of them if nothing it samples does better.
 
-    ``checkpoint_every`` ("auto": only when the taped rollout would exceed ``memory_budget_bytes``; None: never;
-    an int: every so many substeps) trades memory for recomputation in Adam's backward pass.
-    ``memory_budget_bytes`` (None: a third of the GPU's free memory on CUDA, 1 GB on the CPU): a rollout taped
-    at once on CUDA is replayed from CUDA graphs (:class:`~empm_gym.sim.Rollout`), which a checkpointed one is
-    not, so the GPU's memory is worth using.
+    ``checkpoint_every`` ("auto": on CUDA, one segment per frame; on the CPU, only when the taped rollout would
+    exceed ``memory_budget_bytes``; None: never; an int: every so many substeps) trades memory for recomputation
+    in Adam's backward pass. On CUDA a rollout of one-frame segments replays two CUDA graphs of one frame's
+    substeps for every frame (:class:`~empm_gym.sim.Rollout`): capturing graphs of the whole horizon instead
+    cost more, in launches from Python, than the fit's GPU work, and the forward pass that each segment's
+    adjoint recomputes costs less. ``memory_budget_bytes`` (None: a third of the GPU's free memory on CUDA, 1 GB
+    on the CPU).
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -648,7 +650,9 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
         if sub not in cache:
             cache.clear()  # keep one rollout's memory at a time
             steps = (F - 1) * sub
-            if checkpoint_every == "auto":
+            if checkpoint_every == "auto" and model.device.is_cuda:
+                ck = sub if steps > sub else None
+            elif checkpoint_every == "auto":
                 per_step = per_node + per_particle
                 ck = None if steps * per_step <= budget else max(sub, int(budget // per_step) // sub * sub)
             else:

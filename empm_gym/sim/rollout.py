@@ -105,10 +105,29 @@ class Rollout:
         self.final_state: Optional[State] = None
         # CUDA graphs of the forward substeps and of their adjoints (see the module docstring); the controls
         # they were captured with, and the buffers that feed the seed gradients into the backward graph
-        self.graph = bool(graph) and model.device.is_cuda and not self.checkpointed and solver.config.check_every == 0
+        # Segments that start on a control period and hold the same record positions run one segment's code
+        # for all of them: on CUDA two graphs (its substeps, their adjoints) captured once and replayed per
+        # segment, whatever the horizon (see _segment_forward)
+        self.aligned = (self.checkpointed and self.steps % S == 0 and S % self.substeps_per_control == 0
+                        and S % self.record_every == 0)
+        self.graph = (bool(graph) and model.device.is_cuda and (not self.checkpointed or self.aligned)
+                      and solver.config.check_every == 0)
         self._fwd_graph = self._bwd_graph = None
         self._graph_controls: Optional[list] = None
         self._seed_bufs: dict = {}
+        if self.aligned:
+            n_seg = self.steps // S
+            self._slots = [model.control(requires_grad=True) for _ in range(S // self.substeps_per_control)]
+            """The controls a segment's steps read: each segment's are copied in before it runs."""
+            self._ckpt_block = StateBlock(model, n_seg)
+            self._checkpoints = self._ckpt_block.states
+            self._record_block = wp.zeros((len(self.record_steps), model.particle_count), dtype=wp.vec3,
+                                          device=model.device)
+            self._seed_bufs = {r: wp.zeros(model.particle_count, dtype=wp.vec3, device=model.device)
+                               for r in range(self.record_every, S + 1, self.record_every)}
+            self._carry = [wp.zeros_like(a) for a in self._states[0].arrays()]
+            """The gradient at a segment's last state, carried from the backward pass of the segment after it."""
+            self._final = State(model)
 
     def make_controls(self) -> List[Control]:
         """One Control (with gradients) per control period."""
@@ -125,6 +144,8 @@ class Rollout:
         self.model.update_particle_materials()
         self.solver.check_dt(self.dt, max((c.max_speed for c in controls), default=0.0))
         self._controls = list(controls)
+        if self.aligned:
+            return self._segments_forward(state0)
         S, states = self.segment, self._states
         states[0].assign(state0)
         self._records, self._checkpoints = [], []
@@ -168,16 +189,113 @@ class Rollout:
             self.solver.check_state(self.final_state, step=self.steps)
         return self._records
 
-    def _taped_steps(self, controls, check_every: int):
-        """Every substep on ``self._tape``, each into its own state and grid (the rollout taped at once)."""
+    def _taped_steps(self, controls, check_every: int, steps: Optional[int] = None):
+        """``steps`` substeps (default: all) on ``self._tape``, each into its own state and grid (the rollout
+        taped at once, or one segment of it)."""
         states = self._states
         with self._tape:
             self._grid_block.clear()
-            for t in range(self.steps):
+            for t in range(steps or self.steps):
                 self.solver.step(states[t], states[t + 1], self._control(controls, t), self.dt, self._grids[t],
                                  guards=False)
                 if check_every and (t + 1) % check_every == 0:
                     self.solver.check_state(states[t + 1], step=t + 1)
+
+    # -- aligned segments ------------------------------------------------------
+    def _load_segment_controls(self, seg: int):
+        """Copy the controls of segment ``seg`` into the slots its steps read."""
+        n = len(self._slots)
+        for j, slot in enumerate(self._slots):
+            c = self._controls[min(seg * n + j, len(self._controls) - 1)]
+            slot.ee_vel.assign(c.ee_vel)
+            slot.ee_omega.assign(c.ee_omega)
+            slot.ee_grip.assign(c.ee_grip)
+
+    def _segment_forward(self):
+        """Run one segment's substeps from states[0] on a tape (replayed from its CUDA graph on CUDA)."""
+        if self.graph and self._fwd_graph is None:
+            self._tape = wp.Tape()
+            try:
+                with wp.ScopedCapture(device=self.model.device) as cap:
+                    self._taped_steps(self._slots, 0, self.segment)
+                self._fwd_graph = cap.graph
+            except Exception as exc:  # a device or driver that cannot capture: launch kernel by kernel
+                _log.warning("Rollout: CUDA graph capture failed (%s); launching kernels one by one", exc)
+                self.graph, self._fwd_graph = False, None
+        if self.graph:
+            wp.capture_launch(self._fwd_graph)
+        else:
+            self._tape = wp.Tape()
+            self._taped_steps(self._slots, self.solver.config.check_every, self.segment)
+
+    def _segment_adjoint(self):
+        """The adjoint of the segment just run: seeds from ``_seed_bufs``, the carried gradient added at its last
+        state, and the gradient at its first state left in ``_carry`` for the segment before it."""
+        self._zero_rollout_grads()
+        for slot in self._slots:
+            slot.ee_vel.grad.zero_()
+            slot.ee_omega.grad.zero_()
+        for r, buf in self._seed_bufs.items():
+            _add_grad(self._states[r].particle_x, buf)
+        for a, c in zip(self._states[self.segment].arrays(), self._carry):
+            _add_grad(a, c)
+        self._tape.backward()
+        for a, c in zip(self._states[0].arrays(), self._carry):
+            wp.copy(c, a.grad)
+
+    def _segments_forward(self, state0: State) -> List[wp.array]:
+        S, states = self.segment, self._states
+        states[0].assign(state0)
+        rows = {t: self._record_block[i] for i, t in enumerate(self.record_steps)}
+        if 0 in rows:
+            wp.copy(rows[0], states[0].particle_x)
+        for seg, ckpt in enumerate(self._checkpoints):
+            ckpt.assign(states[0])
+            self._load_segment_controls(seg)
+            self._segment_forward()
+            for r in self._seed_bufs:
+                wp.copy(rows[seg * S + r], states[r].particle_x)
+            states[0].assign(states[S])
+        self.final_state = self._final.assign(states[0])
+        self._records = [rows[t] for t in self.record_steps]
+        if not self.solver.config.check_every:
+            self.solver.check_state(self.final_state, step=self.steps)
+        return self._records
+
+    def _segments_backward(self, seeds: dict):
+        S = self.segment
+        for c in self._carry:
+            c.zero_()
+        for seg in reversed(range(len(self._checkpoints))):
+            self._states[0].assign(self._checkpoints[seg])
+            self._load_segment_controls(seg)
+            self._segment_forward()  # recompute the segment's states (and grids) for its adjoint
+            for r, buf in self._seed_bufs.items():
+                _set_array(buf, seeds.get(seg * S + r))
+            if self.graph and self._bwd_graph is None:
+                _axpy(self._states[0].particle_x.dtype)  # made (and their modules loaded) before the capture
+                for a in self._carry:
+                    _axpy(a.dtype)
+                try:
+                    with wp.ScopedCapture(device=self.model.device) as cap:
+                        self._segment_adjoint()
+                    self._bwd_graph = cap.graph
+                except Exception as exc:  # the segment's tape still holds every launch: run it kernel by kernel
+                    _log.warning("Rollout: CUDA graph capture of the backward failed (%s); launching kernels one "
+                                 "by one", exc)
+                    self.graph, self._fwd_graph = False, None
+            if self.graph:
+                wp.capture_launch(self._bwd_graph)
+            else:
+                self._segment_adjoint()
+            n = len(self._slots)
+            for j, slot in enumerate(self._slots):
+                c = self._controls[min(seg * n + j, len(self._controls) - 1)]
+                for arr, g in ((c.ee_vel, slot.ee_vel.grad), (c.ee_omega, slot.ee_omega.grad)):
+                    if arr.grad is not None:
+                        _add_grad(arr, g)
+        if 0 in seeds:
+            _add_grad(self._states[0].particle_x, seeds[0])
 
     # -- backward --------------------------------------------------------------
     def _taped_backward(self, seeds: dict):
@@ -202,15 +320,9 @@ class Rollout:
                 if a.grad is not None:
                     a.grad.zero_()
 
-    def backward(self, record_grads: Sequence, state0: Optional[State] = None):
-        """Back-propagate d loss / d recorded positions (one [N, 3] array per record, None for zero).
-
-        Gradients accumulate into the model arrays and controls; the gradient with respect to the initial
-        state is left in ``self.initial_grad`` (and added to ``state0``'s gradients if it has them).
-        """
-        if len(record_grads) != len(self.record_steps):
-            raise ValueError(f"Rollout.backward: expected {len(self.record_steps)} record gradients, got {len(record_grads)}")
-        seeds = dict(zip(self.record_steps, record_grads))
+    def _whole_backward(self, seeds: dict):
+        """The backward pass of a rollout taped at once (replayed from its CUDA graph) or of unaligned
+        checkpointed segments (each re-taped)."""
         states, grids = self._states, self._grids
         if self.graph and self._bwd_graph is None:
             self._seed_bufs = {t: wp.zeros_like(states[t].particle_x) for t in self.record_steps}
@@ -227,10 +339,8 @@ class Rollout:
             for t, buf in self._seed_bufs.items():
                 _set_array(buf, seeds[t])
             wp.capture_launch(self._bwd_graph)
-            first = states[0]
         elif not self.checkpointed:
             self._taped_backward(seeds)
-            first = states[0]
         else:
             S = self.segment
             adj = None
@@ -252,9 +362,23 @@ class Rollout:
                 tape.backward()
                 adj = [wp.clone(a.grad) for a in states[0].arrays()]
                 # no tape.reset(): it would zero the accumulated parameter gradients
-            first = states[0]
             if 0 in seeds:
-                _add_grad(first.particle_x, seeds[0])
+                _add_grad(states[0].particle_x, seeds[0])
+
+    def backward(self, record_grads: Sequence, state0: Optional[State] = None):
+        """Back-propagate d loss / d recorded positions (one [N, 3] array per record, None for zero).
+
+        Gradients accumulate into the model arrays and controls; the gradient with respect to the initial
+        state is left in ``self.initial_grad`` (and added to ``state0``'s gradients if it has them).
+        """
+        if len(record_grads) != len(self.record_steps):
+            raise ValueError(f"Rollout.backward: expected {len(self.record_steps)} record gradients, got {len(record_grads)}")
+        seeds = dict(zip(self.record_steps, record_grads))
+        if self.aligned:
+            self._segments_backward(seeds)
+        else:
+            self._whole_backward(seeds)
+        first = self._states[0]
         # the kernels read per-particle parameter copies: sum their gradients into the world arrays
         m = self.model
         m.accumulate_material_grads()

@@ -109,16 +109,17 @@ def test_cuda_material_gradient_matches_cpu():
 def test_graph_rollout_matches_launches_over_repeated_fits():
     """A rollout replayed from its CUDA graphs (forward and adjoint) gives the records and gradients of the
     same rollout launched kernel by kernel, on its first run and on later runs with another material, other
-    controls and other seed gradients written into the same arrays (what an Adam fit does)."""
+    controls and other seed gradients written into the same arrays (what an Adam fit does); so does a rollout
+    of aligned segments, whose two graphs (one segment) replay once per segment."""
     from empm_gym.sim import Rollout
 
     out = {}
-    for graph in (False, True):
+    for graph, every in ((False, None), (True, None), (True, 10)):
         m = block_model(material=MaterialConfig(E=2e4, nu=0.3, density=1000.0), worlds=2, requires_grad=True,
                         device="cuda:0")
         ro = Rollout(m, SolverMPM(m, SolverConfig(check_every=0)), steps=40, dt=5e-4, substeps_per_control=10,
-                     record_every=10, graph=graph)
-        assert ro.graph == graph
+                     record_every=10, graph=graph, checkpoint_every=every)
+        assert ro.graph == graph and ro.aligned == (every is not None)
         ctrls = ro.make_controls()
         rng = np.random.default_rng(5)
         runs = []
@@ -137,8 +138,9 @@ def test_graph_rollout_matches_launches_over_repeated_fits():
             runs.append((np.stack([r.numpy() for r in recs]),
                          np.concatenate([m.world_E.grad.numpy(), m.world_nu.grad.numpy()]),
                          ro.initial_grad["particle_v"].numpy()))
-        out[graph] = runs
-    for (x0, g0, v0), (x1, g1, v1) in zip(out[False], out[True]):
+        out[graph, every] = runs
+    for (x0, g0, v0), (x1, g1, v1) in [pair for key in ((True, None), (True, 10))
+                                       for pair in zip(out[False, None], out[key])]:
         np.testing.assert_allclose(x1, x0, atol=1e-5)
         assert np.all(np.isfinite(g1)) and np.abs(g0).max() > 0
         np.testing.assert_allclose(g1, g0, rtol=1e-3, atol=1e-4 * np.abs(g0).max())
