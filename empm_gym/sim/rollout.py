@@ -15,6 +15,12 @@ adjoints in two CUDA graphs the first time it runs, and replays them after: an i
 few thousand particles over hundreds of substeps is otherwise bound by launching its kernels one at a time
 from Python. The graphs hold the rollout's own arrays, so what changes between runs (the material, the
 controls, the initial state, the seed gradients) is copied into those arrays, never swapped for new ones.
+
+Checkpointed segments that align (S divides the horizon and is a whole number of control periods and of
+record intervals; ``Rollout.aligned``) all run the same code on the same arrays: each segment's controls are
+copied into control slots first. On CUDA that code is two graphs of one segment, captured once and replayed
+for every segment, forward and (after recomputing the segment's forward) backward, so a long horizon costs
+one segment's capture and memory.
 """
 
 
