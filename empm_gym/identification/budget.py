@@ -57,7 +57,7 @@ class FitPlan:
     lr: Optional[float]
     motion_margin: Optional[float]
     resample_bodies: int
-    memory_budget_bytes: Optional[float]  # None: identify's default (a third of a GPU's free memory, 1 GB on the CPU)
+    memory_budget_bytes: Optional[float]  # None: identify's default (1 GB; only the CPU's "auto" checkpointing reads it)
     estimate_s: float
     budget_s: Optional[float]
     steps: List[str] = field(default_factory=list)

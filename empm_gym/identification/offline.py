@@ -39,7 +39,6 @@ from typing import Any, Callable, Dict, Iterator, List, Mapping, Optional, Seque
 
 import numpy as np
 import torch
-import warp as wp
 
 from empm_gym.sim import MaterialConfig, Rollout, SimulationDiverged, SolverConfig, SolverMPM, read_material, write_material
 from empm_gym.sim.effects import PARAMETERS, parameter
@@ -368,8 +367,8 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
     in Adam's backward pass. On CUDA a rollout of one-frame segments replays two CUDA graphs of one frame's
     substeps for every frame (:class:`~empm_gym.sim.Rollout`): capturing graphs of the whole horizon instead
     cost more, in launches from Python, than the fit's GPU work, and the forward pass that each segment's
-    adjoint recomputes costs less. ``memory_budget_bytes`` (None: a third of the GPU's free memory on CUDA, 1 GB
-    on the CPU).
+    adjoint recomputes costs less. ``memory_budget_bytes`` (None: 1 GB) is what the CPU's "auto" compares the taped
+    rollout with.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -618,7 +617,7 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
     per_node = 2 * 4 * 7 * int(np.prod(model.grid_res)) * model.world_count
     per_particle = 2 * 4 * 24 * model.particle_count
     if budget is None:
-        budget = wp.get_device(model.device).free_memory / 3.0 if model.device.is_cuda else 1.0e9
+        budget = 1.0e9
     hist_l, hist_p = [], []
     skipped = 0
     kept_sub = None  # substeps per frame of the rollout kept (CUDA)

@@ -195,17 +195,17 @@ class Rollout:
             self.solver.check_state(self.final_state, step=self.steps)
         return self._records
 
-    def _taped_steps(self, controls, check_every: int, steps: Optional[int] = None):
+    def _taped_steps(self, controls, check_every: int, steps: Optional[int] = None, first_step: int = 0):
         """``steps`` substeps (default: all) on ``self._tape``, each into its own state and grid (the rollout
-        taped at once, or one segment of it)."""
+        taped at once, or the segment that starts at substep ``first_step``)."""
         states = self._states
         with self._tape:
             self._grid_block.clear()
             for t in range(steps or self.steps):
                 self.solver.step(states[t], states[t + 1], self._control(controls, t), self.dt, self._grids[t],
                                  guards=False)
-                if check_every and (t + 1) % check_every == 0:
-                    self.solver.check_state(states[t + 1], step=t + 1)
+                if check_every and (first_step + t + 1) % check_every == 0:
+                    self.solver.check_state(states[t + 1], step=first_step + t + 1)
 
     # -- aligned segments ------------------------------------------------------
     def _load_segment_controls(self, seg: int):
@@ -217,8 +217,8 @@ class Rollout:
             slot.ee_omega.assign(c.ee_omega)
             slot.ee_grip.assign(c.ee_grip)
 
-    def _segment_forward(self):
-        """Run one segment's substeps from states[0] on a tape (replayed from its CUDA graph on CUDA)."""
+    def _segment_forward(self, seg: int):
+        """Run segment ``seg``'s substeps from states[0] on a tape (replayed from its CUDA graph on CUDA)."""
         if self.graph and self._fwd_graph is None:
             self._tape = wp.Tape()
             try:
@@ -232,7 +232,7 @@ class Rollout:
             wp.capture_launch(self._fwd_graph)
         else:
             self._tape = wp.Tape()
-            self._taped_steps(self._slots, self.solver.config.check_every, self.segment)
+            self._taped_steps(self._slots, self.solver.config.check_every, self.segment, seg * self.segment)
 
     def _segment_adjoint(self):
         """The adjoint of the segment just run: seeds from ``_seed_bufs``, the carried gradient added at its last
@@ -258,7 +258,7 @@ class Rollout:
         for seg, ckpt in enumerate(self._checkpoints):
             ckpt.assign(states[0])
             self._load_segment_controls(seg)
-            self._segment_forward()
+            self._segment_forward(seg)
             for r in self._seed_bufs:
                 wp.copy(rows[seg * S + r], states[r].particle_x)
             states[0].assign(states[S])
@@ -275,7 +275,7 @@ class Rollout:
         for seg in reversed(range(len(self._checkpoints))):
             self._states[0].assign(self._checkpoints[seg])
             self._load_segment_controls(seg)
-            self._segment_forward()  # recompute the segment's states (and grids) for its adjoint
+            self._segment_forward(seg)  # recompute the segment's states (and grids) for its adjoint
             for r, buf in self._seed_bufs.items():
                 _set_array(buf, seeds.get(seg * S + r))
             if self.graph and self._bwd_graph is None:

@@ -73,7 +73,6 @@ class GridScratch:
                 a.grad.zero_()
 
 
-
 class GridScratchBlock:
     """``count`` grids whose arrays are consecutive slices of one array per field (see StateBlock): a taped
     rollout keeps one grid per substep."""
@@ -104,6 +103,7 @@ class GridScratchBlock:
         for b in self.blocks.values():
             if b.grad is not None:
                 b.grad.zero_()
+
 
 _GRID_KERNELS = {}
 
