@@ -706,11 +706,13 @@ def claim_slot(flag: int, counter: wp.array(dtype=int), tid: int, n: int) -> int
 @wp.kernel(grid_stride=False)
 def active_columns_kernel(columns: wp.array(dtype=int), count: int, active: wp.array(dtype=int),
                           active_count: wp.array(dtype=int)):
-    """List the flagged columns (flat index (w * res_i + i) * res_j + j) for the grid update."""
+    """List the flagged columns (flat index (w * res_i + i) * res_j + j) for the grid update, and clear their
+    flags: between steps every flag is 0, and no step needs a memset of them."""
     t = wp.tid()
     slot = claim_slot(columns[t], active_count, t, count)
     if slot >= 0:
         active[slot] = t
+        columns[t] = 0
 
 
 @wp.func
@@ -964,6 +966,8 @@ def g2p_kernel(
     res: wp.vec3i,
     dt: float,
     min_singular: float,
+    active_count: wp.array(dtype=int),
+    clear_count: int,
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
     C_out: wp.array(dtype=wp.mat33),
@@ -971,8 +975,12 @@ def g2p_kernel(
     damage_out: wp.array(dtype=float),
 ):
     """Gather velocity and affine field, update F (with plastic return mapping) and advect particles
-    (one particle per thread; the adjoint adds one atomic per particle, node and component)."""
+    (one particle per thread; the adjoint adds one atomic per particle, node and component). With
+    ``clear_count`` the grid's active-column count, read by the grid update before, is zeroed for the next
+    step (a memset node less per step)."""
     p = wp.tid()
+    if clear_count != 0 and p == 0:
+        active_count[0] = 0
     w = particle_world[p]
     base, fx = cell_base(x[p], origin, inv_dx, res)
     W = bspline_weights(fx)

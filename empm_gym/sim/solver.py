@@ -46,13 +46,14 @@ class GridScratch:
             arrays = {name: wp.zeros(shape, dtype=dtype, device=model.device, requires_grad=requires_grad and grad)
                       for name, dtype, shape, grad in self.fields(model)}
         self.clean = True
-        """The mass and momentum arrays are known to be zero (freshly allocated or cleared in place)."""
+        """The mass and momentum arrays and the active-column count are known to be zero (freshly allocated or
+        cleared in place by an untaped step)."""
         self.cleared = False
-        """Mass, momentum, column flags and count were zeroed for the next step (GridScratchBlock.clear), which
-        then skips its own memsets."""
+        """Mass, momentum and the active-column count were zeroed for the next step (GridScratchBlock.clear),
+        which then skips its own memsets."""
         self.mvm = arrays["mvm"]
         self.columns = arrays["columns"]
-        """1 where P2G reached a column (world, i, j) of nodes; cleared before every P2G."""
+        """1 where P2G reached a column (world, i, j) of nodes; active_columns_kernel lists and clears them."""
         self.active = arrays["active"]
         """The flagged columns' flat indices, ``active_count[0]`` of them (in any order)."""
         self.active_count = arrays["active_count"]
@@ -92,9 +93,9 @@ class GridScratchBlock:
         self.grids = [GridScratch(model, arrays=a) for a in views]
 
     def clear(self):
-        """Zero every grid's mass, momentum, column flags and count with one memset per field: the next step
-        on each grid skips its own three (a taped rollout's forward has one grid per substep)."""
-        for name in ("mvm", "columns", "active_count"):
+        """Zero every grid's mass, momentum and active-column count with one memset per field: the next step
+        on each grid skips its own two (a taped rollout's forward has one grid per substep)."""
+        for name in ("mvm", "active_count"):
             self.blocks[name].zero_()
         for g in self.grids:
             g.cleared = True
@@ -241,10 +242,8 @@ class SolverMPM:
         fused = scratch is None and _wp_context.runtime.tape is None
         if g.cleared:
             g.cleared = False
-        else:
-            if not (fused and g.clean):
-                g.mvm.zero_()
-            g.columns.zero_()
+        elif not (fused and g.clean):  # (the column flags are always clear: active_columns_kernel clears them)
+            g.mvm.zero_()
             g.active_count.zero_()
         origin = wp.vec3(*m.grid_origin)
         res = wp.vec3i(*m.grid_res)
@@ -315,7 +314,7 @@ class SolverMPM:
                 m.particle_E, m.particle_nu, m.particle_yield, m.particle_plastic,
                 m.particle_fracture_strain, m.particle_fracture_softening,
                 g.v, *([sink] if native else []), origin, m.dx, m.inv_dx, res, dt,
-                self.config.plasticity_min_singular,
+                self.config.plasticity_min_singular, *([] if native else [g.active_count, int(fused)]),
             ],
             outputs=[state_out.particle_x, state_out.particle_v, state_out.particle_C, state_out.particle_F,
                      state_out.particle_damage],
