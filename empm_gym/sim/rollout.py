@@ -159,14 +159,8 @@ class Rollout:
         if self.graph and (self._fwd_graph is None or not _same_objects(self._graph_controls, self._controls)):
             self._bwd_graph = None
             self._tape = wp.Tape()
-            try:
-                with wp.ScopedCapture(device=self.model.device) as cap:
-                    self._taped_steps(controls, check_every=0)
-                self._fwd_graph = cap.graph  # captured, not yet run
-                self._graph_controls = list(self._controls)  # held, so that the graph's arrays stay alive
-            except Exception as exc:  # a device or driver that cannot capture: launch kernel by kernel
-                _log.warning("Rollout: CUDA graph capture failed (%s); launching kernels one by one", exc)
-                self.graph, self._fwd_graph = False, None
+            self._fwd_graph = self._capture(lambda: self._taped_steps(controls, check_every=0), "forward")
+            self._graph_controls = list(self._controls)  # held, so that the graph's arrays stay alive
         if self.graph:
             wp.capture_launch(self._fwd_graph)
             self._records = [states[t].particle_x for t in self.record_steps]
@@ -195,6 +189,20 @@ class Rollout:
             self.solver.check_state(self.final_state, step=self.steps)
         return self._records
 
+    def _capture(self, launches, what: str):
+        """A CUDA graph of what ``launches()`` launches (captured, not yet run); None, with graphs off from
+        then on, where the device or driver cannot capture: the kernels are then launched one by one (a
+        backward pass can fall back so, since the forward's tape still holds every launch)."""
+        try:
+            with wp.ScopedCapture(device=self.model.device) as cap:
+                launches()
+            return cap.graph
+        except Exception as exc:
+            _log.warning("Rollout: CUDA graph capture of the %s pass failed (%s); launching kernels one by one",
+                         what, exc)
+            self.graph, self._fwd_graph = False, None
+            return None
+
     def _taped_steps(self, controls, check_every: int, steps: Optional[int] = None, first_step: int = 0):
         """``steps`` substeps (default: all) on ``self._tape``, each into its own state and grid (the rollout
         taped at once, or the segment that starts at substep ``first_step``)."""
@@ -208,11 +216,14 @@ class Rollout:
                     self.solver.check_state(states[t + 1], step=first_step + t + 1)
 
     # -- aligned segments ------------------------------------------------------
+    def _segment_controls(self, seg: int) -> List[Control]:
+        """The caller's controls of segment ``seg``, one per slot (the last one repeats past their end)."""
+        n = len(self._slots)
+        return [self._controls[min(seg * n + j, len(self._controls) - 1)] for j in range(n)]
+
     def _load_segment_controls(self, seg: int):
         """Copy the controls of segment ``seg`` into the slots its steps read."""
-        n = len(self._slots)
-        for j, slot in enumerate(self._slots):
-            c = self._controls[min(seg * n + j, len(self._controls) - 1)]
+        for slot, c in zip(self._slots, self._segment_controls(seg)):
             slot.ee_vel.assign(c.ee_vel)
             slot.ee_omega.assign(c.ee_omega)
             slot.ee_grip.assign(c.ee_grip)
@@ -221,13 +232,7 @@ class Rollout:
         """Run segment ``seg``'s substeps from states[0] on a tape (replayed from its CUDA graph on CUDA)."""
         if self.graph and self._fwd_graph is None:
             self._tape = wp.Tape()
-            try:
-                with wp.ScopedCapture(device=self.model.device) as cap:
-                    self._taped_steps(self._slots, 0, self.segment)
-                self._fwd_graph = cap.graph
-            except Exception as exc:  # a device or driver that cannot capture: launch kernel by kernel
-                _log.warning("Rollout: CUDA graph capture failed (%s); launching kernels one by one", exc)
-                self.graph, self._fwd_graph = False, None
+            self._fwd_graph = self._capture(lambda: self._taped_steps(self._slots, 0, self.segment), "forward")
         if self.graph:
             wp.capture_launch(self._fwd_graph)
         else:
@@ -282,21 +287,12 @@ class Rollout:
                 _axpy(self._states[0].particle_x.dtype)  # made (and their modules loaded) before the capture
                 for a in self._carry:
                     _axpy(a.dtype)
-                try:
-                    with wp.ScopedCapture(device=self.model.device) as cap:
-                        self._segment_adjoint()
-                    self._bwd_graph = cap.graph
-                except Exception as exc:  # the segment's tape still holds every launch: run it kernel by kernel
-                    _log.warning("Rollout: CUDA graph capture of the backward failed (%s); launching kernels one "
-                                 "by one", exc)
-                    self.graph, self._fwd_graph = False, None
+                self._bwd_graph = self._capture(self._segment_adjoint, "backward")
             if self.graph:
                 wp.capture_launch(self._bwd_graph)
             else:
                 self._segment_adjoint()
-            n = len(self._slots)
-            for j, slot in enumerate(self._slots):
-                c = self._controls[min(seg * n + j, len(self._controls) - 1)]
+            for slot, c in zip(self._slots, self._segment_controls(seg)):
                 for arr, g in ((c.ee_vel, slot.ee_vel.grad), (c.ee_omega, slot.ee_omega.grad)):
                     if arr.grad is not None:
                         _add_grad(arr, g)
@@ -333,14 +329,7 @@ class Rollout:
         if self.graph and self._bwd_graph is None:
             self._seed_bufs = {t: wp.zeros_like(states[t].particle_x) for t in self.record_steps}
             _axpy(states[0].particle_x.dtype)  # made (and its module loaded) before the capture
-            try:
-                with wp.ScopedCapture(device=self.model.device) as cap:
-                    self._taped_backward(self._seed_bufs)
-                self._bwd_graph = cap.graph
-            except Exception as exc:  # the forward's tape still holds every launch: run it kernel by kernel
-                _log.warning("Rollout: CUDA graph capture of the backward failed (%s); launching kernels one by one",
-                             exc)
-                self.graph, self._fwd_graph = False, None
+            self._bwd_graph = self._capture(lambda: self._taped_backward(self._seed_bufs), "backward")
         if self.graph:
             for t, buf in self._seed_bufs.items():
                 _set_array(buf, seeds[t])

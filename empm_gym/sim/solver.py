@@ -68,11 +68,6 @@ class GridScratch:
                 ("active", int, (int(np.prod(shape[:3])),), False), ("active_count", int, (1,), False),
                 ("v", wp.vec3, shape, True)]
 
-    def zero_grad(self):
-        for a in (self.mvm, self.v):
-            if a.grad is not None:
-                a.grad.zero_()
-
 
 class GridScratchBlock:
     """``count`` grids whose arrays are consecutive slices of one array per field (see StateBlock): a taped
