@@ -221,7 +221,8 @@ def _identify(args) -> int:
         save_rrd(f"{stem}.rrd", X, obs.points, obs.fps, ee_positions=scene.ee_positions,
                  ee_radius=[c.radius for c in scene.ee_configs], particle_radius=scene.particle_radius)
     print(f"{args.method}: {', '.join(f'{k}={v:.5g}' for k, v in res.params.items())}  loss {res.loss:.5g}  "
-          f"({res.wall_time_s:.1f} s, {len(res.loss_history)} iterations, frames 0-{F - 1} of {T})")
+          f"({res.wall_time_s:.1f} s, {len(res.loss_history)} iterations"
+          + (", converged" if res.extra.get("converged_at") is not None else "") + f", frames 0-{F - 1} of {T})")
     if "uncertainty" in res.extra:
         _print_uncertainty(res.extra)
     print(f"wrote {out}, {stem}_fit.png" + ("" if args.no_rrd else f", {stem}.rrd"))

@@ -338,7 +338,7 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
              checkpoint_every: Union[str, int, None] = "auto", memory_budget_bytes: Optional[float] = None,
              callback: Optional[Callable[[int, float, Dict[str, float]], None]] = None,
              stop: Any = None, resume: Union[Mapping, "FitResult", None] = None,
-             extra_starts: Sequence[Dict[str, float]] = ()) -> FitResult:
+             extra_starts: Sequence[Dict[str, float]] = (), tol: float = 1e-4) -> FitResult:
     """Identify ``params`` (any of :data:`~.problem.PARAM_NAMES`: E, nu, density and every effect parameter) of
     ``scene`` from ``observations``.
 
@@ -350,6 +350,11 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
     (default :func:`default_bounds`), ``observation`` the observation model of :class:`Objective`
     ("surface": the frame-0 observed surface carried by the body; "particles": particle centres; "auto":
     "surface" when ``observations.surface`` says the points are a measured surface, as from a recording). ``callback(iteration, loss, params)`` is called every iteration.
+
+    Adam stops before ``iters`` once it has converged (:func:`adam_converged`: over its last
+    :data:`CONVERGED_PATIENCE` steps the best loss improved by less than ``tol`` relative and no step moved a
+    parameter by more than :data:`CONVERGED_STEP` in the search space, 1 % for a log-space parameter);
+    ``extra["converged_at"]`` then gives the iteration and the fit is complete. ``tol=0`` runs all ``iters``.
 
     ``stop`` (an object with ``is_set()``, such as :class:`~.interrupt.StopRequest` or ``threading.Event``,
     or a callable returning a bool) is checked before every iteration: once set, the fit returns what it
@@ -374,6 +379,8 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if iters < 1:
         raise ValueError(f"iters must be >= 1, got {iters}")
+    if not (np.isfinite(tol) and tol >= 0):
+        raise ValueError(f"tol must be a finite number >= 0, got {tol}")
     if abs(observations.fps - scene.fps) > 1e-6 * scene.fps:
         raise ValueError(f"observations at {observations.fps} fps but the scene's controls at {scene.fps} fps")
     params = tuple(params)
@@ -406,13 +413,14 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
     t0 = time.perf_counter()
     if method == "adam":
         hist_l, hist_p, extra, state = _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, tuple(betas),
-                                                 progress, checkpoint_every, memory_budget_bytes, callback, stop, prior)
+                                                 progress, checkpoint_every, memory_budget_bytes, callback, stop, prior,
+                                                 tol)
     else:
         hist_l, hist_p, extra, state = _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize,
                                                   sigma0, seed, progress, callback, stop, prior, starts)
     wall = time.perf_counter() - t0 + (float(prior["wall_time_s"]) if prior else 0.0)
     done = len(hist_l)
-    complete = done >= iters
+    complete = done >= iters or extra.get("converged_at") is not None
     # what assess_fit needs to rebuild the objective and the search box
     extra["bounds"], extra["observation"] = settings["bounds"], observation
     extra["objective"] = {"l_dist": l_dist, "l_trk": l_trk, "chamfer": chamfer, "max_points": max_points, "seed": seed}
@@ -599,8 +607,31 @@ def substep_rung(n: int) -> int:
     return -(-n // q) * q
 
 
+CONVERGED_PATIENCE = 3
+"""Adam's steps over which :func:`adam_converged` looks for progress."""
+CONVERGED_STEP = 0.01
+"""The largest step in the search space (log space: 1 %) that :func:`adam_converged` counts as no move."""
+
+
+def adam_converged(losses: Sequence[float], z_history: Sequence[Sequence[float]], tol: float) -> bool:
+    """Whether a descent has converged: over its last :data:`CONVERGED_PATIENCE` iterations (``losses`` and the
+    search-space points ``z_history`` they were evaluated at, one per iteration) the best loss improved on the
+    best before them by less than ``tol`` relative, and no step between those points moved a coordinate by more
+    than :data:`CONVERGED_STEP`. ``tol`` 0 never converges."""
+    k = CONVERGED_PATIENCE
+    if tol <= 0 or len(losses) <= k:
+        return False
+    if not np.all(np.isfinite(losses[-k:])):
+        return False
+    before, recent = np.nanmin(losses[:-k]), min(losses[-k:])
+    if not np.isfinite(before) or before - recent > tol * abs(before):
+        return False
+    z = np.asarray(z_history[-k - 1:], dtype=float)
+    return bool(np.max(np.abs(np.diff(z, axis=0))) < CONVERGED_STEP)
+
+
 def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, progress, checkpoint_every, budget,
-              callback, stop=None, prior=None):
+              callback, stop=None, prior=None, tol=0.0):
     from empm_gym.autograd import simulate
 
     F = objective.frames
@@ -620,6 +651,7 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
         budget = 1.0e9
     hist_l, hist_p = [], []
     skipped = 0
+    converged_at = None
     kept_sub = None  # substeps per frame of the rollout kept (CUDA)
     if prior is not None:  # continue an interrupted fit where it stopped
         st = prior["state"]
@@ -705,11 +737,14 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
             z.copy_(torch.as_tensor(space.clamp(z.numpy())))
         bar.set_postfix(loss=f"{L:.5f}", **{k: f"{v:.4g}" for k, v in vals.items()})
         bar.update(1)
+        if adam_converged(hist_l, [space.to_z(v) for v in hist_p], tol):
+            converged_at = it
+            break
     bar.close()
     state = {"z": z.detach().tolist(), "optimizer": {k: _tensor_to_json(v) for k, v in opt.state.get(z, {}).items()},
              "scale": scale, "best": None if best is None else [best[0], best[1].tolist(), best[2].tolist()],
              "skipped_steps": skipped, "substeps": kept_sub}
-    return hist_l, hist_p, {"lr": lr, "betas": list(betas), "skipped_steps": skipped}, state
+    return hist_l, hist_p, {"lr": lr, "betas": list(betas), "skipped_steps": skipped, "converged_at": converged_at}, state
 
 
 def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sigma0, seed, progress, callback,

@@ -182,3 +182,32 @@ def test_substep_rungs_hold_every_count_within_a_quarter():
     assert all(substep_rung(v) == v for v in r)
     assert all(a <= b for a, b in zip(r, r[1:]))
     assert len(set(r)) <= 8 + 4 * 9
+
+
+def test_adam_converged_needs_no_progress_and_small_steps():
+    from empm_gym.identification.offline import CONVERGED_PATIENCE, CONVERGED_STEP, adam_converged
+
+    k = CONVERGED_PATIENCE
+    flat = [1.0, 0.5] + [0.5 * (1 - 1e-6)] * k
+    small = [[0.0], [-0.5]] + [[-0.5 + 0.3 * CONVERGED_STEP * (i % 2)] for i in range(k)]
+    assert adam_converged(flat, small, tol=1e-4)
+    assert not adam_converged(flat, small, tol=0.0)  # tol 0: never
+    assert not adam_converged(flat[:k], small[:k], tol=1e-4)  # too few iterations to judge
+    improving = [1.0, 0.5] + [0.5 * (1 - 1e-3 * (i + 1)) for i in range(k)]
+    assert not adam_converged(improving, small, tol=1e-4)
+    moving = [[0.0], [-0.5]] + [[-0.5 + 2 * CONVERGED_STEP * (i % 2)] for i in range(k)]
+    assert not adam_converged(flat, moving, tol=1e-4)  # the loss is flat but a step is still large
+    assert not adam_converged(flat[:-1] + [float("nan")], small, tol=1e-4)
+
+
+@pytest.mark.slow
+def test_adam_stops_once_converged_and_the_fit_is_complete(rope):
+    # started 0.5 % from the truth: Adam's first step overshoots, it halves its step until it stops moving
+    r = identify(rope.obs, rope.scene, params=("E",), method="adam", init={"E": 1.005 * ROPE_E}, iters=20,
+                 progress=False)
+    k = r.extra["converged_at"]
+    assert k is not None and r.iterations_done == k + 1 < 20 and len(r.loss_history) == k + 1
+    assert r.complete and "resume" not in r.extra
+    assert abs(r.params["E"] / ROPE_E - 1) < 0.05 and r.loss == min(r.loss_history)
+    with pytest.raises(ValueError, match="tol must be"):
+        identify(rope.obs, rope.scene, params=("E",), method="adam", iters=2, tol=-1.0, progress=False)
