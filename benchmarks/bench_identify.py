@@ -116,6 +116,8 @@ def main(argv=None):
     p.add_argument("--width", type=int, default=848)
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--dx", type=float, default=0.01, help="identification grid cell (m)")
+    p.add_argument("--synth-dx", type=float, default=0.01,
+                   help="the synthesiser's grid cell (m): the truth's own discretisation (a 1 cm rope is 2.4 cells thick)")
     p.add_argument("--particles-per-cell", type=float, default=27, help="frame-0 fill (default 27, as identify)")
     p.add_argument("--iters", type=int, default=20, help="Adam steps / CMA-ES generations")
     p.add_argument("--lr", type=float, default=None, help="Adam step in log space (default: identify's)")
@@ -148,6 +150,7 @@ def main(argv=None):
                 t0 = time.perf_counter()
                 spec = OBJECTS[obj].get("synth", {"object": obj})
                 rec = synthesize(Path(args.out_dir) / f"rec_{key}", seed=args.seed, frames=args.frames, **spec,
+                                 dx=args.synth_dx,
                                  cameras=C, width=args.width, height=args.height, overwrite=True,
                                  progress=not args.quiet, device=args.device or "cpu")
                 print(f"synthesised {obj}: {args.frames} frames x {C} cameras in "
