@@ -37,7 +37,7 @@ def test_recording_without_controls_is_refused():
 
 def test_the_doctor_says_when_its_grid_is_too_coarse_for_the_body():
     """doctor.json gives the body's thickness in cells of the grid, with a note when that is marginal (under
-    3 cells: a fitted stiffness biased by some per cent) or too coarse (under 1.5); a block 4 cells thick
+    3 cells: a fitted stiffness biased by up to tens of per cent) or too coarse (under 1.5); a block 4 cells thick
     gets no note."""
     T = 20
     for height, cells, says in ((0.04, 4.0, None), (0.024, 2.4, "stiffness may be biased"),
