@@ -519,7 +519,9 @@ def _finer_grid_scene(scene):
     if problem or note is None:
         return None
     dx = max(res["thickness_m"] / MARGINAL_CELLS_ACROSS, 0.6 * res["dx_m"])
-    if dx ** 3 / float(np.median(scene.volumes)) < 8.0:
+    # the thickness is a whole number of particle spacings, so 8 per cell is often met exactly: not a rounding
+    # error below it
+    if dx ** 3 / float(np.median(scene.volumes)) < 8.0 * (1.0 - 1e-6):
         return None
     return replace(scene, dx=dx, grid=None)
 
