@@ -172,8 +172,8 @@ def grid_resolution(scene):
     ``resolution``: ``thickness_m``, ``dx_m``, ``cells_across``. ``problem`` (a sentence, or None) when fewer
     than :data:`MIN_CELLS_ACROSS` cells cross the body's thin parts: a fitted stiffness is then not a
     measurement. ``note`` (or None) below :data:`MARGINAL_CELLS_ACROSS` cells: expect a bias of tens of per cent
-    (a rope 2.0 cells across fitted E +28 %, at 3.2 cells +8 %, against a recording simulated on a grid twice
-    as fine; benchmarks/RESULTS.md, session 22).
+    (a rope recorded from a simulation 4.8 cells across, fitted 2.0 cells across: E +28 %; 3.2 cells across:
+    +8 %; benchmarks/RESULTS.md, session 22).
     """
     thick = body_thickness(scene.particles, scene.volumes)
     dx = float(scene.grid_config().dx)
@@ -185,9 +185,9 @@ def grid_resolution(scene):
         return res, (f"the grid is too coarse for the body: {where}, fewer than {MIN_CELLS_ACROSS:g} (a 2.4 cm rope "
                      f"at 1.2 cells fitted E 6.9x too stiff); {advice}"), None
     if cells < MARGINAL_CELLS_ACROSS:
-        return res, None, (f"grid: {where}; the stiffness may be biased by tens of per cent (measured: a rope 2.0 "
-                           f"cells across fitted E +28 %, at 3.2 cells +8 %, against a recording simulated on a "
-                           f"grid twice as fine); {advice}")
+        return res, None, (f"grid: {where}; the stiffness may be biased by tens of per cent (measured on a rope "
+                           f"recorded from a simulation 4.8 cells across: fitted 2.0 cells across, E +28 %; 3.2 "
+                           f"cells across, +8 %); {advice}")
     return res, None, None
 
 
