@@ -4,6 +4,7 @@
     python benchmarks/bench_identify.py --device cuda:0 --methods adam,cmaes
     python benchmarks/bench_identify.py --frames 12 --width 212 --height 120 --dx 0.02 --iters 3   # smoke test
     python benchmarks/bench_identify.py --cameras 1,2,3 --objects rope     # intervals against the camera count
+    python benchmarks/bench_identify.py --objects rope --truth-body        # on the synthesiser's own body
 
 For each object (rope: elastic, E identified; dough: elastoplastic, yield stress identified with E known)
 a recording is synthesised with known parameters, loaded through the perception layer (fusion, interior
@@ -23,6 +24,8 @@ import pickle
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 
 OBJECTS = {
@@ -49,10 +52,31 @@ def load_problem(rec, args):
                                        table_friction=gt["table_friction"], device=args.device,
                                        progress=not args.quiet, info=info)
     t_load = time.perf_counter() - t0
+    if args.truth_body:
+        scene = truth_body_scene(rec, scene)
     bodies = {"other_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.particles_per_cell,
                                                          symmetry=info.get("symmetry")),
               "body_note": info.get("body_completion")}
     return scene, obs, views, gt, t_load, bodies
+
+
+def truth_body_scene(rec, scene):
+    """``scene`` with its frame-0 body replaced by the synthesiser's own particles (``ground_truth_particles.npz``,
+    benchmark side only): a fit on it has no share of the body's reconstruction in its error, so the difference
+    between a fit on the rebuilt body and one on this tells how much of the error the body carries."""
+    from dataclasses import replace
+
+    from empm_gym.identification.data import attach_grippers
+
+    path = Path(rec) / "ground_truth_particles.npz"
+    if not path.exists():
+        raise SystemExit(f"--truth-body: {path} is missing (empm synth writes it for recordings without an effect, "
+                         f"or with --debug-particles)")
+    gt = np.load(path)
+    x0 = np.ascontiguousarray(gt["positions"][0], dtype=np.float64)
+    vol = np.ascontiguousarray(gt["volumes"], dtype=np.float64)
+    grown, _ = attach_grippers(scene.ee_configs, scene.ee_positions, scene.ee_grip, x0, scene.dx)
+    return replace(scene, particles=x0, volumes=vol, ee_configs=grown)
 
 
 def run_one(obj, method, args, problem, cameras):
@@ -118,6 +142,9 @@ def main(argv=None):
     p.add_argument("--dx", type=float, default=0.01, help="identification grid cell (m)")
     p.add_argument("--synth-dx", type=float, default=0.01,
                    help="the synthesiser's grid cell (m): the truth's own discretisation (a 1 cm rope is 2.4 cells thick)")
+    p.add_argument("--truth-body", action="store_true",
+                   help="fit on the synthesiser's own frame-0 particles instead of the body rebuilt from the views "
+                        "(benchmark side: separates the body's share of the error from the fit's)")
     p.add_argument("--particles-per-cell", type=float, default=27, help="frame-0 fill (default 27, as identify)")
     p.add_argument("--iters", type=int, default=20, help="Adam steps / CMA-ES generations")
     p.add_argument("--lr", type=float, default=None, help="Adam step in log space (default: identify's)")
