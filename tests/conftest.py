@@ -10,7 +10,7 @@
 #: one worker 47 minutes and the other 33 (benchmarks/RESULTS.md, session 19).
 LONG_FIRST = (
     "identification/test_synth_recovery.py",
-    "identification/test_doctor_e2e.py",  # about 780 s since it also names a hidden fracture (2026-11-25)
+    "identification/test_doctor_e2e.py",  # about 700-900 s: a hidden fracture and stiffness field too (2026-11-25)
     "identification/test_doctor.py",
     "identification/test_synth_recovery_dough.py",
     "identification/test_single_camera.py",
