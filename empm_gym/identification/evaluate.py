@@ -6,7 +6,8 @@ The scene is simulated from frame 0 with the given material through every frame,
 - ``chamfer``: symmetric Chamfer distance (m) between particles and observed points, and
   ``chamfer_obs``: mean distance from each observed point to the nearest particle (m);
 - ``track``: mean distance (m) between tracked points and their associated particles (visible only);
-- ``iou``: 2D mask IoU, particles splatted into each camera (at ``downsample``) vs the object mask;
+- ``iou``: 2D mask IoU, particles splatted into each camera (at ``downsample``) vs the object mask, leaving out
+  the particles an end-effector hides from that camera (the mask shows only what the camera sees);
 - ``psnr`` / ``ssim``: a coloured point rendering vs the observed colour image, over the bounding box of
   the union of both silhouettes (dilated by 4 pixels). Particle colours are sampled from the frame-0
   images where the particle is visible; the background is the observed image with the observed object
@@ -24,7 +25,7 @@ from . import render as R
 from .losses import chamfer_numpy, mask_iou, psnr, ssim, tracking_error
 from .problem import Observations, Scene, Views, simulate_frames
 
-__all__ = ["evaluate", "particle_colors", "held_out_frames"]
+__all__ = ["evaluate", "particle_colors", "held_out_frames", "mask_iou_frames"]
 
 
 def held_out_frames(num_frames: int, train_fraction: float = 0.7) -> list:
@@ -33,6 +34,43 @@ def held_out_frames(num_frames: int, train_fraction: float = 0.7) -> list:
         raise ValueError(f"train_fraction must lie in (0, 1), got {train_fraction!r}")
     start = min(max(1, int(round(train_fraction * num_frames))), num_frames - 1)
     return list(range(start, num_frames))
+
+
+def _end_effectors_at(scene: Scene, t: int):
+    """(configs, positions [K, 3], orientations [K, 4] or None) of the scene's end-effectors at frame t, or None."""
+    if not len(scene.ee_configs) or scene.ee_positions is None or t >= len(scene.ee_positions):
+        return None
+    return (scene.ee_configs, scene.ee_positions[t],
+            None if scene.ee_orientations is None else scene.ee_orientations[t])
+
+
+def _camera_ious(x: np.ndarray, masks, cameras, radius: float, downsample: int, end_effectors=None) -> list:
+    """Mask IoU of particles x [N, 3] (m) splatted into each camera against that camera's object mask. With
+    ``end_effectors`` (:func:`_end_effectors_at`), particles an end-effector hides from a camera are not
+    splatted into it: the recorded mask shows only what the camera sees of the object (a gripper in front of it
+    is not object), and a simulation that holds the object where it really is must not lose IoU for that."""
+    from empm_gym.perception.fusion import hidden_by_end_effectors
+
+    out = []
+    for m, cam in zip(masks, cameras):
+        seen = x if end_effectors is None else x[~hidden_by_end_effectors(x, [cam], *end_effectors)]
+        out.append(mask_iou(R.splat_mask(seen, cam, radius, downsample), R.downsample_mask(m, downsample)))
+    return out
+
+
+def mask_iou_frames(X: np.ndarray, views: Views, frames: Sequence[int], radius: float, downsample: int = 2,
+                    scene: Optional[Scene] = None) -> np.ndarray:
+    """2D mask IoU per frame (mean over cameras) of simulated particles X [T, N, 3] (m), splatted with
+    ``radius`` (m) at ``downsample``, against the views' object masks; NaN where X is not finite. With ``scene``,
+    what its end-effectors hide from a camera is left out of that camera's splat (:func:`_camera_ious`)."""
+    if views is None or views.masks is None:
+        raise ValueError("mask_iou_frames: the views hold no object masks")
+    out = np.full(len(frames), np.nan)
+    for i, t in enumerate(frames):
+        if np.all(np.isfinite(X[t])):
+            ee = None if scene is None else _end_effectors_at(scene, t)
+            out[i] = float(np.mean(_camera_ious(X[t], views.masks[t], views.cameras, radius, downsample, ee)))
+    return out
 
 
 def _image(img) -> np.ndarray:
@@ -143,13 +181,12 @@ def evaluate(scene: Scene, material, friction: Optional[float], obs: Observation
             per["track"].append(tracking_error(x[track_idx], obs.tracks[t, keep], obs.visibility[t, keep]))
         if views is None or views.masks is None:
             continue
-        ious, ps, ss = [], [], []
+        ps, ss = [], []
         masks = views.masks[t]
         imgs = views.images[t] if views.images is not None else None
+        ious = _camera_ious(x, masks, views.cameras, radius, downsample, _end_effectors_at(scene, t))
         for c, cam in enumerate(views.cameras):
             om = R.downsample_mask(masks[c], downsample)
-            sm = R.splat_mask(x, cam, radius, downsample)
-            ious.append(mask_iou(sm, om))
             if imgs is not None and cols is not None:
                 im = _down_image(_image(imgs[c]), downsample)
                 rend, cov = R.render_colors(x, cols, cam, radius, _background(im, om), downsample)

@@ -295,6 +295,17 @@ def doctor_names_the_hidden_effect(tmp_path, effect, script):
         best = next(c for c in res["candidates"] if c["effect"] == effect)
         assert best["heldout"]["loss"] < res["base"]["heldout"]["loss"]
         assert (tmp_path / "doctor" / "material.json").exists()
+    # the held-out gap before and after, as the candidates' table and the verdict score it, with the mask IoU
+    gap = res["gap"]
+    assert gap["frames"] == list(range(res["heldout_frames"][0], res["heldout_frames"][1] + 1))
+    shown = [("base", res["base"])] + ([("effect", best)] if effect != "none" else [])
+    assert sorted(gap["total"]) == sorted(k for k, _ in shown) and gap["effect"] == (None if effect == "none" else effect)
+    for key, fit in shown:
+        assert gap["total"][key]["chamfer_m"] == pytest.approx(fit["heldout"]["chamfer_m"], rel=1e-9)
+        assert 0.0 < gap["total"][key]["mask_iou"] <= 1.0
+        assert len(gap["per_frame"][key]["mask_iou"]) == len(gap["frames"])
+    assert "The held-out gap" in (tmp_path / "doctor" / "report.md").read_text()
+    assert (tmp_path / "doctor" / "heldout_gap.png").stat().st_size > 5000
     assert (tmp_path / "doctor" / "report.md").exists() and (tmp_path / "doctor" / "doctor.rrd").exists()
     # each candidate's E window: the report's table and doctor.json agree
     lo, hi = res["candidates"][0]["E_window"]
@@ -455,6 +466,26 @@ def test_each_candidate_at_its_absent_start_moves_as_the_base_model():
     for k, effect in enumerate(EFFECTS, start=1):
         gap = np.abs(X[:, k] - X[:, 0]).max()
         assert gap < 1e-4, f"{effect} at its absent start moves {1e3 * gap:.3f} mm away from the base model"
+
+
+def test_the_gap_table_says_which_way_each_metric_moved():
+    """report.md's held-out gap: per metric the base model, the named effect and the change, where a lower
+    distance and a higher IoU are better; without masks the IoU row is left out; with no effect, one column."""
+    from empm_gym.identification.doctor.report import gap_rows
+
+    gap = {"effect": "plasticity", "total": {
+        "base": {"chamfer_m": 0.004, "track_median_m": 0.002, "track_rmse_m": 0.003, "mask_iou": 0.5},
+        "effect": {"chamfer_m": 0.002, "track_median_m": 0.0025, "track_rmse_m": 0.003, "mask_iou": 0.6}}}
+    rows = {r["metric"]: r for r in gap_rows(gap)}
+    assert rows["Chamfer (mm)"]["base model"] == pytest.approx(4.0) and rows["Chamfer (mm)"]["with plasticity"] == pytest.approx(2.0)
+    assert rows["Chamfer (mm)"]["change [%]"] == pytest.approx(-50.0) and rows["Chamfer (mm)"]["better"]
+    assert rows["median tracking error (mm)"]["change [%]"] == pytest.approx(25.0)
+    assert not rows["median tracking error (mm)"]["better"] and not rows["RMS tracking error (mm)"]["better"]
+    assert rows["mask IoU (-)"]["change [%]"] == pytest.approx(20.0) and rows["mask IoU (-)"]["better"]
+    no_masks = {"effect": None, "total": {"base": {k: v for k, v in gap["total"]["base"].items() if k != "mask_iou"}}}
+    rows = gap_rows(no_masks)
+    assert [r["metric"] for r in rows] == ["Chamfer (mm)", "median tracking error (mm)", "RMS tracking error (mm)"]
+    assert all(set(r) == {"metric", "base model"} for r in rows)
 
 
 def test_the_verdict_is_taken_again_from_doctor_json_with_non_finite_gains():

@@ -624,6 +624,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         "base": _fit_dict(base_fit),
         "candidates": [_fit_dict(f) for f in ranked],
         "evidence": {"features": loc["features"], "signature_check": checks, "localisation": loc["where"]},
+        "gap": _heldout_gap(per, fits, winner, X, scene, views, heldout),
         "heldout_per_frame": {"frames": heldout,
                               "base": {k: _nan_list(v[heldout]) for k, v in per[0].items()},
                               **({"best": {k: _nan_list(v[heldout]) for k, v in per[fits.index(winner)].items()}}
@@ -729,6 +730,35 @@ def select_verdict(candidates: Sequence[dict], variants: Optional[dict]) -> Tupl
     return (passing[0] if passing else None), (sig[0] if sig else None), passing
 
 
+#: Width [px] down to which the camera images are downsampled (by a whole factor, at most 4) for the held-out
+#: mask IoU: 848 x 480 images are compared at 212 x 120, images narrower than 424 px at full size.
+GAP_IOU_WIDTH_PX = 212
+
+
+def _heldout_gap(per: List[Dict[str, np.ndarray]], fits: List["_Fit"], winner: Optional["_Fit"], X: np.ndarray,
+                 scene: Scene, views: Optional[Views], heldout: List[int]) -> dict:
+    """The held-out gap with the base model and with the named effect, per frame and in total: Chamfer [m] and
+    tracking error (median and root mean square over the visible tracks) [m] as the verdict scores them, and the
+    2D mask IoU [-] of the simulated particles against the recorded object masks (mean over cameras; without
+    masks it is left out and ``note`` says so)."""
+    from ..evaluate import mask_iou_frames
+
+    masks = views is not None and views.masks is not None
+    out = {"frames": heldout, "effect": winner.name if winner else None, "per_frame": {}, "total": {},
+           "note": None if masks else "the recording was given without object masks: no mask IoU"}
+    for label, w in [("base", 0)] + ([("effect", fits.index(winner))] if winner else []):
+        pf = {"chamfer_m": per[w]["chamfer"][heldout], "track_median_m": per[w]["track_median"][heldout],
+              "track_rmse_m": np.sqrt(per[w]["track_mse"][heldout])}
+        if masks:
+            ds = int(np.clip(np.asarray(views.masks[heldout[0]][0]).shape[1] // GAP_IOU_WIDTH_PX, 1, 4))
+            pf["mask_iou"] = mask_iou_frames(X[:, w], views, heldout, scene.particle_radius, ds, scene=scene)
+        mse = per[w]["track_mse"][heldout]
+        out["per_frame"][label] = {k: _nan_list(v) for k, v in pf.items()}
+        out["total"][label] = {k: (float(np.sqrt(np.nanmean(mse))) if k == "track_rmse_m" else float(np.nanmean(v)))
+                               if np.isfinite(v).any() else None for k, v in pf.items()}
+    return out
+
+
 def _nan_list(a) -> list:
     return [None if not np.isfinite(v) else float(v) for v in np.asarray(a, np.float64)]
 
@@ -822,7 +852,8 @@ def _write_outputs(result: dict, chosen: Optional[_Fit], sims, scene: Scene, obs
 def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: Path) -> dict:
     from ..report import save_rrd
     from .features import residuals_per_frame
-    from .report import plot_candidate_gains, plot_residual_heatmap, plot_residual_timeline, write_report_md
+    from .report import (gap_rows, plot_candidate_gains, plot_heldout_gap, plot_residual_heatmap,
+                         plot_residual_timeline, write_report_md)
 
     X, fits, per, loc, F = sims
     T = len(per[0]["chamfer"])
@@ -846,6 +877,10 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
             pts[f"frame {t}, {effect}"] = (obs_t, residuals_per_frame([obs_t], loc["P_best"][t:t + 1])[0])
     figs["residual on the object"] = plot_residual_heatmap(pts, d / "residual_heatmap.png",
                                                            title="distance of each measured point to the model [mm]").name
+    gap = result["gap"]
+    figs["held-out gap"] = plot_heldout_gap(
+        gap, d / "heldout_gap.png", title="held-out frames: base model" + (f" vs with {effect}" if best_w else "")
+        + " (Chamfer, tracking error, mask IoU)").name
     cands = result["candidates"]
     figs["candidates"] = plot_candidate_gains(
         [c["effect"] for c in cands], [result["base"]["heldout"]["chamfer_m"]] * len(cands),
@@ -864,7 +899,9 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
              "significant": (c["gain"] or {}).get("significant")} for c in cands]
     from .features import FEATURE_INFO
 
-    tables = {"Candidates (held-out frames)": rows}
+    tables = {f"The held-out gap (frames {gap['frames'][0]} to {gap['frames'][-1]}, mean per frame)"
+              + (f": {gap['note']}" if gap.get("note") else ""): gap_rows(gap),
+              "Candidates (held-out frames)": rows}
     var = result.get("variants") or {}
     vrows = [{"candidate": name, "variant": t["variant"], "fitted": ", ".join(f"{k}={v:.4g}" for k, v in t["params"].items()),
               "held-out loss gain [%]": 100 * t["gain"], "threshold [%]": 100 * t["threshold"], "holds": t["holds"]}

@@ -15,7 +15,11 @@ import numpy as np
 from ..report import _plt, _save
 
 __all__ = ["PHASE_COLOURS", "plot_residual_timeline", "plot_residual_heatmap", "plot_candidate_gains",
-           "write_report_md"]
+           "plot_heldout_gap", "gap_rows", "write_report_md"]
+
+#: The metrics of the held-out gap (``doctor.json``'s ``gap``): key, axis label, factor from SI, higher is better.
+GAP_METRICS = (("chamfer_m", "Chamfer (mm)", 1e3, False), ("track_median_m", "median tracking error (mm)", 1e3, False),
+               ("track_rmse_m", "RMS tracking error (mm)", 1e3, False), ("mask_iou", "mask IoU (-)", 1.0, True))
 
 #: Shading colour of each phase in the timeline.
 PHASE_COLOURS = {
@@ -173,6 +177,49 @@ def plot_candidate_gains(names: Sequence[str], heldout_before, heldout_after, th
     ax.grid(axis="y", alpha=0.3)
     ax.legend(fontsize=7, loc="upper center", ncol=3)
     return _save(plt, fig, path)
+
+
+def plot_heldout_gap(gap: Mapping, path, title: str = ""):
+    """The held-out gap per frame, one panel per metric of ``gap`` (``doctor.json``'s ``gap``): the base model
+    against the model with the named effect (if any). Distances in mm, IoU unitless."""
+    plt = _plt()
+    frames = np.asarray(gap["frames"])
+    per = gap["per_frame"]
+    metrics = [m for m in GAP_METRICS if any(m[0] in per[k] for k in per)]
+    fig, axes = plt.subplots(1, len(metrics), figsize=(3.4 * len(metrics), 3.2), squeeze=False)
+    for ax, (key, label, scale, _) in zip(axes[0], metrics):
+        for who, style, name in (("base", dict(color="k"), "base model"),
+                                 ("effect", dict(color="tab:red"), f"with {gap.get('effect')}")):
+            if who in per and key in per[who]:
+                v = np.asarray([np.nan if x is None else x for x in per[who][key]], dtype=float) * scale
+                ax.plot(frames, v, "o-", ms=3, lw=1.5, label=name, **style)
+        ax.set_xlabel("held-out frame")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    return _save(plt, fig, path)
+
+
+def gap_rows(gap: Mapping) -> list:
+    """Rows of the held-out gap table: each metric's mean over the held-out frames with the base model and with
+    the named effect, and the change (a lower distance or a higher IoU is better)."""
+    rows = []
+    tot = gap["total"]
+    for key, label, scale, higher in GAP_METRICS:
+        b = tot["base"].get(key)
+        if b is None and key not in tot["base"]:
+            continue
+        row = {"metric": label, "base model": np.nan if b is None else b * scale}
+        if "effect" in tot:
+            e = tot["effect"].get(key)
+            row[f"with {gap['effect']}"] = np.nan if e is None else e * scale
+            if b is not None and e is not None and b != 0:
+                change = 100.0 * (e - b) / abs(b)
+                row["change [%]"] = change
+                row["better"] = (change > 0) if higher else (change < 0)
+        rows.append(row)
+    return rows
 
 
 # ----------------------------------------------------------------------------- markdown
