@@ -8,7 +8,8 @@
    (``material.json`` and its report: loss / parameter plot, ``.rrd`` of the simulation over the points);
 4. ``empm evaluate``: held-out Chamfer, tracking, mask IoU, PSNR / SSIM with plots;
 5. ``empm doctor`` on a second recording whose effect is hidden: it names the effect the base model
-   misses and shows the held-out gap before and after (``doctor/report.md``, ``doctor/residual_timeline.png``);
+   misses and shows the held-out gap before and after (``doctor/report.md``, ``doctor/residual_timeline.png``,
+   ``doctor/heldout_gap.png``);
 6. real-to-sim-to-real: a press in ``EMPM/DoughFlatten-v1`` planned with the fitted material and with a
    yield stress 5x off, both executed on the "real" dough (``real2sim2real/``).
 
@@ -296,7 +297,14 @@ def run_doctor_demo(out: Path, *, device: str = "cpu", effect: str = "gripper_sl
     hidden = json.loads((out / "hidden_effect_ground_truth.json").read_text())["effects"]
     print(f"   hidden effect: {hidden[0]['name'] if hidden else 'none'}; the doctor says: {res['effect']} "
           f"(confidence {res['confidence']:.2f}); report in {out / 'doctor' / 'report.md'}, the held-out gap "
-          f"before and after in {out / 'doctor' / 'residual_timeline.png'}")
+          f"before and after in {out / 'doctor' / 'residual_timeline.png'} and {out / 'doctor' / 'heldout_gap.png'}")
+    gap = res.get("gap") or {}
+    if "effect" in gap.get("total", {}):
+        b, e = gap["total"]["base"], gap["total"]["effect"]
+        iou = (f", mask IoU {b['mask_iou']:.2f} -> {e['mask_iou']:.2f}"
+               if b.get("mask_iou") is not None and e.get("mask_iou") is not None else "")
+        print(f"   held-out frames, base model -> with {gap['effect']}: Chamfer {1e3 * b['chamfer_m']:.1f} -> "
+              f"{1e3 * e['chamfer_m']:.1f} mm{iou}", flush=True)
     from .identification.uncertainty import MARGINAL_CELLS_ACROSS
 
     grid = res.get("grid") or {}
