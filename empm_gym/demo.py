@@ -298,13 +298,10 @@ def run_doctor_demo(out: Path, *, device: str = "cpu", effect: str = "gripper_sl
     print(f"   hidden effect: {hidden[0]['name'] if hidden else 'none'}; the doctor says: {res['effect']} "
           f"(confidence {res['confidence']:.2f}); report in {out / 'doctor' / 'report.md'}, the held-out gap "
           f"before and after in {out / 'doctor' / 'residual_timeline.png'} and {out / 'doctor' / 'heldout_gap.png'}")
-    gap = res.get("gap") or {}
-    if "effect" in gap.get("total", {}):
-        b, e = gap["total"]["base"], gap["total"]["effect"]
-        iou = (f", mask IoU {b['mask_iou']:.2f} -> {e['mask_iou']:.2f}"
-               if b.get("mask_iou") is not None and e.get("mask_iou") is not None else "")
-        print(f"   held-out frames, base model -> with {gap['effect']}: Chamfer {1e3 * b['chamfer_m']:.1f} -> "
-              f"{1e3 * e['chamfer_m']:.1f} mm{iou}", flush=True)
+    from .identification.doctor.report import gap_summary
+
+    if gap_summary(res.get("gap")):
+        print(f"   {gap_summary(res['gap'])}", flush=True)
     from .identification.uncertainty import MARGINAL_CELLS_ACROSS
 
     grid = res.get("grid") or {}

@@ -470,8 +470,9 @@ def test_each_candidate_at_its_absent_start_moves_as_the_base_model():
 
 def test_the_gap_table_says_which_way_each_metric_moved():
     """report.md's held-out gap: per metric the base model, the named effect and the change, where a lower
-    distance and a higher IoU are better; without masks the IoU row is left out; with no effect, one column."""
-    from empm_gym.identification.doctor.report import gap_rows
+    distance and a higher IoU are better; without masks the IoU row is left out; with no effect, one column; the
+    terminal's one line says the same."""
+    from empm_gym.identification.doctor.report import gap_rows, gap_summary
 
     gap = {"effect": "plasticity", "total": {
         "base": {"chamfer_m": 0.004, "track_median_m": 0.002, "track_rmse_m": 0.003, "mask_iou": 0.5},
@@ -486,6 +487,10 @@ def test_the_gap_table_says_which_way_each_metric_moved():
     rows = gap_rows(no_masks)
     assert [r["metric"] for r in rows] == ["Chamfer (mm)", "median tracking error (mm)", "RMS tracking error (mm)"]
     assert all(set(r) == {"metric", "base model"} for r in rows)
+    # the terminal's line (empm doctor, make demo)
+    assert gap_summary(gap) == ("held-out frames, base model -> with plasticity: Chamfer 4.0 -> 2.0 mm, median tracking "
+                                "error 2.0 -> 2.5 mm, RMS tracking error 3.0 -> 3.0 mm, mask IoU 0.50 -> 0.60")
+    assert gap_summary(no_masks).startswith("held-out frames, base model: Chamfer 4.0 mm") and gap_summary(None) == ""
 
 
 def test_the_verdict_is_taken_again_from_doctor_json_with_non_finite_gains():

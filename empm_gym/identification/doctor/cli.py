@@ -11,6 +11,7 @@ __all__ = ["register"]
 def _doctor(args) -> int:
     from . import DoctorConfig, DoctorError, diagnose_recording
     from .core import fitted_text
+    from .report import gap_summary
 
     cfg = DoctorConfig(train_fraction=args.train_fraction, base_iters=args.iters, candidate_iters=args.iters,
                        popsize=args.popsize, variants=args.variants, variant_iters=args.variant_iters)
@@ -27,6 +28,8 @@ def _doctor(args) -> int:
     if res.get("decidable", True) and "candidates" in res:
         b = res["base"]["heldout"]
         print(f"  base model: {fitted_text(res['base'])} [Pa], held-out Chamfer {1e3 * b['chamfer_m']:.2f} mm")
+        if gap_summary(res.get("gap")):
+            print(f"  {gap_summary(res['gap'])}")
         for c in res["candidates"]:
             g = c["gain"] or {}
             print(f"  {c['effect']:24s} held-out Chamfer {1e3 * c['heldout']['chamfer_m']:.2f} mm, loss gain "

@@ -15,7 +15,7 @@ import numpy as np
 from ..report import _plt, _save
 
 __all__ = ["PHASE_COLOURS", "plot_residual_timeline", "plot_residual_heatmap", "plot_candidate_gains",
-           "plot_heldout_gap", "gap_rows", "write_report_md"]
+           "plot_heldout_gap", "gap_rows", "gap_summary", "write_report_md"]
 
 #: The metrics of the held-out gap (``doctor.json``'s ``gap``): key, axis label, factor from SI, higher is better.
 GAP_METRICS = (("chamfer_m", "Chamfer (mm)", 1e3, False), ("track_median_m", "median tracking error (mm)", 1e3, False),
@@ -220,6 +220,26 @@ def gap_rows(gap: Mapping) -> list:
                 row["better"] = (change > 0) if higher else (change < 0)
         rows.append(row)
     return rows
+
+
+def gap_summary(gap: Mapping) -> str:
+    """One line of the held-out gap for a terminal: each metric with the base model -> with the named effect
+    (the base model alone when no effect is named); "" without a gap."""
+    tot = (gap or {}).get("total") or {}
+    if "base" not in tot:
+        return ""
+    parts = []
+    for key, label, scale, _ in GAP_METRICS:
+        b = tot["base"].get(key)
+        if b is None:
+            continue
+        name = label.split(" (")[0]
+        unit = " mm" if scale != 1.0 else ""
+        e = tot.get("effect", {}).get(key)
+        parts.append(f"{name} {b * scale:.{1 if scale != 1.0 else 2}f}"
+                     + (f" -> {e * scale:.{1 if scale != 1.0 else 2}f}" if e is not None else "") + unit)
+    who = f"base model -> with {gap['effect']}" if "effect" in tot else "base model"
+    return f"held-out frames, {who}: " + ", ".join(parts)
 
 
 # ----------------------------------------------------------------------------- markdown
