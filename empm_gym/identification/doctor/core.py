@@ -880,7 +880,7 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
     gap = result["gap"]
     figs["held-out gap"] = plot_heldout_gap(
         gap, d / "heldout_gap.png", title="held-out frames: base model" + (f" vs with {effect}" if best_w else "")
-        + " (Chamfer, tracking error, mask IoU)").name
+        + (" (Chamfer, tracking error, mask IoU)" if not gap.get("note") else " (Chamfer, tracking error)")).name
     cands = result["candidates"]
     figs["candidates"] = plot_candidate_gains(
         [c["effect"] for c in cands], [result["base"]["heldout"]["chamfer_m"]] * len(cands),
