@@ -45,7 +45,8 @@ def _end_effectors_at(scene: Scene, t: int):
 
 
 def _camera_ious(x: np.ndarray, masks, cameras, radius: float, downsample: int, end_effectors=None) -> list:
-    """Mask IoU of particles x [N, 3] (m) splatted into each camera against that camera's object mask. With
+    """Mask IoU of particles x [N, 3] (m) splatted into each camera at ``downsample`` against that camera's object
+    mask, given already downsampled (:func:`~.render.downsample_mask`). With
     ``end_effectors`` (:func:`_end_effectors_at`), particles an end-effector hides from a camera are not
     splatted into it: the recorded mask shows only what the camera sees of the object (a gripper in front of it
     is not object), and a simulation that holds the object where it really is must not lose IoU for that."""
@@ -54,7 +55,7 @@ def _camera_ious(x: np.ndarray, masks, cameras, radius: float, downsample: int, 
     out = []
     for m, cam in zip(masks, cameras):
         seen = x if end_effectors is None else x[~hidden_by_end_effectors(x, [cam], *end_effectors)]
-        out.append(mask_iou(R.splat_mask(seen, cam, radius, downsample), R.downsample_mask(m, downsample)))
+        out.append(mask_iou(R.splat_mask(seen, cam, radius, downsample), m))
     return out
 
 
@@ -69,7 +70,8 @@ def mask_iou_frames(X: np.ndarray, views: Views, frames: Sequence[int], radius: 
     for i, t in enumerate(frames):
         if np.all(np.isfinite(X[t])):
             ee = None if scene is None else _end_effectors_at(scene, t)
-            out[i] = float(np.mean(_camera_ious(X[t], views.masks[t], views.cameras, radius, downsample, ee)))
+            masks = [R.downsample_mask(m, downsample) for m in views.masks[t]]
+            out[i] = float(np.mean(_camera_ious(X[t], masks, views.cameras, radius, downsample, ee)))
     return out
 
 
@@ -182,11 +184,11 @@ def evaluate(scene: Scene, material, friction: Optional[float], obs: Observation
         if views is None or views.masks is None:
             continue
         ps, ss = [], []
-        masks = views.masks[t]
+        masks = [R.downsample_mask(m, downsample) for m in views.masks[t]]
         imgs = views.images[t] if views.images is not None else None
         ious = _camera_ious(x, masks, views.cameras, radius, downsample, _end_effectors_at(scene, t))
         for c, cam in enumerate(views.cameras):
-            om = R.downsample_mask(masks[c], downsample)
+            om = masks[c]
             if imgs is not None and cols is not None:
                 im = _down_image(_image(imgs[c]), downsample)
                 rend, cov = R.render_colors(x, cols, cam, radius, _background(im, om), downsample)

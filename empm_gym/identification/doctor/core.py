@@ -744,13 +744,14 @@ def _heldout_gap(per: List[Dict[str, np.ndarray]], fits: List["_Fit"], winner: O
     from ..evaluate import mask_iou_frames
 
     masks = views is not None and views.masks is not None
+    if masks:
+        ds = int(np.clip(np.asarray(views.masks[heldout[0]][0]).shape[1] // GAP_IOU_WIDTH_PX, 1, 4))
     out = {"frames": heldout, "effect": winner.name if winner else None, "per_frame": {}, "total": {},
            "note": None if masks else "the recording was given without object masks: no mask IoU"}
     for label, w in [("base", 0)] + ([("effect", fits.index(winner))] if winner else []):
         pf = {"chamfer_m": per[w]["chamfer"][heldout], "track_median_m": per[w]["track_median"][heldout],
               "track_rmse_m": np.sqrt(per[w]["track_mse"][heldout])}
         if masks:
-            ds = int(np.clip(np.asarray(views.masks[heldout[0]][0]).shape[1] // GAP_IOU_WIDTH_PX, 1, 4))
             pf["mask_iou"] = mask_iou_frames(X[:, w], views, heldout, scene.particle_radius, ds, scene=scene)
         mse = per[w]["track_mse"][heldout]
         out["per_frame"][label] = {k: _nan_list(v) for k, v in pf.items()}
