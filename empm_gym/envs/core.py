@@ -249,6 +249,8 @@ class BatchedCore:
         self.iou_prev = np.zeros(W, np.float64)
         self.elapsed = np.zeros(W, np.int64)
         self._mask = wp.zeros(W, dtype=int, device=self.device)
+        self._all_worlds = wp.array(np.arange(W, dtype=np.int32), dtype=int, device=self.device)
+        self._all_mask = wp.array(np.ones(W, np.int32), dtype=int, device=self.device)
 
     # ------------------------------------------------------------------------------------ helpers
     def _extreme_material(self) -> MaterialConfig:
@@ -275,34 +277,46 @@ class BatchedCore:
             np.array([m.get("friction", 0.5) for m in self.materials], np.float32))
 
     # ------------------------------------------------------------------------------------ metrics
-    def _gather(self):
-        wp.launch(EK.gather_kernel, dim=(self.num_envs, self.gather_count),
-                  inputs=[self.state.particle_x, self._gather_idx], outputs=[self._gathered], device=self.device)
+    def _world_arrays(self, worlds: Optional[Sequence[int]]):
+        """(number of worlds, device array of their indices, device mask [W]) for ``worlds`` (None: all)."""
+        if worlds is None:
+            return self.num_envs, self._all_worlds, self._all_mask
+        ws = np.asarray(worlds, np.int32)
+        mask = np.zeros(self.num_envs, np.int32)
+        mask[ws] = 1
+        return len(ws), wp.array(ws, dtype=int, device=self.device), wp.array(mask, dtype=int, device=self.device)
 
-    def metrics(self):
-        """(chamfer [W] m, iou [W]) of the current state against each world's target."""
-        W = self.num_envs
-        self._gather()
+    def metrics(self, worlds: Optional[Sequence[int]] = None):
+        """(chamfer [n] m, iou [n]) of the given worlds' current state (default all) against their targets.
+
+        A reset computes them for the reset worlds alone: at 1024 worlds the full computation is about 1 ms."""
+        n, ws, mask = self._world_arrays(worlds)
+        wp.launch(EK.gather_kernel, dim=(n, self.gather_count),
+                  inputs=[self.state.particle_x, self._gather_idx, ws], outputs=[self._gathered], device=self.device)
         a = self._gathered[:, : self.chamfer_points] if self.chamfer_points < self.gather_count else self._gathered
         self._cd_a.zero_()
         self._cd_b.zero_()
-        wp.launch(EK.nearest_mean_kernel, dim=(W, self.chamfer_points),
-                  inputs=[a, self._target_dev, 0.5 / self.chamfer_points], outputs=[self._cd_a], device=self.device)
-        wp.launch(EK.nearest_mean_kernel, dim=(W, self.chamfer_target_points),
-                  inputs=[self._target_dev, a, 0.5 / self.chamfer_target_points], outputs=[self._cd_b],
+        wp.launch(EK.nearest_mean_kernel, dim=(n, self.chamfer_points),
+                  inputs=[a, self._target_dev, ws, 0.5 / self.chamfer_points], outputs=[self._cd_a],
+                  device=self.device)
+        wp.launch(EK.nearest_mean_kernel, dim=(n, self.chamfer_target_points),
+                  inputs=[self._target_dev, a, ws, 0.5 / self.chamfer_target_points], outputs=[self._cd_b],
                   device=self.device)
         self._occ.zero_()
         self._inter.zero_()
         self._union.zero_()
         wp.launch(EK.occupancy_kernel, dim=self.model.particle_count,
-                  inputs=[self.state.particle_x, self.model.particle_world, wp.vec3(*self.occ_origin),
+                  inputs=[self.state.particle_x, self.model.particle_world, mask, wp.vec3(*self.occ_origin),
                           1.0 / self.occ_voxel, wp.vec3i(*self.occ_res)], outputs=[self._occ], device=self.device)
-        wp.launch(EK.iou_counts_kernel, dim=(W, *self.occ_res), inputs=[self._occ, self._occ_target],
+        wp.launch(EK.iou_counts_kernel, dim=(n, *self.occ_res), inputs=[self._occ, self._occ_target, ws],
                   outputs=[self._inter, self._union], device=self.device)
         cd = self._cd_a.numpy().astype(np.float64) + self._cd_b.numpy().astype(np.float64)
         inter, union = self._inter.numpy(), self._union.numpy()
         iou = inter / np.maximum(union, 1)
-        return cd, iou
+        if worlds is None:
+            return cd, iou
+        sel = np.asarray(worlds, np.int64)
+        return cd[sel], iou[sel]
 
     # ------------------------------------------------------------------------------------ reset
     def _set_targets(self, worlds: Sequence[int], targets: Sequence[np.ndarray]):
@@ -357,11 +371,11 @@ class BatchedCore:
                   outputs=[s.particle_x, s.particle_v, s.particle_C, s.particle_F], device=self.device)
         wp.launch(EK.reset_ee_kernel, dim=W * self.K, inputs=[self._mask, self.K, r.ee_pos, r.ee_rot],
                   outputs=[s.ee_pos, s.ee_rot], device=self.device)
-        cd, iou = self.metrics()
+        cd, iou = self.metrics(worlds)
         sel = np.asarray(worlds)
-        self.cd0[sel] = np.maximum(cd[sel], 1e-6)
-        self.cd_prev[sel] = cd[sel]
-        self.iou_prev[sel] = iou[sel]
+        self.cd0[sel] = np.maximum(cd, 1e-6)
+        self.cd_prev[sel] = cd
+        self.iou_prev[sel] = iou
         self.elapsed[sel] = 0
         self.grip[sel] = np.asarray(self.task.default_grip or (0,) * self.K, np.int32)
 
@@ -446,38 +460,47 @@ class BatchedCore:
     def observation_bounds(self):
         return self.space_lower, self.space_upper
 
-    def _ee_obs(self) -> np.ndarray:
-        pos = self.state.ee_pos.numpy()[: self.num_envs * self.K].reshape(self.num_envs, self.K * 3)
+    def _ee_obs(self, sel) -> np.ndarray:
+        pos = self.state.ee_pos.numpy()[: self.num_envs * self.K].reshape(self.num_envs, self.K * 3)[sel]
         pos = np.clip(np.where(np.isnan(pos), 0.0, pos), np.tile(self.space_lower, self.K),
                       np.tile(self.space_upper, self.K))
-        return np.concatenate([pos, self.grip.astype(np.float32)], 1).astype(np.float32)
+        return np.concatenate([pos, self.grip[sel].astype(np.float32)], 1).astype(np.float32)
 
     def _clip_points(self, p):
         """Points [..., 3] with NaN read as 0, clamped to the observation box (as observe_points_kernel does)."""
         p = np.asarray(p, np.float32)
         return np.clip(np.where(np.isnan(p), np.float32(0.0), p), self.space_lower, self.space_upper)
 
-    def observe(self):
-        """Observations of all worlds: an array [W, ...] ("state") or a dict of arrays."""
-        W = self.num_envs
-        ee = self._ee_obs()
+    def observe(self, worlds: Optional[Sequence[int]] = None):
+        """Observations of the given worlds (default all): an array [n, ...] ("state") or a dict of arrays.
+
+        After an autoreset only the reset worlds are observed again: their rows replace those of the step's
+        observation (a full second observation cost about 1.5 ms per vector step at 1024 worlds)."""
+        sel = slice(None) if worlds is None else np.asarray(worlds, np.int64)
+        ee = self._ee_obs(sel)
+        target = self._target_obs[sel].copy()
         if self.obs_mode == "depth":
-            return {"depth": self.depth_images(), "ee": ee, "target": self._target_obs.copy()}
-        wp.launch(EK.observe_points_kernel, dim=(W, self._obs_count),
-                  inputs=[self.state.particle_x, self._gather_idx, wp.vec3(*self.space_lower),
+            return {"depth": self.depth_images(worlds), "ee": ee, "target": target}
+        n, ws, _ = self._world_arrays(worlds)
+        wp.launch(EK.observe_points_kernel, dim=(n, self._obs_count),
+                  inputs=[self.state.particle_x, self._gather_idx, ws, wp.vec3(*self.space_lower),
                           wp.vec3(*self.space_upper)], outputs=[self._obs_gathered], device=self.device)
-        p = self._obs_gathered.numpy()
+        p = self._obs_gathered[:n].numpy()
         if not self.device.is_cuda:  # a CPU array's numpy() is a view of it, which the next call overwrites
             p = p.copy()
         if self.obs_mode == "state":
-            return np.concatenate([p.reshape(W, -1), ee, self._target_obs.reshape(W, -1)], 1)
-        return {"points": p, "ee": ee, "target": self._target_obs.copy()}
+            return np.concatenate([p.reshape(n, -1), ee, target.reshape(n, -1)], 1)
+        return {"points": p, "ee": ee, "target": target}
 
-    def depth_images(self) -> np.ndarray:
-        """Top-down orthographic depth of the particles, [W, R, R, 1] uint8: 255 * (camera_height - z) /
-        camera_height (clipped), i.e. 255 is the table (or farther), smaller is closer to the camera."""
+    def depth_images(self, worlds: Optional[Sequence[int]] = None) -> np.ndarray:
+        """Top-down orthographic depth of the given worlds' particles (default all), [n, R, R, 1] uint8:
+        255 * (camera_height - z) / camera_height (clipped), i.e. 255 is the table (or farther), smaller is closer
+        to the camera."""
         W, R = self.num_envs, self.depth_resolution
         x = np.nan_to_num(self.state.particle_x.numpy()).reshape(W, self.P, 3)
+        if worlds is not None:
+            x = x[np.asarray(worlds, np.int64)]
+            W = len(x)
         lo, hi = self.space_lower, self.space_upper
         ij = np.floor((x[..., :2] - lo[:2]) / (hi[:2] - lo[:2]) * R).astype(np.int64)
         ij = np.clip(ij, 0, R - 1)

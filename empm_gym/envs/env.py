@@ -51,10 +51,11 @@ def make_spaces(core: BatchedCore):
     return obs, act
 
 
-def _index(obs, i):
+def _index(obs, i, copy: bool = False):
+    """World i's observation (views into the batch, or copies)."""
     if isinstance(obs, dict):
-        return {k: v[i] for k, v in obs.items()}
-    return obs[i]
+        return {k: (v[i].copy() if copy else v[i]) for k, v in obs.items()}
+    return obs[i].copy() if copy else obs[i]
 
 
 class EMPMEnv(gym.Env):
@@ -188,13 +189,18 @@ class EMPMVectorEnv(gym.vector.VectorEnv):
         if np.any(done):
             idx = np.nonzero(done)[0]
             final_obs = np.full(self.num_envs, None, dtype=object)
-            for i in idx:
-                final_obs[i] = _index(obs, i)
+            for i in idx:  # copies: the reset worlds' rows of obs are overwritten below
+                final_obs[i] = _index(obs, i, copy=True)
             info["final_obs"], info["_final_obs"] = final_obs, done.copy()
             info["final_info"] = {k: v.copy() for k, v in info.items() if not k.startswith(("final", "_final"))}
             info["_final_info"] = done.copy()
             self.core.reset(worlds=idx.tolist())
-            obs = self.core.observe()
+            fresh = self.core.observe(idx)  # the other worlds' rows are still current
+            if isinstance(obs, dict):
+                for k, v in fresh.items():
+                    obs[k][idx] = v
+            else:
+                obs[idx] = fresh
         return obs, reward.astype(np.float64), terminated, truncated, info
 
     def render(self):

@@ -43,26 +43,28 @@ def reset_ee_kernel(
 
 
 @wp.kernel
-def gather_kernel(x: wp.array(dtype=wp.vec3), index: wp.array2d(dtype=int), out: wp.array2d(dtype=wp.vec3)):
-    """out[w, i] = x[index[w, i]]: a fixed subsample of each world's particles."""
-    w, i = wp.tid()
+def gather_kernel(x: wp.array(dtype=wp.vec3), index: wp.array2d(dtype=int), worlds: wp.array(dtype=int),
+                  out: wp.array2d(dtype=wp.vec3)):
+    """out[w, i] = x[index[w, i]] for w = worlds[j]: a fixed subsample of some worlds' particles."""
+    j, i = wp.tid()
+    w = worlds[j]
     out[w, i] = x[index[w, i]]
 
 
 @wp.kernel
-def observe_points_kernel(x: wp.array(dtype=wp.vec3), index: wp.array2d(dtype=int), lower: wp.vec3, upper: wp.vec3,
-                          out: wp.array2d(dtype=wp.vec3)):
-    """out[w, i] = x[index[w, i]] with NaN read as 0 and every coordinate clamped to [lower, upper] (infinities
-    to the bound): the observed points, ready for the observation space."""
-    w, i = wp.tid()
-    p = x[index[w, i]]
+def observe_points_kernel(x: wp.array(dtype=wp.vec3), index: wp.array2d(dtype=int), worlds: wp.array(dtype=int),
+                          lower: wp.vec3, upper: wp.vec3, out: wp.array2d(dtype=wp.vec3)):
+    """out[j, i] = x[index[worlds[j], i]] with NaN read as 0 and every coordinate clamped to [lower, upper]
+    (infinities to the bound): the observed points of some worlds, ready for the observation space."""
+    j, i = wp.tid()
+    p = x[index[worlds[j], i]]
     q = wp.vec3()
     for k in range(3):
         v = p[k]
         if wp.isnan(v):
             v = 0.0
         q[k] = wp.clamp(v, lower[k], upper[k])
-    out[w, i] = q
+    out[j, i] = q
 
 
 @wp.kernel
@@ -82,10 +84,13 @@ def scatter_rows_int_kernel(worlds: wp.array(dtype=int), src: wp.array2d(dtype=i
 
 @wp.kernel
 def nearest_mean_kernel(
-    a: wp.array2d(dtype=wp.vec3), b: wp.array2d(dtype=wp.vec3), scale: float, out: wp.array(dtype=float)
+    a: wp.array2d(dtype=wp.vec3), b: wp.array2d(dtype=wp.vec3), worlds: wp.array(dtype=int), scale: float,
+    out: wp.array(dtype=float),
 ):
-    """out[w] += scale * distance [m] from a[w, i] to its nearest neighbour in b[w, :] (one-sided Chamfer)."""
-    w, i = wp.tid()
+    """out[w] += scale * distance [m] from a[w, i] to its nearest neighbour in b[w, :] (one-sided Chamfer), for
+    w = worlds[j]."""
+    j, i = wp.tid()
+    w = worlds[j]
     p = a[w, i]
     best = float(1.0e30)
     for j in range(b.shape[1]):
@@ -98,27 +103,34 @@ def nearest_mean_kernel(
 def occupancy_kernel(
     x: wp.array(dtype=wp.vec3),
     particle_world: wp.array(dtype=int),
+    mask: wp.array(dtype=int),
     origin: wp.vec3,
     inv_voxel: float,
     res: wp.vec3i,
     occ: wp.array4d(dtype=int),
 ):
-    """Mark the voxel of every particle as occupied (particles outside the voxel box are ignored)."""
+    """Mark the voxel of every particle of a world with mask[w] != 0 as occupied (particles outside the voxel
+    box are ignored)."""
     p = wp.tid()
+    w = particle_world[p]
+    if mask[w] == 0:
+        return
     q = (x[p] - origin) * inv_voxel
     i = int(wp.floor(q[0]))
     j = int(wp.floor(q[1]))
     k = int(wp.floor(q[2]))
     if i >= 0 and j >= 0 and k >= 0 and i < res[0] and j < res[1] and k < res[2]:
-        occ[particle_world[p], i, j, k] = 1
+        occ[w, i, j, k] = 1
 
 
 @wp.kernel
 def iou_counts_kernel(
-    occ: wp.array4d(dtype=int), target: wp.array4d(dtype=int), inter_count: wp.array(dtype=int), union_count: wp.array(dtype=int)
+    occ: wp.array4d(dtype=int), target: wp.array4d(dtype=int), worlds: wp.array(dtype=int),
+    inter_count: wp.array(dtype=int), union_count: wp.array(dtype=int)
 ):
-    """Per-world voxel counts of intersection and union of two occupancy grids."""
-    w, i, j, k = wp.tid()
+    """Voxel counts of intersection and union of two occupancy grids, for world w = worlds[n]."""
+    n, i, j, k = wp.tid()
+    w = worlds[n]
     a = occ[w, i, j, k]
     b = target[w, i, j, k]
     if a != 0 and b != 0:

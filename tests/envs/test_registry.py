@@ -317,3 +317,39 @@ def test_make_with_module_prefix_without_import():
             "particles_per_cell=2, material={'E': 5e3}); o, _ = e.reset(seed=0); print(o.shape)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
+
+
+@pytest.mark.parametrize("obs_mode", ["state", "points", "depth"])
+def test_a_partial_autoreset_observes_only_the_reset_worlds(obs_mode, small_kwargs):
+    """Worlds that end at different steps: the reset worlds' metrics and observation rows are computed for them
+    alone; every row must equal a full recomputation, and the finished worlds' final observations must not be
+    overwritten by the reset."""
+    env_id = "EMPM/RopeReshape-v0"
+    N = 4
+    venv = gym.make_vec(env_id, num_envs=N, max_episode_steps=3, obs_mode=obs_mode, **small_kwargs(env_id))
+    core = venv.unwrapped.core
+    venv.reset(seed=3)
+    rng = np.random.default_rng(1)
+    step = lambda: venv.step(rng.uniform(-1, 1, venv.action_space.shape).astype(np.float32))
+    step()
+    core.reset(worlds=[1, 3])  # worlds 1 and 3 now end one step after 0 and 2
+    full_cd, full_iou = core.metrics()
+    cd, iou = core.metrics([3, 1])
+    np.testing.assert_allclose(cd, full_cd[[3, 1]], rtol=1e-6)
+    np.testing.assert_allclose(iou, full_iou[[3, 1]])
+    for _ in range(2):
+        obs, _, term, trunc, info = step()
+    done = term | trunc
+    assert done.tolist() == [True, False, True, False]
+    flat = (lambda o: np.concatenate([np.asarray(v, np.float64).ravel() for v in o.values()])) \
+        if isinstance(obs, dict) else (lambda o: np.asarray(o, np.float64).ravel())
+    fresh = core.observe()
+    for i in range(N):
+        np.testing.assert_allclose(flat(_index_obs(obs, i)), flat(_index_obs(fresh, i)), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(core.cd_prev, core.metrics()[0], rtol=1e-6)
+    for i in (0, 2):  # the final observation is the state before the reset, not the reset world's new row
+        assert not np.allclose(flat(info["final_obs"][i]), flat(_index_obs(obs, i)))
+
+
+def _index_obs(obs, i):
+    return {k: v[i] for k, v in obs.items()} if isinstance(obs, dict) else obs[i]
