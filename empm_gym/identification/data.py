@@ -178,7 +178,7 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
         body = np.concatenate([body, hidden])
     try:
         x0, vol = initial_particles(body, dx=dx, particles_per_cell=particles_per_cell, table_plane=plane,
-                                    fill_layers=one_side, open_thin=one_side, align_lattice=one_side)
+                                    fill_layers=one_side, open_thin=one_side)
     except ValueError as exc:
         if not one_side:
             raise

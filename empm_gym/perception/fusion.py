@@ -270,7 +270,7 @@ def initial_particles(points: np.ndarray, *, dx: float, particles_per_cell: floa
                       table_plane: Optional[Tuple[np.ndarray, float]] = None, voxel_m: Optional[float] = None,
                       smooth_radius_m: Optional[float] = None, seed: int = 0, jitter: float = 0.0,
                       fill_layers: bool = False, open_thin: bool = False,
-                      align_lattice: bool = False) -> Tuple[np.ndarray, np.ndarray]:
+                      align_lattice: bool = True) -> Tuple[np.ndarray, np.ndarray]:
     """Frame-0 simulation particles filling the object's interior (not only its visible surface).
 
     ``points`` [N, 3] (m) is the fused object surface. It is first smoothed over ``smooth_radius_m`` (m,
@@ -279,10 +279,14 @@ def initial_particles(points: np.ndarray, *, dx: float, particles_per_cell: floa
     :func:`empm_gym.sim.sample_points` voxelises it at ``voxel_m`` (m, default dx / 4), fills enclosed
     cavities (with ``fill_layers`` also the holes of every horizontal layer: for a body completed around its
     sides from one view, :func:`complete_by_symmetry`; with ``open_thin`` sheets thinner than three voxels
-    are removed; ``align_lattice`` puts the lattice's outer rows half a step inside the body's bounding box,
-    see :func:`empm_gym.sim.sample_points`) and samples ``particles_per_cell``
-    particles per grid cell of ``dx`` (m). Returns ``(positions [n, 3] m, volumes [n] m^3)``; with a
-    table, no particle lies below it.
+    are removed) and samples ``particles_per_cell`` particles per grid cell of ``dx`` (m). Returns
+    ``(positions [n, 3] m, volumes [n] m^3)``; with a table, no particle lies below it.
+
+    ``align_lattice`` (default) puts the lattice's outer rows half a step inside the body's bounding box (see
+    :func:`empm_gym.sim.sample_points`), as each particle stands for the volume around it. Otherwise the
+    count of rows across a thin body depends on where the lattice happens to meet it, and a rope 2.4 cells
+    thick fits an E that moves with it: on five 3-camera `empm synth` ropes, +1.9 to +8.2 % from a free
+    lattice, -0.6 to -2.2 % from an aligned one (benchmarks/RESULTS.md, session 24).
     """
     from empm_gym.sim import sample_points
 
