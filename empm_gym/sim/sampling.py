@@ -76,6 +76,10 @@ def sample_sphere(center: Sequence[float], radius: float, dx: float, particles_p
     return pts, np.full(len(pts), 4.0 / 3.0 * np.pi * radius**3 / len(pts))
 
 
+_NO_VOLUME = ("sample_points: the point set encloses no volume at this resolution: an open surface (e.g. a scan seen "
+              "only from above: close it against the table first) or a body thinner than three voxels")
+
+
 def sample_points(points: np.ndarray, dx: float, particles_per_cell: float = 8, *, voxel: Optional[float] = None,
                   fill_interior: bool = True, fill_layers: bool = False, open_thin: bool = False,
                   align_lattice: bool = False, seed: Optional[int] = 0, jitter: float = 0.0):
@@ -118,6 +122,10 @@ def sample_points(points: np.ndarray, dx: float, particles_per_cell: float = 8, 
     # distance (in voxels) of every occupied voxel centre to the nearest empty one: 1 on the boundary
     # layer; interpolated, "distance >= 1" is the solid bounded by the boundary voxels' centres
     depth = ndimage.distance_transform_edt(occ)
+    if depth.max() < 2.0:
+        # no voxel lies inside the boundary layer: an open shell (a surface seen from one side, not closed),
+        # whose particles would form a sheet one row thick wherever the lattice meets the layer
+        raise ValueError(_NO_VOLUME)
     # a lattice offset from the voxel centres, so that no row of particles sits exactly on the surface
     if align_lattice and occ.any():
         ix = [np.nonzero(occ.any(axis=tuple(j for j in range(3) if j != i)))[0] for i in range(3)]
@@ -130,10 +138,7 @@ def sample_points(points: np.ndarray, dx: float, particles_per_cell: float = 8, 
     inside = ndimage.map_coordinates(depth, coords, order=1, mode="constant", cval=0.0) >= 1.0 - 1e-9
     out = cand[inside]
     if len(out) == 0:
-        raise ValueError(
-            "sample_points: the point set encloses no volume at this resolution: an open surface (e.g. a scan "
-            "seen only from above: close it against the table first) or a body thinner than two voxels"
-        )
+        raise ValueError(_NO_VOLUME)
     # the lattice rows near the surface fall in or out depending on how the lattice meets the surface;
     # the volume itself is measured on the voxels: interior voxels count whole, boundary voxels half
     boundary = occ & (depth < 1.5)
