@@ -3,7 +3,7 @@
 The cost of a fit is measured, not guessed: one frame of the recording is simulated forward at the starting
 material (after a warm-up frame that loads the kernels), and the fit's cost is that time times the frames
 fitted, times :data:`ITER_PER_FORWARD` for an Adam iteration (forward, backward through ``wp.Tape`` and, when
-the rollout does not fit in memory, the recomputation of checkpointed segments; measured 4-6.4x on the 2-core
+the rollout does not fit in memory, the recomputation of checkpointed segments; measured 4-8x on the 2-core
 CPU machine), times the iterations; the intervals afterwards (:func:`~.uncertainty.assess_fit`) cost forward
 rollouts of a few worlds per body variant. Substeps grow as sqrt(E): a fit that stiffens the material takes
 longer than the estimate at its start, so the plan allows :data:`STIFFENING` for that.
@@ -32,8 +32,10 @@ __all__ = ["FitPlan", "plan_fit", "estimate_s", "frame_seconds", "default_budget
 CPU_BUDGET_S = 540.0
 """Default budget of the fit and its intervals on the CPU (s): with perception and the rerun file, a default
 ``empm identify`` of a 60-frame recording then ends within about 15 minutes on the 2-core machine."""
-ITER_PER_FORWARD = 5.0
-"""An Adam iteration costs this many forward simulations of the same frames (measured 4-6.4)."""
+ITER_PER_FORWARD = 8.0
+"""An Adam iteration costs this many forward simulations of the same frames (measured 4-6.4 in session 7; 8.1
+in session 24, stiffening included, after the forward had become faster than the taped steps: 12 steps over
+30 frames of a rope fitted from 1e5 to 3.6e5 Pa took 716 s where 5.0 had estimated 440 s)."""
 STIFFENING = 1.6
 """Allowance for the substeps growing as the fit stiffens E (E 2.5x its start; measured: a rope fitted from
 1e5 to 4e5 Pa took 1.35x the estimate at its start)."""

@@ -178,7 +178,7 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
         body = np.concatenate([body, hidden])
     try:
         x0, vol = initial_particles(body, dx=dx, particles_per_cell=particles_per_cell, table_plane=plane,
-                                    fill_layers=one_side, open_thin=one_side)
+                                    fill_layers=one_side, open_thin=one_side, align_lattice=one_side)
     except ValueError as exc:
         if not one_side:
             raise
@@ -317,8 +317,7 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     ``dx`` (m) is the simulation grid cell, ``particles_per_cell`` the density of the frame-0 fill (27: a
     lattice at dx / 3; at 8 per cell a 2.4 cm rope is four or five particles across at dx = 1 cm, and the
     lattice's rounding of its cross-section biased the fitted E by +15 % on synthetic recordings, against
-    +1-3 % at 27; whatever the views, the lattice's outer rows lie half a step inside the body's box, see
-    :func:`empm_gym.perception.fusion.initial_particles`), ``voxel_m`` (m) the voxel of the fused point sets, ``material``
+    +1-3 % at 27), ``voxel_m`` (m) the voxel of the fused point sets, ``material``
     the starting / fixed material (default E = 1e5 Pa, nu = 0.3, density = 1000 kg/m^3, elastic),
     ``frames`` limits the number of leading frames read; ``complete_hidden`` adds to the frame-0 body the parts
     that the end-effectors hide from every camera (:func:`empm_gym.perception.fusion.complete_occluded`);
@@ -333,7 +332,8 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     hide). ``complete_hidden`` then adds only what an end-effector hides (not what the object hides from
     itself), where its turned copy is consistent with the views too and over the footprint of the body
     seen and turned, or inside a closed gripper; nothing under a hovering open end-effector. The fill
-    closes horizontal layers, drops sheets thinner than three voxels, and no particle is left inside an open end-effector. The prior is reported: as a logged warning
+    closes horizontal layers, drops sheets thinner than three voxels, aligns its lattice to the body's box,
+    and no particle is left inside an open end-effector. The prior is reported: as a logged warning
     (logger ``empm_gym.identification``) and, when ``info`` (a dict) is given, in
     ``info["body_completion"]`` (one line, for the material file's fit section), with ``info["view_gap_deg"]``,
     ``info["single_view"]`` and ``info["symmetry"]`` (the axis, how far the views leave it open, how much of

@@ -270,7 +270,7 @@ def initial_particles(points: np.ndarray, *, dx: float, particles_per_cell: floa
                       table_plane: Optional[Tuple[np.ndarray, float]] = None, voxel_m: Optional[float] = None,
                       smooth_radius_m: Optional[float] = None, seed: int = 0, jitter: float = 0.0,
                       fill_layers: bool = False, open_thin: bool = False,
-                      align_lattice: bool = True) -> Tuple[np.ndarray, np.ndarray]:
+                      align_lattice: bool = False) -> Tuple[np.ndarray, np.ndarray]:
     """Frame-0 simulation particles filling the object's interior (not only its visible surface).
 
     ``points`` [N, 3] (m) is the fused object surface. It is first smoothed over ``smooth_radius_m`` (m,
@@ -282,11 +282,13 @@ def initial_particles(points: np.ndarray, *, dx: float, particles_per_cell: floa
     are removed) and samples ``particles_per_cell`` particles per grid cell of ``dx`` (m). Returns
     ``(positions [n, 3] m, volumes [n] m^3)``; with a table, no particle lies below it.
 
-    ``align_lattice`` (default) puts the lattice's outer rows half a step inside the body's bounding box (see
-    :func:`empm_gym.sim.sample_points`), as each particle stands for the volume around it. Otherwise the
-    count of rows across a thin body depends on where the lattice happens to meet it, and a rope 2.4 cells
-    thick fits an E that moves with it: on five 3-camera `empm synth` ropes, +1.9 to +8.2 % from a free
-    lattice, -0.6 to -2.2 % from an aligned one (benchmarks/RESULTS.md, session 24).
+    ``align_lattice`` puts the lattice's outer rows half a step inside the body's bounding box (see
+    :func:`empm_gym.sim.sample_points`); without it the lattice is laid over the padded voxel box and a thin
+    body's outer rows fall most of a step inside its faces. Aligned, five 3-camera `empm synth` ropes (2.4
+    cells thick) fit E -0.6 to -2.2 % instead of +1.9 to +8.2 %, but the body, rebuilt 22 % too large, then
+    carries that volume in full, and the doctor named table friction (0.58 against 0.5) on a rope dragged
+    without any hidden effect (benchmarks/RESULTS.md, session 24). It stays for views from one side, where
+    the completion needs it, until the rebuilt volume is right.
     """
     from empm_gym.sim import sample_points
 
