@@ -88,9 +88,9 @@ def nearest_mean_kernel(
     out: wp.array(dtype=float),
 ):
     """out[w] += scale * distance [m] from a[w, i] to its nearest neighbour in b[w, :] (one-sided Chamfer), for
-    w = worlds[j]."""
-    j, i = wp.tid()
-    w = worlds[j]
+    w = worlds[n]."""
+    n, i = wp.tid()
+    w = worlds[n]
     p = a[w, i]
     best = float(1.0e30)
     for j in range(b.shape[1]):
