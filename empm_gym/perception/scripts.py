@@ -23,6 +23,10 @@ Scripts (phases as fractions of the recording; "long axis" = x, the object's lon
 * ``squeeze-ring``: a plate over the whole top squeezes the object against the table by 30 % of its
   height, holds, then snaps 8 cm up within one frame interval, so the body springs back, hops and rings
   (viscosity: the rebound loses energy, a lower hop and damped ringing).
+* ``lift-end``: one end gripper holds its end where it lies, the other lifts its end by half the length and
+  draws it outwards, held there to the end (fracture: the body tears).
+* ``drag``: one closed gripper on the -x end drags the object 4 cm along +x, stops, opens and moves away; the
+  object slides on by itself (table friction: how far it slides).
 
 ``default`` (resolved in :mod:`empm_gym.perception.synth`) is the object's historic script: rope
 lift-and-stretch, dough squeeze, block press-release.
@@ -157,10 +161,11 @@ def _end_grippers(g: ObjectGeometry):
 
 
 def _release(pos, t, a, b, away):
-    """Move the two end grippers 3 cm away along ``away`` (mirrored in x) between frames a and b."""
+    """Move the end grippers (the -x one, then the +x one) 3 cm away along ``away`` (mirrored in x for the
+    first) between frames a and b."""
     r = 0.03 * _ramp(t, a, b)[:, None]
-    pos[:, 0] += r * (away * [-1.0, 1.0, 1.0])
-    pos[:, 1] += r * away
+    for k in range(pos.shape[1]):
+        pos[:, k] += r * (away * [(-1.0, 1.0)[k], 1.0, 1.0])
 
 
 def _squeeze_lift(T: int, g: ObjectGeometry) -> ScriptResult:
@@ -218,17 +223,21 @@ def _lift_end(T: int, g: ObjectGeometry) -> ScriptResult:
 
 def _drag(T: int, g: ObjectGeometry) -> ScriptResult:
     sx, sy, sz = g.size
-    start, ees, _ = _end_grippers(g)
+    start, ees, away = _end_grippers(g)
     start, ees = start[:1], ees[:1]
     # a closed gripper on the -x end drags the object 4 cm along +x over the table with constant acceleration,
-    # stops and opens: the object slides on by itself, out of the open gripper (as far as the table's friction
-    # lets it); the open gripper stays where it stopped
-    _, a, b, _ = _phases(T, [0.06, 0.34, 0.6])
+    # stops, opens and moves away (as squeeze-lift's grippers do): the object slides on by itself (as far as
+    # the table's friction lets it). An open gripper left where it stopped caught the rope sliding out of it:
+    # the sphere sits in the rope's top, and whether the rope's end snagged on it depended on where the grid's
+    # nodes fell (the true rope at friction 0.05, simulated on grids shifted by 0.3 mm and half a cell, ended
+    # 4 mm and 43 mm away from itself; benchmarks/RESULTS.md, session 25)
+    _, a, b, c, _ = _phases(T, [0.06, 0.34, 0.06, 0.54])
     t = np.arange(T, dtype=np.float64)
     drag = 0.04
     u = np.clip((t - a) / max(b - a, 1), 0.0, 1.0)
     pos = np.repeat(start[None], T, axis=0)
     pos[:, 0, 0] += drag * u**2
+    _release(pos, t, b, c, away)
     grip = np.zeros((T, 1), np.int32)
     grip[:b] = 1
     lo, hi = (-sx / 2, -sy / 2, 0.0), (sx / 2 + 0.15, sy / 2, sz)
