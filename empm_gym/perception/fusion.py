@@ -285,10 +285,10 @@ def initial_particles(points: np.ndarray, *, dx: float, particles_per_cell: floa
     ``align_lattice`` puts the lattice's outer rows half a step inside the body's bounding box (see
     :func:`empm_gym.sim.sample_points`); without it the lattice is laid over the padded voxel box and a thin
     body's outer rows fall most of a step inside its faces. Aligned, five 3-camera `empm synth` ropes (2.4
-    cells thick) fit E -0.6 to -2.2 % instead of +1.9 to +8.2 %, but the body, rebuilt 22 % too large, then
-    carries that volume in full, and the doctor named table friction (0.58 against 0.5) on a rope dragged
-    without any hidden effect (benchmarks/RESULTS.md, session 24). It stays for views from one side, where
-    the completion needs it, until the rebuilt volume is right.
+    cells thick) fit E -0.6 to -2.2 % instead of +1.9 to +8.2 % (benchmarks/RESULTS.md, session 24);
+    :func:`empm_gym.identification.data.frame0_body` aligns every body it rebuilds (session 25: the doctor's
+    false table friction on a dragged rope that had kept it for views from one side was the drag script's and
+    the doctor's, not the lattice's).
     """
     from empm_gym.sim import sample_points
 
