@@ -171,8 +171,10 @@ def rescore(paths):
     (:func:`empm_gym.identification.doctor.core.select_verdict`) from the fits and variant tests they hold: a
     dump written by an earlier version of the rule (or with ``--no-robust``) scores as the current doctor would
     on the same fits."""
-    from empm_gym.identification.doctor.core import select_verdict
+    from empm_gym.identification.doctor import DoctorConfig
+    from empm_gym.identification.doctor.core import _friction_equivalent, select_verdict
 
+    factor = DoctorConfig().friction_equivalence
     rows = []
     for path in paths:
         for line in Path(path).read_text().splitlines():
@@ -180,7 +182,12 @@ def rescore(paths):
                 continue
             res = json.loads(line)
             if res.get("candidates"):
-                win, first, _ = select_verdict(res["candidates"], res.get("variants"))
+                # dumps older than the friction rule (session 25) lack its flag: it is taken from the fitted values
+                base_mu = res["base"].get("table_friction", 0.5)
+                cands = [c if "equivalent_to_base" in c else
+                         {**c, "equivalent_to_base": _friction_equivalent(c.get("params", {}).get("friction"), base_mu,
+                                                                         factor)} for c in res["candidates"]]
+                win, first, _ = select_verdict(cands, res.get("variants"))
                 res = {**res, "effect": win or "none", "effect_before_variants": first or "none"}
             rows.append(_row(res, res["truth"], res["recording"], res["script"], res.get("signature_m"), res["wall_s"]))
     return rows
