@@ -28,8 +28,8 @@ Pipeline (:func:`diagnose`):
    does (:func:`_check_variants`). A table friction fitted within ``friction_equivalence`` of the base model's
    is the base's table, not a missing effect, and is not checked or named. The verdict is the candidate with
    the lowest held-out loss among those whose gain is significant and holds on the variants, else ``none``;
-   its confidence is the fraction of bootstrap resamples in which it stays the best and significant (candidates the variants refuted are no
-   rivals), times the share of variants it holds on.
+   its confidence is the fraction of bootstrap resamples in which it stays the best and significant
+   (candidates the variants refuted are no rivals), times the share of variants it holds on.
 6. **Report.** ``doctor.json``, ``material.json`` (with the effect), ``report.md`` with figures, and a
    rerun recording of the measured points against both simulations. Its notes say what may make the verdict
    wrong: the base model's E or the named effect's parameters at a bound of their search box, a grid too
