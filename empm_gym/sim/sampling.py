@@ -127,7 +127,7 @@ def sample_points(points: np.ndarray, dx: float, particles_per_cell: float = 8, 
         # whose particles would form a sheet one row thick wherever the lattice meets the layer
         raise ValueError(_NO_VOLUME)
     # a lattice offset from the voxel centres, so that no row of particles sits exactly on the surface
-    if align_lattice and occ.any():
+    if align_lattice:  # occupied voxels exist: the check above passed
         ix = [np.nonzero(occ.any(axis=tuple(j for j in range(3) if j != i)))[0] for i in range(3)]
         box_lo = lo + np.array([v[0] for v in ix]) * h
         box_hi = lo + np.array([v[-1] for v in ix]) * h
