@@ -11,9 +11,10 @@ observed, so the loss is
 
     Chamfer(X_H, X_obs_t)  +  mask_weight * (1 - soft IoU of X_H's silhouette with the segmented masks)
 
-(averaged over cameras), and one Adam step on the parameters in :class:`~.problem.ParamSpace` follows.
-The twin continues with the updated parameters. :func:`replay` runs a recording through an updating and
-a non-updating identifier side by side and reports both losses.
+(averaged over cameras; each camera splats only the particles that the streamed end-effectors do not hide
+from it, as its recorded mask holds only what it sees of the object), and one Adam step on the parameters
+in :class:`~.problem.ParamSpace` follows. The twin continues with the updated parameters. :func:`replay` runs
+a recording through an updating and a non-updating identifier side by side and reports both losses.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import torch
 from empm_gym.sim import Rollout, SimulationDiverged, SolverConfig, SolverMPM
 
 from . import render as R
+from .evaluate import _camera_ious
 from .losses import chamfer_distance, chamfer_numpy, soft_mask_loss
 from .offline import _initial_values, _sim_kwargs, default_bounds
 from .problem import ParamSpace, Scene, substeps_for
@@ -144,10 +146,9 @@ class OnlineIdentifier:
                "chamfer": chamfer_numpy(x, f.points, direction=self.direction)}
         if f.masks is not None:
             with torch.no_grad():
-                rec["mask_loss"] = float(soft_mask_loss(torch.as_tensor(x, dtype=torch.float64), self.cameras,
-                                                        f.masks, self.radius, self.ds))
-                rec["mask_iou"] = float(np.mean([
-                    _iou(R.splat_mask(x, c, self.radius, self.ds), m) for c, m in zip(self.cameras, f.masks)]))
+                rec["mask_loss"] = float(self._mask_loss(torch.as_tensor(x, dtype=torch.float64), f))
+            rec["mask_iou"] = float(np.mean(_camera_ious(x, f.masks, self.cameras, self.radius, self.ds,
+                                                         self._end_effectors(f))))
         quasi = self.t > 0 and speed < self.speed_threshold and motion < self.motion_threshold
         rec["quasi_static"] = bool(quasi)
         self.since_update += 1
@@ -160,6 +161,28 @@ class OnlineIdentifier:
         self.history.append(rec)
         self.prev = f
         return rec
+
+    def _end_effectors(self, f: OnlineFrame):
+        """The frame's end-effectors as :func:`~.evaluate._camera_ious` takes them, or None without any."""
+        if not self.model.ee_count:
+            return None
+        return self.scene.ee_configs, f.ee_positions, f.ee_orientations
+
+    def _mask_loss(self, x: torch.Tensor, f: OnlineFrame) -> torch.Tensor:
+        """Mean over cameras of 1 - soft IoU of particles x [N, 3] against the frame's masks, each camera splatting
+        only the particles that the frame's end-effectors do not hide from it: a recorded mask holds what the
+        camera sees of the object, and a gripper in front of it would otherwise pull the twin's silhouette (and
+        the parameters) towards the hole it leaves."""
+        from empm_gym.perception.fusion import hidden_by_end_effectors
+
+        ee = self._end_effectors(f)
+        xn = x.detach().cpu().numpy()
+        terms = []
+        for cam, m in zip(self.cameras, f.masks):
+            seen = np.ones(len(xn), bool) if ee is None else ~hidden_by_end_effectors(xn, [cam], *ee)
+            pts = x if seen.all() or not seen.any() else x[torch.as_tensor(np.nonzero(seen)[0], device=x.device)]
+            terms.append(soft_mask_loss(pts, [cam], [m], self.radius, self.ds))
+        return torch.stack(terms).mean()
 
     def _advance(self, vel, grip):
         """Advance the twin by one frame interval under the streamed end-effector velocity."""
@@ -208,8 +231,7 @@ class OnlineIdentifier:
         xh = X[-1]
         loss = chamfer_distance(xh, f.points, direction=self.direction)
         if f.masks is not None and self.cameras is not None and self.mask_weight > 0:
-            loss = loss + self.mask_weight * soft_mask_loss(xh.to(torch.float64), self.cameras, f.masks,
-                                                            self.radius, self.ds).to(loss.dtype)
+            loss = loss + self.mask_weight * self._mask_loss(xh.to(torch.float64), f).to(loss.dtype)
         loss.backward()
         if torch.isfinite(self.z.grad).all():
             self.opt.step()
@@ -217,12 +239,6 @@ class OnlineIdentifier:
                 self.z.copy_(torch.as_tensor(self.space.clamp(self.z.numpy())))
         self.update_time_s += time.perf_counter() - t0
         return float(loss.detach())
-
-
-def _iou(a, b):
-    from .losses import mask_iou
-
-    return mask_iou(a, b)
 
 
 def replay(scene: Scene, frames: Iterable[OnlineFrame], *, progress: bool = True, **kw) -> dict:
