@@ -180,6 +180,7 @@ class OnlineIdentifier:
         terms = []
         for cam, m in zip(self.cameras, f.masks):
             seen = np.ones(len(xn), bool) if ee is None else ~hidden_by_end_effectors(xn, [cam], *ee)
+            # (a camera that sees none of the particles scores them all: its mask cannot say where they went)
             pts = x if seen.all() or not seen.any() else x[torch.as_tensor(np.nonzero(seen)[0], device=x.device)]
             terms.append(soft_mask_loss(pts, [cam], [m], self.radius, self.ds))
         return torch.stack(terms).mean()

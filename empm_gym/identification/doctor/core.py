@@ -779,16 +779,20 @@ def select_verdict(candidates: Sequence[dict], variants: Optional[dict]) -> Tupl
     if variants and variants.get("variants"):
         checked = variants.get("candidates", {})
         passing = [n for n in sig if n in checked and _robust(checked[n]["tests"])["robust"]]
-        gains = {c["effect"]: _discretisation_gain(c["gain"]["gain"], checked.get(c["effect"], {}).get("tests", []))
-                 for c in candidates if c["effect"] in passing}
+        gains = {c["effect"]: float(_discretisation_gain(
+            c["gain"]["gain"], [_gain(t) for t in checked.get(c["effect"], {}).get("tests", [])]))
+            for c in candidates if c["effect"] in passing}
         passing = sorted(passing, key=lambda n: -gains[n])
     return (passing[0] if passing else None), (sig[0] if sig else None), passing
 
 
-def _discretisation_gain(gain: float, tests: Sequence[dict]) -> float:
-    """Median relative held-out gain of a candidate over the doctor's discretisation (``gain``) and the variants
-    it was refitted on (``tests``, :func:`_check_variants`; gains that are not finite are left out)."""
-    return float(np.nanmedian([gain] + [_gain(t) for t in tests]))
+def _discretisation_gain(gain, variant_gains: Sequence[float]):
+    """Median relative held-out gain of a candidate over the doctor's discretisation (``gain``: a float, or an
+    array of them, one per bootstrap resample) and the variants it was refitted on (``variant_gains``, from
+    :func:`_check_variants`' tests; gains that are not finite are left out)."""
+    g = np.asarray(gain, np.float64)
+    vg = np.broadcast_to(np.asarray(variant_gains, np.float64), g.shape + (len(variant_gains),))
+    return np.nanmedian(np.concatenate([g[..., None], vg], axis=-1), axis=-1)
 
 
 #: Width [px] down to which the camera images are downsampled (by a whole factor, at most 4) for the held-out
@@ -862,9 +866,7 @@ def _confidence(base, cands: List[np.ndarray], added: List[int], cfg: DoctorConf
         return float(np.mean(~ok.any(1)))
     ranks = gains.copy()
     for i, vg in enumerate(variant_gains or []):
-        vg = [g for g in vg if np.isfinite(g)]
-        if vg:
-            ranks[:, i] = np.median(np.concatenate([gains[:, i:i + 1], np.tile(vg, (n_boot, 1))], 1), axis=1)
+        ranks[:, i] = _discretisation_gain(gains[:, i], vg)
     score = np.where(ok, ranks, -np.inf)
     return float(np.mean(ok[:, winner] & (np.argmax(score, 1) == winner)))
 
