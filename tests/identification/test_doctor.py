@@ -171,20 +171,25 @@ def test_a_fit_near_the_edge_of_its_window_is_widened_with_fresh_effect_starts(m
     assert core._widened(fit(5.4e3), None, None, MaterialConfig(E=2e3), box, 7, DoctorConfig(), False).params["E"] == 5.4e3
 
 
+def _pushed_block(truth):
+    """test_effect_params' block pushed by a sphere, 13 frames (its last 3 repeated): 4 held out."""
+    from .test_effect_params import _observe, _scene
+
+    scene, obs = _scene(truth), _observe(truth)
+    obs = Observations(obs.fps, obs.points + obs.points[-3:], tracks=np.concatenate([obs.tracks, obs.tracks[-3:]]),
+                       visibility=np.concatenate([obs.visibility, obs.visibility[-3:]]))
+    scene = dataclasses.replace(scene, ee_positions=np.concatenate([scene.ee_positions, scene.ee_positions[-3:]]),
+                                ee_grip=np.concatenate([scene.ee_grip, scene.ee_grip[-3:]]))
+    return scene, obs
+
+
 def test_candidates_search_the_whole_box_when_the_base_fit_ends_at_its_bound():
     """The base fit's E at a bound of its box measures nothing (the block is softer than the box allows): the
     candidates then refit E over the whole box, not within E_refit_factor of that bound; inside the box they
     keep the window."""
     from empm_gym.sim import MaterialConfig
 
-    from .test_effect_params import _observe, _scene
-
-    truth = MaterialConfig(E=3.0e3, nu=0.3, density=1000.0)
-    scene, obs = _scene(truth), _observe(truth)
-    obs = Observations(obs.fps, obs.points + obs.points[-3:], tracks=np.concatenate([obs.tracks, obs.tracks[-3:]]),
-                       visibility=np.concatenate([obs.visibility, obs.visibility[-3:]]))  # 13 frames: 4 held out
-    scene = dataclasses.replace(scene, ee_positions=np.concatenate([scene.ee_positions, scene.ee_positions[-3:]]),
-                                ee_grip=np.concatenate([scene.ee_grip, scene.ee_grip[-3:]]))
+    scene, obs = _pushed_block(MaterialConfig(E=3.0e3, nu=0.3, density=1000.0))
     for box, at_bound in (((6.0e3, 6.0e4), True), ((3.0e2, 6.0e4), False)):
         cfg = DoctorConfig(base_iters=6, candidate_iters=1, popsize=5, variants=0, E_bounds=box, base_E=1.2e4)
         res = diagnose(scene, obs, effects=["viscosity"], config=cfg, progress=False)
@@ -372,7 +377,8 @@ def test_variants_are_the_same_body_on_another_discretisation():
 
 def test_each_fit_is_scored_with_its_own_substeps():
     """A base model scored beside a viscous candidate (which needs 4x the substeps) moves exactly as it does
-    alone: the substep count comes from each fit's own box (Scene.dt_materials), not from the batch."""
+    alone: the substep count comes from each fit's scene (Scene.dt_materials: the diagnosis's clock and the
+    fit's box), not from the batch."""
     import dataclasses
 
     from empm_gym.identification.doctor.core import _box_corners, _Fit, _simulate_fits
@@ -593,3 +599,76 @@ def test_the_base_fit_scans_its_box():
     assert len(s) == 6 and 2.0e3 < s[0] and s[-1] < 5.0e5
     assert np.allclose(np.diff(np.log(s)), np.log(250.0) / 7)
     assert _scan_starts((2.0e3, 5.0e5), 0) == [] and _scan_starts((2.0e3, 5.0e5), -1) == []
+
+
+def test_each_candidate_starts_from_the_base_model_and_scans_its_effect():
+    """A candidate's first generation holds the base model inside it (the base fit's E, each effect parameter
+    where its effect vanishes) and its one effect parameter spread over its box, in log for a positive one,
+    leaving half the generation sampled. So a candidate never fits worse than the base model it contains: on an
+    elastic block the viscosity candidate, one generation long, from the registry's 10 Pa s, fits no worse than
+    the base model (before, its first generation sampled only around 10 Pa s)."""
+    from empm_gym.identification.doctor.core import _ABSENT, _effect_starts, _search_box
+    from empm_gym.sim import MaterialConfig
+
+    base = MaterialConfig(E=2e4, nu=0.3, density=1000.0)
+    for effect in EFFECTS:
+        ps = candidate_params(effect)
+        st = _effect_starts(ps, 2e4, (1e4, 4e4), base, 0.01, 8)
+        boxes = {p: _search_box(p, base.replace(E=4e4), 0.01) for p in ps}
+        assert st[0] == {"E": 2e4, **{p: float(np.clip(_ABSENT[p], *boxes[p])) for p in ps}}, effect
+        assert len(st) == (4 if len(ps) == 1 else 1) and all(s["E"] == 2e4 for s in st)
+        for p in ps if len(ps) == 1 else ():
+            vals = np.array([s[p] for s in st[1:]])
+            lo, hi = boxes[p]
+            assert np.all((lo < vals) & (vals < hi)), effect
+            steps = np.diff(np.log(vals)) if PARAMETERS_LOG(p) else np.diff(vals)
+            assert np.allclose(steps, steps[0]), effect
+    assert _effect_starts((), 5e4, (1e4, 4e4), base, 0.01, 8) == [{"E": 4e4}]  # the base model, in its window
+
+    scene, obs = _pushed_block(MaterialConfig(E=3.0e4, nu=0.3, density=1000.0))
+    cfg = DoctorConfig(base_iters=6, candidate_iters=1, popsize=6, variants=0, base_E=1.5e4)
+    res = diagnose(scene, obs, effects=["viscosity"], config=cfg, progress=False)
+    (cand,) = res["candidates"]
+    assert cand["fit_loss"] <= res["base"]["fit_loss"] * 1.01, (cand["fit_loss"], res["base"]["fit_loss"])
+
+
+def PARAMETERS_LOG(name):
+    from empm_gym.sim.effects import PARAMETERS
+
+    return PARAMETERS[name].transform == "log" and PARAMETERS[name].search[0] > 0
+
+
+def test_every_candidate_steps_with_the_same_substeps():
+    """The diagnosis's clock (:func:`_clock`) holds every candidate's box corners: each candidate's scene (the
+    clock and its own box) then has the clock's stable step, whatever its effect. The viscosity's box needs no
+    smaller step than the stiffness field's. And the transfers' damping, which the clock holds fixed, is real:
+    the same elastic block dropped on the table rings less with 4x the substeps."""
+    import dataclasses
+
+    from empm_gym.identification.doctor.core import _box_corners, _candidate_box, _clock
+    from empm_gym.identification.problem import _ForwardSim
+    from empm_gym.sim import MaterialConfig, stable_dt
+
+    base = MaterialConfig(E=1e4, nu=0.3, density=1000.0)
+    window, dx = (3.3e3, 3e4), 0.01
+    clock = _clock(list(EFFECTS), base, window, dx)
+    dt = stable_dt(list(clock), dx, 0.4)
+    own = {}
+    for name in ["base", *EFFECTS]:
+        _, bounds, start = _candidate_box(name, base, window, dx)
+        own[name] = stable_dt(list(_box_corners(start, bounds)), dx, 0.4)
+        assert stable_dt(list(clock) + list(_box_corners(start, bounds)), dx, 0.4) == dt
+    assert dt == min(own.values()) and own["viscosity"] == pytest.approx(own["heterogeneous_stiffness"], rel=1e-6)
+    assert own["base"] > 1.5 * dt  # without the clock, the base model took larger steps than the slope's box
+
+    from .test_effect_params import _scene
+
+    sc = _scene(base)
+    T = sc.ee_positions.shape[0]
+    sc = dataclasses.replace(sc, particles=sc.particles + [0.0, 0.0, 0.03], ee_grip=np.zeros_like(sc.ee_grip),
+                             ee_positions=np.full_like(sc.ee_positions, 0.5))  # no end-effector near it
+    ring = []
+    for top in (base, base.replace(E=16 * base.E)):  # 4x the substeps
+        X, _, _ = _ForwardSim(dataclasses.replace(sc, dt_materials=(top,)), [base], [0.5]).run(T)
+        ring.append(np.abs(np.diff(X[3:, 0, :, 2].max(1))).sum())  # the top's motion once it has landed
+    assert ring[1] < 0.8 * ring[0], ring
