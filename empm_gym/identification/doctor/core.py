@@ -11,12 +11,15 @@ Pipeline (:func:`diagnose`):
 2. **Localisation.** Per-frame and per-point residuals of the base model, split by phases read from the
    controls and by regions of the object (:mod:`.phases`, :mod:`.features`), and summary features.
 3. **Candidates.** Every effect of :data:`empm_gym.sim.effects.EFFECTS` that the base model lacks is added
-   and refitted together with E (CMA-ES, the same loss, from the base fit's E), each candidate in its own
-   batched simulation. The base model is refitted the same way (the null candidate) and is the base model
+   and refitted together with E (CMA-ES, the same loss, from the base fit's E; its first generation holds the
+   base model inside it and its effect's parameter spread over its box, :func:`_effect_starts`), each
+   candidate in its own batched simulation. The base model is refitted the same way (the null candidate) and is the base model
    from then on: a candidate must gain by its effect, not by a second search of E. A fit whose E ends at an
    edge of that window is fitted again with the window stretched to the base box on that side, and when the
-   base fit itself ends at a bound of its box every candidate searches the whole box (:func:`_widened`). Every
-   fit keeps one substep count, from the stiffest corners of its search box, and is scored with it.
+   base fit itself ends at a bound of its box every candidate searches the whole box (:func:`_widened`). The
+   base model's refit, every candidate and every variant refit step with one clock, the substeps per frame that
+   the stiffest corner of any candidate's box needs (:func:`_clock`): the transfers damp more with more
+   substeps, and a clock of its own would change each candidate's numerical damping with its effect.
 4. **Scores.** Base and candidates are simulated over all frames; the per-frame score on the held-out
    frames (Chamfer plus the median tracking error, metres) is compared pairwise with :func:`empm_gym.identification.uncertainty.paired_gain_test` (block
    bootstrap over frames, a relative-gain penalty per added parameter).
@@ -604,8 +607,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     # -- 2. candidates ----------------------------------------------------------------------------------------
     # Every candidate is fitted from the base fit's E, with E free within E_refit_factor of it; so is the null
     # candidate, the base model itself, which from here on is the base model: what a candidate gains from a
-    # second search of E is then not credited to its effect. Each fit keeps one substep count throughout, from
-    # the stiffest corners of its box (Scene.dt_materials), and is scored with it.
+    # second search of E is then not credited to its effect. Every fit keeps one substep count throughout, the
+    # diagnosis's clock (below; Scene.dt_materials), and is scored with it.
     # When the base fit ends at a bound of its box, its E is no measurement of the stiffness (a torn body looks
     # as soft as the box allows): every candidate then searches the whole box, its first generation spread over
     # it in log E (the effect's parameters at their starts).
