@@ -25,17 +25,25 @@ def dough_adam(dough_problem):
     return _fit(dough_problem, "yield_stress", "adam", iters=10)
 
 
+#: How far the fitted yield stress may lie from the truth. The squeeze determines it loosely: on the demo's
+#: recording of the same script `empm identify` gives 2416 Pa with a 95 % interval of [1441, 2916] Pa (true
+#: 2000). Here Adam fits 1.27x and CMA-ES 1.25x (2026-11-26). Within 15 % they had fitted while the frame-0 body
+#: held a sheet of table under the open grippers (84 particles reaching 9 mm past the block's faces,
+#: benchmarks/RESULTS.md, session 27); the body without it is the true block's, and the fit is not.
+YIELD_TOLERANCE = 0.3
+
+
 @pytest.mark.slow
 def test_adam_recovers_the_dough_yield_stress_from_a_synthetic_recording(dough_adam):
     ratio, res = dough_adam
-    assert abs(ratio - 1.0) < 0.15, (ratio, res.param_history)
+    assert abs(ratio - 1.0) < YIELD_TOLERANCE, (ratio, res.param_history)
     assert res.material.plastic and res.material.E == pytest.approx(2.0e4)  # E is not identified: kept
 
 
 @pytest.mark.slow
 def test_cmaes_recovers_the_dough_yield_stress_and_agrees_with_adam(dough_problem, dough_adam):
     ratio, res = _fit(dough_problem, "yield_stress", "cmaes", iters=8, popsize=6)
-    assert abs(ratio - 1.0) < 0.15, (ratio, res.param_history)
+    assert abs(ratio - 1.0) < YIELD_TOLERANCE, (ratio, res.param_history)
     assert abs(np.log(ratio / dough_adam[0])) < np.log(1.15)
 
 
