@@ -607,13 +607,13 @@ def test_each_candidate_starts_from_the_base_model_and_scans_its_effect():
     leaving half the generation sampled. So a candidate never fits worse than the base model it contains: on an
     elastic block the viscosity candidate, one generation long, from the registry's 10 Pa s, fits no worse than
     the base model (before, its first generation sampled only around 10 Pa s)."""
-    from empm_gym.identification.doctor.core import _ABSENT, _effect_starts, _search_box
+    from empm_gym.identification.doctor.core import _ABSENT, _candidate_box, _effect_starts, _search_box
     from empm_gym.sim import MaterialConfig
 
     base = MaterialConfig(E=2e4, nu=0.3, density=1000.0)
     for effect in EFFECTS:
         ps = candidate_params(effect)
-        st = _effect_starts(ps, 2e4, (1e4, 4e4), base, 0.01, 8)
+        st = _effect_starts(_candidate_box(effect, base, (1e4, 4e4), 0.01)[1], 2e4, 8)
         boxes = {p: _search_box(p, base.replace(E=4e4), 0.01) for p in ps}
         assert st[0] == {"E": 2e4, **{p: float(np.clip(_ABSENT[p], *boxes[p])) for p in ps}}, effect
         assert len(st) == (4 if len(ps) == 1 else 1) and all(s["E"] == 2e4 for s in st)
@@ -623,7 +623,7 @@ def test_each_candidate_starts_from_the_base_model_and_scans_its_effect():
             assert np.all((lo < vals) & (vals < hi)), effect
             steps = np.diff(np.log(vals)) if PARAMETERS_LOG(p) else np.diff(vals)
             assert np.allclose(steps, steps[0]), effect
-    assert _effect_starts((), 5e4, (1e4, 4e4), base, 0.01, 8) == [{"E": 4e4}]  # the base model, in its window
+    assert _effect_starts({"E": (1e4, 4e4)}, 5e4, 8) == [{"E": 4e4}]  # the base model, in its window
 
     scene, obs = _pushed_block(MaterialConfig(E=3.0e4, nu=0.3, density=1000.0))
     cfg = DoctorConfig(base_iters=6, candidate_iters=1, popsize=6, variants=0, base_E=1.5e4)
