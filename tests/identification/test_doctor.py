@@ -183,6 +183,31 @@ def _pushed_block(truth):
     return scene, obs
 
 
+def test_a_refit_on_a_variant_at_the_edge_of_its_window_is_widened():
+    """A refit on a variant searches E in its fit's window on the doctor's body; a variant can move the optimum
+    beyond it (dough lifted at both ends: the base model's 8.4 kPa went to the window's edge, 21.5 kPa, on a
+    shifted grid, where a stiffness field then gained 24 % by the clamp). With the base model's box, the
+    variant's base model ending at its window's edge is refitted with the window widened and reaches the
+    optimum beyond it; without the box (the old check) it stays at the edge."""
+    from empm_gym.identification.doctor.core import _check_variants, _fit_candidate
+    from empm_gym.sim import MaterialConfig
+
+    truth = MaterialConfig(E=3.0e3, nu=0.3, density=1000.0)
+    start = truth.replace(E=600.0)
+    scene, obs = _pushed_block(truth)
+    T, F = 13, 9
+    cfg = DoctorConfig(candidate_iters=4, variant_iters=2, popsize=6, seed=1, variants=1)
+    base, visc = (_fit_candidate(name, scene, obs, start, (300.0, 1000.0), F, cfg, False)
+                  for name in ("base", "viscosity"))
+    assert base.params["E"] > 1000.0 / 1.05  # held at the window's edge on the doctor's body too
+    runs = {box: _check_variants([visc], scene, obs, base, F, T, list(range(F, T)), cfg, False, box=box)
+            for box in (None, (100.0, 3.0e4))}
+    clamped, widened = (runs[box]["base"][0] for box in runs)
+    assert clamped["params"]["E"] <= 1000.0
+    assert widened["params"]["E"] == pytest.approx(3.0e3, rel=0.15)
+    assert widened["heldout_loss"] < clamped["heldout_loss"]
+
+
 def test_candidates_search_the_whole_box_when_the_base_fit_ends_at_its_bound():
     """The base fit's E at a bound of its box measures nothing (the block is softer than the box allows): the
     candidates then refit E over the whole box, not within E_refit_factor of that bound; inside the box they

@@ -671,7 +671,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     as_dicts = [{"effect": f.name, "heldout": f.heldout, "gain": f.test, "equivalent_to_base": f.equivalent}
                 for f in cands]
     to_check = [by_name[n] for n in select_verdict(as_dicts, None)[2][:cfg.variant_top]]
-    robustness = _check_variants(to_check, scene, obs, base_fit, F, T, heldout, cfg, progress, other_bodies)
+    robustness = _check_variants(to_check, scene, obs, base_fit, F, T, heldout, cfg, progress, other_bodies,
+                                 box=(lo, hi), loose=loose)
     win, unchecked, passing = select_verdict(as_dicts, robustness if cfg.robust_verdict else None)
     winner, unchecked = by_name.get(win), by_name.get(unchecked)
     significant = [by_name[n] for n in passing]
@@ -756,7 +757,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
 
 
 def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base_fit: "_Fit", F: int, T: int,
-                    heldout: List[int], cfg: DoctorConfig, progress: bool, other_bodies: Sequence = ()) -> dict:
+                    heldout: List[int], cfg: DoctorConfig, progress: bool, other_bodies: Sequence = (),
+                    box: Optional[Tuple[float, float]] = None, loose: bool = False) -> dict:
     """Fit the base model and each of ``checked`` again on other discretisations of the same body
     (:func:`_variant_scene`) and on ``other_bodies`` (the frame-0 body rebuilt from fewer views), and compare
     each candidate's held-out loss with the base model's on the same variant.
@@ -767,7 +769,15 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
     over frames cannot see it. Such a gain does not survive another, equally valid discretisation or a body
     rebuilt from other views; a gain the effect earns does. ``robust``: the candidate's held-out gain exceeds
     its penalty on every discretisation variant and on more than half of the rebuilt bodies (each of those
-    misses a camera, and a body completed from fewer views may fail on its own)."""
+    misses a camera, and a body completed from fewer views may fail on its own).
+
+    Each refit on a variant searches E in its own fit's window on the doctor's body. Another discretisation or
+    a body rebuilt from fewer views can move the elastic optimum by more than that window (dough held at both
+    ends and lifted: 8.4 kPa on the doctor's body, beyond the window's 21.5 kPa on a shifted grid), and a fit
+    held at a window's edge is no model of that variant: a candidate with a stiffness of its own (a stiffness
+    field) then gains by the base model's clamp, not by its effect. With ``box`` (the base model's E box), a
+    variant's refit that ends at an edge of its window is refitted with the window widened, as on the
+    doctor's body (:func:`_widened`, ``loose`` as there)."""
     if callable(other_bodies):  # built only when a candidate needs checking (perception takes seconds)
         other_bodies = other_bodies() if checked else ()
     variants = [(f"grid shifted and particles resampled ({k + 1})", "discretisation", _variant_scene(scene, k))
@@ -788,6 +798,8 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
         vfits += [_fit_candidate(f.name, vs, obs, base_fit.start_material, None, F, cfg, progress, like=f,
                                  starts=_variant_starts(f, base_fit, vfits[0])[:max(0, cfg.popsize - 2)])
                   for f in checked]
+        if box is not None:
+            vfits = [_widened(vf, vs, obs, base_fit.start_material, box, F, cfg, progress, loose) for vf in vfits]
         objective = Objective(vfits[0].scene, obs, T, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed)
         X = _simulate_fits(vfits, T)
         losses = [_per_frame_losses(objective, X[:, w])["loss"][heldout] for w in range(len(vfits))]
