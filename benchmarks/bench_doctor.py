@@ -187,7 +187,10 @@ def rescore(paths):
                 cands = [c if "equivalent_to_base" in c else
                          {**c, "equivalent_to_base": _friction_equivalent(c.get("params", {}).get("friction"), base_mu,
                                                                          factor)} for c in res["candidates"]]
-                win, first, _ = select_verdict(cands, res.get("variants"))
+                variants = res.get("variants")
+                if variants and "base_E" not in variants:  # dumps older than session 28: the base fit's E
+                    variants = {**variants, "base_E": res["base"]["params"]["E"]}
+                win, first, _ = select_verdict(cands, variants)
                 res = {**res, "effect": win or "none", "effect_before_variants": first or "none"}
             rows.append(_row(res, res["truth"], res["recording"], res["script"], res.get("signature_m"), res["wall_s"]))
     return rows
