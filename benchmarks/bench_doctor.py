@@ -170,12 +170,13 @@ def rescore(paths):
     """Rows of ``--dump`` files with the verdict taken again by the doctor's rule
     (:func:`empm_gym.identification.doctor.core.select_verdict`) from the fits and variant tests they hold: a
     dump written by an earlier version of the rule (or with ``--no-robust``) scores as the current doctor would
-    on the same fits."""
+    on the same fits. A recording found in several files is scored from the last of them (a run of a few
+    recordings again, given after the run it completes)."""
     from empm_gym.identification.doctor import DoctorConfig
     from empm_gym.identification.doctor.core import _friction_equivalent, select_verdict
 
     factor = DoctorConfig().friction_equivalence
-    rows = []
+    rows = {}
     for path in paths:
         for line in Path(path).read_text().splitlines():
             if not line.strip():
@@ -192,8 +193,10 @@ def rescore(paths):
                     variants = {**variants, "base_E": res["base"]["params"]["E"]}
                 win, first, _ = select_verdict(cands, variants)
                 res = {**res, "effect": win or "none", "effect_before_variants": first or "none"}
-            rows.append(_row(res, res["truth"], res["recording"], res["script"], res.get("signature_m"), res["wall_s"]))
-    return rows
+            rows.pop(res["recording"], None)
+            rows[res["recording"]] = _row(res, res["truth"], res["recording"], res["script"], res.get("signature_m"),
+                                          res["wall_s"])
+    return list(rows.values())
 
 
 def floors(problems: Path, args):
@@ -347,7 +350,7 @@ def main(argv=None):
     p.add_argument("--summarise", nargs="*", default=None, help="print the tables of these --jsonl files and stop")
     p.add_argument("--rescore", nargs="*", default=None,
                    help="print the tables of these --dump files (one JSON result per line), the verdict taken again "
-                        "by the doctor's current rule, and stop")
+                        "by the doctor's current rule, and stop (a recording in several files: from the last)")
     p.add_argument("--floor", action="store_true",
                    help="simulate each effect problem's true material on the doctor's body instead of diagnosing "
                         "(rows to --jsonl; the benchmark's own use of ground truth)")
