@@ -729,9 +729,12 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                    + (f"; {' and '.join(rivals)} explain(s) the held-out frames about as well: the data do not tell "
                       f"them apart" if rivals else "")
                    if winner else
-                   (f"{unchecked.name} lowers the held-out loss beyond noise and its penalty, but its gain does not "
-                    f"hold on other discretisations and reconstructions of the body "
-                    f"({robustness['candidates'][unchecked.name]['why']}): it is not attributable to the effect"
+                   (f"{unchecked.name} lowers the held-out loss beyond noise and its penalty, but "
+                    + (f"{robustness['candidates'][unchecked.name]['why']}"
+                       if robustness["candidates"][unchecked.name].get("within_discretisation") else
+                       f"its gain does not hold on other discretisations and reconstructions of the body "
+                       f"({robustness['candidates'][unchecked.name]['why']})")
+                    + ": it is not attributable to the effect"
                     if unchecked is not None else
                     "no effect of the catalogue lowers the held-out loss by more than frame-to-frame noise and "
                     "its parameter penalty explain"
@@ -820,8 +823,8 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
     for name, rec in out["candidates"].items():
         rec.update(_robust(rec["tests"]))
         small = _within_discretisation(name, params[name], out)
-        if small:
-            rec.update(robust=False, why=small)
+        if small and rec["robust"]:  # it holds on the variants, but its size is the grid's
+            rec.update(robust=False, why=small, within_discretisation=True)
     return out
 
 
@@ -883,7 +886,7 @@ def _within_discretisation(name: str, params: Dict[str, float], variants: dict) 
     if contrast > spread:
         return ""
     return (f"its stiffness contrast across the body, {contrast:.2f}x, is no larger than the spread of the base "
-            f"model's E over the discretisations, {spread:.2f}x: the grid alone moves the stiffness that much")
+            f"model's E over the discretisations, {spread:.2f}x (the grid alone moves the stiffness that much)")
 
 
 def select_verdict(candidates: Sequence[dict], variants: Optional[dict]) -> Tuple[Optional[str], Optional[str], List[str]]:
