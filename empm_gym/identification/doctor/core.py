@@ -839,9 +839,15 @@ def _holds(t: dict) -> bool:
     return bool(np.isfinite(g) and g > t["threshold"])
 
 
+def _variant_kind(t: dict) -> str:
+    """"discretisation" or "body": the kind of the variant a test or refit in ``doctor.json``'s ``variants`` ran
+    on (dumps older than the field: from its label)."""
+    return t.get("kind") or ("discretisation" if t["variant"].startswith("grid") else "body")
+
+
 def _robust(tests: List[dict]) -> dict:
     """The variants' verdict on one candidate (see :func:`_check_variants`): ``robust``, ``holds_on``, ``why``."""
-    kind = [t.get("kind") or ("discretisation" if t["variant"].startswith("grid") else "body") for t in tests]
+    kind = [_variant_kind(t) for t in tests]
     disc = [t for t, k in zip(tests, kind) if k == "discretisation"]
     body = [t for t, k in zip(tests, kind) if k == "body"]
     failed_disc = [t for t in disc if not _holds(t)]
@@ -870,9 +876,8 @@ def _within_discretisation(name: str, params: Dict[str, float], variants: dict) 
     if not name == "heterogeneous_stiffness" or not variants:
         return ""
     disc = [t for t in variants.get("candidates", {}).get(name, {}).get("tests", [])
-            if (t.get("kind") or ("discretisation" if t["variant"].startswith("grid") else "body")) == "discretisation"]
-    Es = [b["params"]["E"] for b in variants.get("base", [])
-          if (b.get("kind") or ("discretisation" if b["variant"].startswith("grid") else "body")) == "discretisation"]
+            if _variant_kind(t) == "discretisation"]
+    Es = [b["params"]["E"] for b in variants.get("base", []) if _variant_kind(b) == "discretisation"]
     if variants.get("base_E") is not None:
         Es.append(float(variants["base_E"]))
     if len(Es) < 2:
