@@ -153,15 +153,15 @@ def diagnose_all(problems: Path, args):
 
 def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: float) -> dict:
     """One result row of a doctor result (``diagnose``'s return value or a ``--dump`` line)."""
-    red = c_true = c_base = float("nan")
+    red = c_true = c_base = l_base = float("nan")
     if res.get("candidates"):
-        c_base = res["base"]["heldout"]["chamfer_m"]
+        c_base, l_base = res["base"]["heldout"]["chamfer_m"], res["base"]["heldout"]["loss"]
     if truth != "none" and res.get("candidates"):
         c_true = next(c for c in res["candidates"] if c["effect"] == truth)["heldout"]["chamfer_m"]
         red = 1.0 - c_true / c_base
     return {"recording": name, "script": script, "truth": truth, "verdict": res["effect"],
             "confidence": res.get("confidence", 0.0), "reduction": red, "base_chamfer_m": c_base,
-            "true_effect_chamfer_m": c_true,
+            "true_effect_chamfer_m": c_true, "base_loss": l_base,
             "before_variants": res.get("effect_before_variants", res["effect"]), "signature_m": signature_m,
             "wall_s": wall_s}
 
@@ -260,9 +260,37 @@ def summarise(rows, floor_rows=()):
         can = [1.0 - floor[r["recording"]] / r["base_chamfer_m"] for r in both]
         print(f"  all {len(both)}: shown {100 * np.median([r['reduction'] for r in both]):.1f} %, possible "
               f"{100 * np.median(can):.1f} %")
+    _shown_on_the_body(bench, floor_rows)
     if rest:
         print(f"\n=== other recordings: the first runs' second scripts ({len(rest)} recordings)")
         _table(rest)
+
+
+def _shown_on_the_body(rows, floor_rows):
+    """Accuracy over the recordings whose effect the doctor's own body and grid can show: the true material
+    (:func:`floors`: ground truth, the benchmark's own use of it), simulated on the doctor's body, scores a
+    held-out loss below the base model's fit by more than the doctor's penalty for the effect's parameters.
+    Where it does not, no choice among the candidates can name the effect from these frames at this resolution,
+    and ``none`` is what the doctor's test should say."""
+    from empm_gym.identification.doctor import DoctorConfig
+    from empm_gym.identification.doctor.core import candidate_params
+
+    loss = {r["recording"]: r["floor_loss"] for r in floor_rows if "floor_loss" in r}
+    eff = [r for r in rows if r["truth"] != "none" and r["recording"] in loss and np.isfinite(r.get("base_loss", np.nan))]
+    if not eff:
+        return
+    pen = DoctorConfig().penalty_per_param
+    gain = {r["recording"]: 1.0 - loss[r["recording"]] / r["base_loss"] for r in eff}
+    shows = [r for r in eff if gain[r["recording"]] > pen * len(candidate_params(r["truth"]))]
+    none = [r for r in rows if r["truth"] == "none"]
+    ok = [r["verdict"] == r["truth"] for r in shows + none]
+    print(f"\nthe true material on the doctor's body against the base model's fit (held-out loss): {len(shows)} of "
+          f"{len(eff)} effect recordings show their effect beyond the penalty; on them and the {len(none)} none: "
+          f"accuracy {100 * np.mean(ok):.1f} % of {len(ok)}")
+    for r in sorted(eff, key=lambda r: gain[r["recording"]]):
+        if r not in shows:
+            print(f"  does not show it: {r['recording']:40s} true material {100 * gain[r['recording']]:+6.1f} %, "
+                  f"verdict {r['verdict']}")
 
 
 def _table(rows):
