@@ -270,8 +270,10 @@ def _shown_on_the_body(rows, floor_rows):
     """Accuracy over the recordings whose effect the doctor's own body and grid can show: the true material
     (:func:`floors`: ground truth, the benchmark's own use of it), simulated on the doctor's body, scores a
     held-out loss below the base model's fit by more than the doctor's penalty for the effect's parameters.
-    Where it does not, no choice among the candidates can name the effect from these frames at this resolution,
-    and ``none`` is what the doctor's test should say."""
+    Where it does not, the recording shows its effect less than the body, the grid and the depth noise disturb it
+    at this resolution: the true material (its E included) does no better than the elastic fit, and a candidate
+    that refits E beside the effect can gain only by what the refit of E buys. ``none`` is then a defensible
+    verdict; the table says which recordings those are, the accuracy over the others beside the full one."""
     from empm_gym.identification.doctor import DoctorConfig
     from empm_gym.identification.doctor.core import candidate_params
 
