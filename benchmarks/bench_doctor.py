@@ -55,6 +55,9 @@ def make(args):
     out = Path(args.problems) if args.problems else Path(args.make) / "problems"
     out.mkdir(parents=True, exist_ok=True)
     effects = ["none", *EFFECTS] if args.effects == "all" else args.effects.split(",")
+    params = {k.strip(): float(v) for k, v in (kv.split("=", 1) for kv in args.effect_params.split(","))} \
+        if args.effect_params else {}
+    tag = "".join(f"-{k}{v:g}" for k, v in params.items())
     only = set(args.only_scripts.split(",")) if args.only_scripts else None
     unknown = sorted((only or set()) - set(SCRIPTS))
     if unknown:
@@ -67,7 +70,8 @@ def make(args):
             scripts = [s for s in scripts if s in only]
         for script in scripts:
             for seed in range(args.first_seed, args.first_seed + args.seeds):
-                name = f"{args.object}-{script}-{seed}-{effect}"
+                eparams = {k: v for k, v in params.items() if effect != "none" and k in EFFECTS[effect].param_names}
+                name = f"{args.object}-{script}-{seed}-{effect}" + (tag if eparams else "")
                 rec = Path(args.make) / name
                 t0 = time.perf_counter()
                 if (out / f"{name}.pkl").exists() and args.keep_existing:
@@ -75,7 +79,8 @@ def make(args):
                         prob = pickle.load(f)
                     changed = False
                     if "signature_m" not in prob:
-                        prob["signature_m"] = effect_signature(args.object, script, effect, frames=args.frames, seed=seed)
+                        prob["signature_m"] = effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
+                                                               effect_params=eparams or None)
                         changed = True
                     if args.view_bodies and "view_bodies" not in prob and rec.exists():
                         prob["view_bodies"] = view_jackknife_bodies(rec, prob["scene"], particles_per_cell=args.ppc)
@@ -85,7 +90,8 @@ def make(args):
                             pickle.dump(prob, f)
                     print(f"{name}: kept, held-out signature {1e3 * prob['signature_m']:.2f} mm", flush=True)
                     continue
-                synthesize(rec, args.object, script=script, effect=effect, frames=args.frames, cameras=args.cameras,
+                synthesize(rec, args.object, script=script, effect=effect, effect_params=eparams or None,
+                           frames=args.frames, cameras=args.cameras,
                            width=args.width, height=args.height, seed=seed, overwrite=True, progress=False)
                 truth = [e["name"] for e in json.loads((rec / "ground_truth.json").read_text())["effects"]]
                 try:
@@ -99,10 +105,11 @@ def make(args):
                               for p in obs.points]
                 with open(out / f"{name}.pkl", "wb") as f:
                     pickle.dump({"scene": scene, "obs": obs, "truth": truth[0] if truth else "none",
-                                 "script": script, "seed": seed,
+                                 "script": script, "seed": seed, "truth_params": eparams,
                                  **({"view_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc)}
                                     if args.view_bodies else {}),
-                                 "signature_m": effect_signature(args.object, script, effect, frames=args.frames, seed=seed)}, f)
+                                 "signature_m": effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
+                                                                 effect_params=eparams or None)}, f)
                 print(f"{name}: {len(scene.particles)} particles, {obs.num_frames} frames "
                       f"({time.perf_counter() - t0:.1f} s)", flush=True)
     return out
@@ -220,7 +227,7 @@ def floors(problems: Path, args):
         if prob["truth"] == "none":
             continue
         obs = prob["obs"]
-        mat, _ = effect_material(args.object, prob["truth"])
+        mat, _ = effect_material(args.object, prob["truth"], prob.get("truth_params") or None)
         mu = mat.get("friction")
         sc = dataclasses.replace(prob["scene"], device=args.device, motion_margin=cfg.motion_margin)
         sc = sc.with_material(mat, table_friction=mu)
@@ -354,6 +361,9 @@ def main(argv=None):
     p.add_argument("--only-scripts", default=None,
                    help="with --make: only these scripts (comma-separated) of those --scripts picks, e.g. the ones "
                         "whose grippers close, to rerun after a change to the grippers")
+    p.add_argument("--effect-params", default=None,
+                   help="with --make: NAME=VALUE pairs (comma-separated) replacing effect defaults, e.g. viscosity=200 "
+                        "(a detection limit); the recordings' names end with them")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--first-seed", type=int, default=0, help="seeds --first-seed ... --first-seed + --seeds - 1")
     p.add_argument("--frames", type=int, default=30)

@@ -43,3 +43,21 @@ def test_accuracy_over_the_recordings_whose_true_material_beats_the_base_fit(ben
     assert "2 of 3 effect recordings show their effect beyond the penalty" in out
     assert "accuracy 66.7 % of 3" in out  # the two fractures (one called gripper slip) and the none recording
     assert "does not show it: dough-squeeze-ring-0-viscosity" in out and "+2.0 %" in out
+
+
+def test_make_with_effect_params_synthesises_them_and_keeps_them_for_scoring(bench, tmp_path):
+    """``--make --effect-params viscosity=80``: the recording is made with that viscosity (its ground truth says
+    so), its problem's name ends with it, and the pickle keeps it (for ``--floor``'s true material)."""
+    import pickle
+
+    rc = bench.main(["--object", "block", "--make", str(tmp_path / "rec"), "--problems", str(tmp_path / "prob"),
+                     "--effects", "viscosity", "--effect-params", "viscosity=80", "--scripts", "1", "--seeds", "1",
+                     "--frames", "4", "--cameras", "2", "--width", "160", "--height", "120", "--only-make"])
+    assert rc == 0
+    (pkl,) = (tmp_path / "prob").glob("*.pkl")
+    assert pkl.stem == "block-squeeze-ring-0-viscosity-viscosity80"
+    with open(pkl, "rb") as f:
+        prob = pickle.load(f)
+    assert prob["truth"] == "viscosity" and prob["truth_params"] == {"viscosity": 80.0}
+    gt = json.loads((tmp_path / "rec" / pkl.stem / "ground_truth.json").read_text())
+    assert gt["effects"] == [{"name": "viscosity", "params": {"viscosity": 80.0}}]
