@@ -209,6 +209,33 @@ def test_a_refit_on_a_variant_at_the_edge_of_its_window_is_widened():
     assert widened["heldout_loss"] < clamped["heldout_loss"]
 
 
+def test_a_refit_on_a_later_variant_starts_from_the_optima_found_on_earlier_ones(monkeypatch):
+    """Each candidate's refit on a variant gets, among its starts, that candidate's optima on the variants refitted
+    before it, in order (dough pulled apart: the fracture found on one shifted grid is a start on the next)."""
+    from empm_gym.identification.doctor import core
+    from empm_gym.sim import MaterialConfig
+
+    truth = MaterialConfig(E=3.0e3, nu=0.3, density=1000.0, viscosity=20.0)
+    scene, obs = _pushed_block(truth)
+    T, F = 13, 9
+    cfg = DoctorConfig(candidate_iters=2, variant_iters=1, popsize=5, seed=1, variants=2)
+    start = truth.replace(viscosity=0.0)
+    base, visc = (core._fit_candidate(name, scene, obs, start, (1.0e3, 9.0e3), F, cfg, False)
+                  for name in ("base", "viscosity"))
+    calls = []
+
+    def spy(like, base_fit, variant_base, found=()):
+        calls.append((like.name, [dict(f) for f in found]))
+        return real(like, base_fit, variant_base, found)
+
+    real = core._variant_starts
+    monkeypatch.setattr(core, "_variant_starts", spy)
+    out = core._check_variants([visc], scene, obs, base, F, T, list(range(F, T)), cfg, False)
+    tests = out["candidates"]["viscosity"]["tests"]
+    assert [c[0] for c in calls] == ["viscosity", "viscosity"] and len(tests) == 2
+    assert calls[0][1] == [] and calls[1][1] == [tests[0]["params"]]
+
+
 def test_candidates_search_the_whole_box_when_the_base_fit_ends_at_its_bound():
     """The base fit's E at a bound of its box measures nothing (the block is softer than the box allows): the
     candidates then refit E over the whole box, not within E_refit_factor of that bound; inside the box they
