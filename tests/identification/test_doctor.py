@@ -236,6 +236,30 @@ def test_a_refit_on_a_later_variant_starts_from_the_optima_found_on_earlier_ones
     assert calls[0][1] == [] and calls[1][1] == [tests[0]["params"]]
 
 
+def test_a_winner_that_other_discretisations_rank_second_is_no_confident_verdict():
+    """Two candidates that both hold can trade places from one discretisation to the next (dough pushed across
+    the table with 200 Pa s of hidden viscosity, session 29: plasticity first on the doctor's body and the three
+    rebuilt bodies, viscosity on both shifted grids). ``_first_on`` gives the winner's share of first places
+    over the discretisations where both were refitted (non-finite gains left out) and the candidates that come
+    first elsewhere; a lone passing candidate comes first everywhere."""
+    from empm_gym.identification.doctor.core import _first_on
+
+    labels = ["grid (1)", "grid (2)", "without camera 0", "without camera 1", "without camera 2"]
+
+    def tests(gains):
+        return {"tests": [{"variant": v, "gain": g} for v, g in zip(labels, gains)]}
+
+    variants = {"variants": labels, "candidates": {
+        "plasticity": tests([0.201, 0.213, 0.173, 0.188, 0.193]),
+        "viscosity": tests([0.250, 0.289, 0.128, 0.158, None]),
+        "fracture": tests([0.1, 0.1, 0.1, 0.1, 0.1])}}
+    body = {"plasticity": 0.186, "viscosity": 0.161, "fracture": 0.05}
+    share, others, n = _first_on("plasticity", ["plasticity", "viscosity"], body, variants)
+    assert (share, others, n) == (pytest.approx(3 / 5), ["viscosity"], 5)  # the last variant: viscosity not finite
+    assert _first_on("plasticity", ["plasticity", "fracture"], body, variants) == (1.0, [], 6)
+    assert _first_on("plasticity", ["plasticity"], body, variants) == (1.0, [], 0)
+
+
 def test_candidates_search_the_whole_box_when_the_base_fit_ends_at_its_bound():
     """The base fit's E at a bound of its box measures nothing (the block is softer than the box allows): the
     candidates then refit E over the whole box, not within E_refit_factor of that bound; inside the box they
