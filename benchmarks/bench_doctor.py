@@ -46,17 +46,37 @@ FIRST_OTHER = {"none": "squeeze-lift", "plasticity": "squeeze-ring", "viscosity"
 EXPRESSED_M = 1.0e-3
 
 
+def _effect_params(text, effects):
+    """``--effect-params`` as {name: value}; each name must be a parameter of one of ``effects`` (a misspelt one
+    would otherwise leave the defaults in place without a word)."""
+    from empm_gym.sim.effects import EFFECTS
+
+    known = {p for e in effects if e != "none" for p in EFFECTS[e].param_names}
+    out = {}
+    for item in (text.split(",") if text else []):
+        k, eq, v = (x.strip() for x in item.partition("="))
+        if not eq:
+            raise SystemExit(f"--effect-params takes NAME=VALUE pairs separated by commas, got {item!r}")
+        if k not in known:
+            raise SystemExit(f"--effect-params: {k!r} is no parameter of the effects made ({', '.join(effects)}); "
+                             f"theirs: {', '.join(sorted(known)) or 'none'}")
+        try:
+            out[k] = float(v)
+        except ValueError:
+            raise SystemExit(f"--effect-params: {k} must be a number, got {v!r}") from None
+    return out
+
+
 def make(args):
     from empm_gym.identification.data import load_recording, view_jackknife_bodies
     from empm_gym.perception.scripts import SCRIPTS
     from empm_gym.perception.synth import effect_signature, synthesize
     from empm_gym.sim.effects import EFFECTS
 
+    effects = ["none", *EFFECTS] if args.effects == "all" else args.effects.split(",")
+    params = _effect_params(args.effect_params, effects)
     out = Path(args.problems) if args.problems else Path(args.make) / "problems"
     out.mkdir(parents=True, exist_ok=True)
-    effects = ["none", *EFFECTS] if args.effects == "all" else args.effects.split(",")
-    params = {k.strip(): float(v) for k, v in (kv.split("=", 1) for kv in args.effect_params.split(","))} \
-        if args.effect_params else {}
     tag = "".join(f"-{k}{v:g}" for k, v in params.items())
     only = set(args.only_scripts.split(",")) if args.only_scripts else None
     unknown = sorted((only or set()) - set(SCRIPTS))

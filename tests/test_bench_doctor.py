@@ -61,3 +61,14 @@ def test_make_with_effect_params_synthesises_them_and_keeps_them_for_scoring(ben
     assert prob["truth"] == "viscosity" and prob["truth_params"] == {"viscosity": 80.0}
     gt = json.loads((tmp_path / "rec" / pkl.stem / "ground_truth.json").read_text())
     assert gt["effects"] == [{"name": "viscosity", "params": {"viscosity": 80.0}}]
+
+
+@pytest.mark.parametrize("text, said", [("viscosty=200", "'viscosty' is no parameter"),
+                                        ("viscosity", "NAME=VALUE"), ("viscosity=lots", "must be a number")])
+def test_bad_effect_params_are_refused_before_anything_is_made(bench, tmp_path, text, said):
+    """A misspelt, bare or non-numeric ``--effect-params`` entry stops ``--make`` with a message naming it,
+    before any recording is written (a misspelt name would otherwise leave the default silently)."""
+    with pytest.raises(SystemExit, match=said):
+        bench.main(["--object", "block", "--make", str(tmp_path / "rec"), "--problems", str(tmp_path / "prob"),
+                    "--effects", "viscosity", "--effect-params", text, "--only-make"])
+    assert not (tmp_path / "rec").exists() and not (tmp_path / "prob").exists()
