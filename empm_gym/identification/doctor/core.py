@@ -826,7 +826,6 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
     from tqdm.auto import tqdm
 
     found: Dict[str, List[Dict[str, float]]] = {f.name: [] for f in checked}  # each candidate's optima so far
-    fitted = []
     for label, kind, vs in tqdm(variants, desc="doctor: variants", disable=not progress, leave=False):
         vfits = [_fit_candidate("base", vs, obs, base_fit.start_material, None, F, cfg, progress, like=base_fit)]
         vfits += [_fit_candidate(f.name, vs, obs, base_fit.start_material, None, F, cfg, progress, like=f,
@@ -836,10 +835,6 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
             vfits = [_widened(vf, vs, obs, base_fit.start_material, box, F, cfg, progress, loose) for vf in vfits]
         for f, vf in zip(checked, vfits[1:]):
             found[f.name].append(dict(vf.params))
-        fitted.append(vfits)
-    _refit_where_absent(checked, [vs for _, _, vs in variants], fitted, found, obs, base_fit, F, cfg, progress,
-                        box, loose)
-    for (label, kind, vs), vfits in zip(variants, fitted):
         objective = Objective(vfits[0].scene, obs, T, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed)
         X = _simulate_fits(vfits, T)
         losses = [_per_frame_losses(objective, X[:, w])["loss"][heldout] for w in range(len(vfits))]
@@ -858,53 +853,6 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
         if small and rec["robust"]:  # it holds on the variants, but its size is the grid's
             rec.update(robust=False, why=small, within_discretisation=True)
     return out
-
-
-#: A candidate's refit on a variant whose fitting loss is less than this fraction below the variant's base model's
-#: has not found its effect there (it stayed at, or next to, the base model it contains) [-].
-ABSENT_FIT_GAIN = 0.01
-
-
-def _refit_where_absent(checked: List["_Fit"], scenes: Sequence[Scene], fitted: List[List["_Fit"]],
-                        found: Dict[str, List[Dict[str, float]]], obs: Observations, base_fit: "_Fit", F: int,
-                        cfg: DoctorConfig, progress: bool, box: Optional[Tuple[float, float]] = None,
-                        loose: bool = False) -> None:
-    """Refit, once, each candidate on each variant where its refit stayed at the base model, from its optima on
-    the variants where it found its effect (its fitting loss at least :data:`ABSENT_FIT_GAIN` below the base
-    model's there); keep the refit where it fits the fitting frames better (``fitted``: per variant, the
-    base model's refit and then each of ``checked``'s, replaced in place; ``found``: each candidate's optima per
-    variant, updated).
-
-    A refit starts from the candidate's optima on the variants refitted before it (:func:`_variant_starts`),
-    so the first variant has none of them: on dough pulled apart with a hidden fracture (benchmarks/RESULTS.md,
-    session 30) the fracture's refit on the first shifted grid ended at E = 496 kPa with no fracture within the
-    recording (strain 1.24: gain 0.0) while the four other variants found fractures at strains 0.03-0.45 and
-    gained 30-35 %. Which variant comes first is the doctor's arbitrary order, not evidence against the
-    effect. Only the fitting frames decide which refit is kept (the held-out frames score it afterwards)."""
-    for j, f in enumerate(checked, start=1):
-        # the variants where the candidate found its effect (their optima are the new starts), before any retry
-        hits = [w for w, fits in enumerate(fitted) if fits[j].fit_loss < (1.0 - ABSENT_FIT_GAIN) * fits[0].fit_loss]
-        for v, vs in enumerate(scenes):
-            vbase, vf = fitted[v][0], fitted[v][j]
-            if v in hits:
-                continue
-            tried = _variant_starts(f, base_fit, vbase, found[f.name][:v])
-            starts = []
-            for w in hits:
-                st = {k: float(np.clip(found[f.name][w][k], *f.bounds[k])) for k in f.params}
-                if st not in tried and st not in starts and st != vf.params:
-                    starts.append(st)
-            if not starts:
-                continue
-            g = _fit_candidate(f.name, vs, obs, base_fit.start_material, None, F, cfg, progress, like=vf,
-                               starts=starts[:max(0, cfg.popsize - 2)])
-            if box is not None:
-                g = _widened(g, vs, obs, base_fit.start_material, box, F, cfg, progress, loose)
-            if g.fit_loss < vf.fit_loss:
-                g.wall_s += vf.wall_s
-                fitted[v][j], found[f.name][v] = g, dict(g.params)
-            else:
-                vf.wall_s += g.wall_s
 
 
 def _gain(t: dict) -> float:
