@@ -77,7 +77,6 @@ def make(args):
     params = _effect_params(args.effect_params, effects)
     out = Path(args.problems) if args.problems else Path(args.make) / "problems"
     out.mkdir(parents=True, exist_ok=True)
-    tag = "".join(f"-{k}{v:g}" for k, v in params.items())
     only = set(args.only_scripts.split(",")) if args.only_scripts else None
     unknown = sorted((only or set()) - set(SCRIPTS))
     if unknown:
@@ -91,7 +90,7 @@ def make(args):
         for script in scripts:
             for seed in range(args.first_seed, args.first_seed + args.seeds):
                 eparams = {k: v for k, v in params.items() if effect != "none" and k in EFFECTS[effect].param_names}
-                name = f"{args.object}-{script}-{seed}-{effect}" + (tag if eparams else "")
+                name = f"{args.object}-{script}-{seed}-{effect}" + "".join(f"-{k}{v:g}" for k, v in eparams.items())
                 rec = Path(args.make) / name
                 t0 = time.perf_counter()
                 if (out / f"{name}.pkl").exists() and args.keep_existing:
