@@ -662,13 +662,8 @@ def test_two_effects_that_both_hold_are_ranked_over_every_discretisation():
                 "candidates": {"plasticity": tests(plast), "fracture": tests(frac)}}
     assert select_verdict(cands, variants) == ("fracture", "plasticity", ["fracture", "plasticity"])
     assert select_verdict(cands, None) == ("plasticity", "plasticity", ["plasticity", "fracture"])
-    # one shifted grid where fracture fails to gain: it holds on two of the three discretisations and still
-    # passes; on neither shifted grid, or on two of the three rebuilt bodies, it no longer does
+    # one variant where fracture fails to gain: it no longer passes, plasticity is named
     variants["candidates"]["fracture"] = tests([0.876, 0.01, 0.816, 0.819, 0.834])
-    assert select_verdict(cands, variants) == ("fracture", "plasticity", ["fracture", "plasticity"])
-    variants["candidates"]["fracture"] = tests([0.02, 0.01, 0.816, 0.819, 0.834])
-    assert select_verdict(cands, variants) == ("plasticity", "plasticity", ["plasticity"])
-    variants["candidates"]["fracture"] = tests([0.876, 0.870, 0.816, 0.01, -0.2])
     assert select_verdict(cands, variants) == ("plasticity", "plasticity", ["plasticity"])
 
     rng = np.random.default_rng(0)
@@ -679,34 +674,6 @@ def test_two_effects_that_both_hold_are_ranked_over_every_discretisation():
     assert _confidence(base, [p, f], [1, 1], cfg, 1) < 0.05  # on the held-out frames alone plasticity is ahead
     assert _confidence(base, [p, f], [1, 1], cfg, 1, variant_gains=[plast, frac]) > 0.95
     assert _confidence(base, [p, f], [1, 1], cfg, 0, variant_gains=[plast, frac]) < 0.05
-
-
-def test_a_gain_must_hold_on_most_discretisations_and_most_bodies():
-    """The variants' rule (``_robust``) on the gains of dough pulled apart with a hidden fracture (session 29's
-    run): the fracture's refit ended at the base model on the first shifted grid (gain 0.0) and gained 30-35 %
-    on the second and on two of the three bodies rebuilt without a camera. The doctor's own grid and the two
-    shifted ones are equally valid: holding on two of the three (the doctor's own counted) and on most bodies
-    names it, with the share of the variants that agree in ``holds_on``. A gain that holds on every rebuilt
-    body but on neither shifted grid is how the doctor's grid meets the body, not an effect."""
-    from empm_gym.identification.doctor.core import _robust
-
-    labels = [("grid shifted and particles resampled (1)", "discretisation"),
-              ("grid shifted and particles resampled (2)", "discretisation"),
-              ("without camera 0", "body"), ("without camera 1", "body"), ("without camera 2", "body")]
-
-    def tests(gains, threshold=0.04):
-        return [{"variant": v, "kind": k, "gain": g, "threshold": threshold} for (v, k), g in zip(labels, gains)]
-
-    pull_apart_1 = [-0.000, 0.299, 0.351, 0.324, -0.033]
-    r = _robust(tests(pull_apart_1))
-    assert r["robust"] and r["holds_on"] == "3 of 5 variants" and r["why"] == ""
-    r = _robust(tests([0.017, 0.030, 0.351, 0.324, 0.2]))  # every body, neither shifted grid
-    assert not r["robust"] and "(1)" in r["why"] and "1.7 %" in r["why"]
-    r = _robust(tests([0.3, 0.3, 0.351, -0.01, float("nan")]))  # one body of three: the bodies' majority fails
-    assert not r["robust"] and "without camera 2" in r["why"]
-    # no rebuilt bodies (a recording of one camera): most of the three discretisations decide alone
-    assert _robust(tests([0.3, 0.01])[:2])["robust"]
-    assert not _robust(tests([0.01, 0.01])[:2])["robust"]
 
 
 def test_a_stiffness_field_within_the_discretisations_spread_is_not_named():
