@@ -2,11 +2,13 @@
 
 import dataclasses
 import json
+import math
 
 import numpy as np
 import pytest
 
 from empm_gym.identification.doctor import DoctorConfig, DoctorError, candidate_params, diagnose
+from empm_gym.identification.doctor.core import SIGNATURE_FEATURES
 from empm_gym.identification.problem import Observations, Scene
 from empm_gym.identification.uncertainty import measurement_noise, paired_gain_test
 from empm_gym.sim import EndEffectorConfig, sample_box
@@ -377,6 +379,13 @@ def doctor_names_the_hidden_effect(tmp_path, effect, script):
         best = next(c for c in res["candidates"] if c["effect"] == effect)
         assert best["heldout"]["loss"] < res["base"]["heldout"]["loss"]
         assert (tmp_path / "doctor" / "material.json").exists()
+        # the true effect's fit moves its own signature toward the measurement (or has none to move)
+        sig = res["evidence"]["signature_check"]
+        print(f"signature {sig['feature']}: {sig['base']} -> {sig['with_effect']} ({sig['explained']})")
+        assert sig["feature"] == SIGNATURE_FEATURES[effect][0] and not sig["doubted"], sig
+        assert sig["explained"] is not False or not SIGNATURE_FEATURES[effect][2], sig
+        assert "signature check" in (tmp_path / "doctor" / "report.md").read_text()
+        assert res["evidence"]["features_with_effect"][sig["feature"]] == sig["with_effect"]
     # the held-out gap before and after, as the candidates' table and the verdict score it, with the mask IoU
     gap = res["gap"]
     assert gap["frames"] == list(range(res["heldout_frames"][0], res["heldout_frames"][1] + 1))
@@ -674,6 +683,47 @@ def test_two_effects_that_both_hold_are_ranked_over_every_discretisation():
     assert _confidence(base, [p, f], [1, 1], cfg, 1) < 0.05  # on the held-out frames alone plasticity is ahead
     assert _confidence(base, [p, f], [1, 1], cfg, 1, variant_gains=[plast, frac]) > 0.95
     assert _confidence(base, [p, f], [1, 1], cfg, 0, variant_gains=[plast, frac]) < 0.05
+
+
+def test_the_signature_check_asks_whether_the_effect_moves_its_own_feature_toward_the_measurement():
+    """Values from the benchmark's recordings (session 31, the fits' features recomputed on the CPU): on pressed
+    dough the plastic fit lowers the residual after release against that in contact (0.83 -> 0.48; the ratio
+    stays under 1 either way, so it is no "agrees at 1" ratio); on dough lifted by one end with a hidden
+    fracture, called gripper slip, the slip fit moves the tracks' slip relative to the gripper away from the
+    measurement (0.21 -> 0.37 mm), and the doctor says so; a torn dough still in one piece leaves the fracture's
+    count of pieces nothing to explain; a rate ratio agrees at 1 from either side."""
+    from empm_gym.identification.doctor.core import SIGNATURE_FEATURES, signature_check, signature_discrepancy
+    from empm_gym.sim.effects import EFFECTS
+
+    assert set(SIGNATURE_FEATURES) == set(EFFECTS)
+    key = "residual_after_release_vs_contact"
+    c = signature_check("plasticity", {key: 0.8332}, {key: 0.4801})
+    assert c["explained"] is True and c["feature"] == key and c["base"] == 0.8332 and c["with_effect"] == 0.4801
+    assert c["trusted"] and not c["doubted"]
+    assert c["discrepancy_with_effect"] < c["discrepancy_base"] and c["unit"] == "-" and c["meaning"]
+    assert signature_check("plasticity", {key: 0.48}, {key: 0.83})["explained"] is False
+    c = signature_check("gripper_slip", {"track_slip_m": 2.071e-4}, {"track_slip_m": 3.654e-4})
+    assert c["explained"] is False and c["discrepancy_base"] == pytest.approx(2.071e-4)
+    assert c["trusted"] and c["doubted"]
+    # a feature the doctor does not trust for its effect is shown, never doubted: the rope's stiffness field
+    # gains 77 % held out and moves the residual asymmetry from 0.024 to -0.068
+    c = signature_check("heterogeneous_stiffness", {"residual_asymmetry": 0.024}, {"residual_asymmetry": -0.068})
+    assert c["explained"] is False and not c["trusted"] and not c["doubted"]
+    assert signature_check("gripper_slip", {"track_slip_m": -5.5e-3}, {"track_slip_m": 1.3e-3})["explained"] is True
+    # nothing to explain, or no feature: no judgement either way
+    one = {"pieces_observed_max": 1.0, "pieces_simulated_max": 1.0}
+    assert signature_check("fracture", one, dict(one))["explained"] is None
+    assert signature_check("fracture", {"pieces_observed_max": 2.0, "pieces_simulated_max": 1.0},
+                           {"pieces_observed_max": 2.0, "pieces_simulated_max": 2.0})["explained"] is True
+    c = signature_check("gripper_slip", {"track_slip_m": None}, {"track_slip_m": 1e-3})
+    assert c["explained"] is None and c["discrepancy_base"] is None and not c["doubted"]
+    assert signature_check("viscosity", {"oscillation_decay": float("nan")}, {"oscillation_decay": 1.0})["explained"] is None
+    assert signature_discrepancy("viscosity", {"oscillation_decay": 2.0}) == pytest.approx(math.log(2.0))
+    assert signature_discrepancy("viscosity", {"oscillation_decay": 0.5}) == pytest.approx(math.log(2.0))
+    assert signature_check("viscosity", {"oscillation_decay": 0.5}, {"oscillation_decay": 1.1})["explained"] is True
+    assert signature_check("table_friction", {"table_slide_m": 0.02}, {"table_slide_m": -0.001})["explained"] is True
+    assert signature_check("heterogeneous_stiffness", {"residual_asymmetry": 0.40},
+                           {"residual_asymmetry": 0.39})["explained"] is True
 
 
 def test_a_stiffness_field_within_the_discretisations_spread_is_not_named():
