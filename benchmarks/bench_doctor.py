@@ -185,11 +185,14 @@ def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: flo
     if truth != "none" and res.get("candidates"):
         c_true = next(c for c in res["candidates"] if c["effect"] == truth)["heldout"]["chamfer_m"]
         red = 1.0 - c_true / c_base
+    # the named effect's check against its own signature (doctor.json's evidence; a slim --dump line keeps it at
+    # the top level); None where the verdict is none or the result predates the check (session 31)
+    sig = (res.get("evidence") or {}).get("signature_check", res.get("signature_check")) or {}
     return {"recording": name, "script": script, "truth": truth, "verdict": res["effect"],
             "confidence": res.get("confidence", 0.0), "reduction": red, "base_chamfer_m": c_base,
             "true_effect_chamfer_m": c_true, "base_loss": l_base,
             "before_variants": res.get("effect_before_variants", res["effect"]), "signature_m": signature_m,
-            "wall_s": wall_s}
+            "signature_doubted": sig.get("doubted"), "wall_s": wall_s}
 
 
 def rescore(paths):
@@ -356,6 +359,13 @@ def _table(rows):
         print(f"without the variants check: accuracy {100 * np.mean([t == v for t, v in before]):.1f} %, false effects "
               f"on none {sum(v != 'none' for t, v in before if t == 'none')} of {sum(t == 'none' for t, _ in before)}; "
               f"verdicts the check changed: {sum(r['before_variants'] != r['verdict'] for r in full if 'before_variants' in r)}")
+    checked = [r for r in full if r.get("signature_doubted") is not None]
+    if checked:
+        doubted = [r for r in checked if r["signature_doubted"]]
+        print(f"checked against their signature: {len(checked)} named verdicts; doubted (the named effect's fit does "
+              f"not bring its trusted feature closer): {len(doubted)}, of them right "
+              f"{sum(r['verdict'] == r['truth'] for r in doubted)}; not doubted and wrong: "
+              f"{sum(r['verdict'] != r['truth'] for r in checked if not r['signature_doubted'])}")
     # against what each recording shows: an effect whose held-out signature is below EXPRESSED_M is not in the
     # data, and `none` is then a right verdict as well
     known = [r for r in full if r.get("signature_m") is not None]

@@ -45,6 +45,28 @@ def test_accuracy_over_the_recordings_whose_true_material_beats_the_base_fit(ben
     assert "does not show it: dough-squeeze-ring-0-viscosity" in out and "+2.0 %" in out
 
 
+def test_the_signature_checks_doubts_are_tallied_right_and_wrong(bench, tmp_path, capsys):
+    """Rows carry ``signature_doubted`` from doctor.json (``evidence.signature_check``) or from a slim dump line;
+    the table counts the doubted verdicts and how many of them were right, and the wrong verdicts it let pass.
+    Rows without the check (older runs, or `none`) are left out of that count."""
+    res = {"effect": "gripper_slip", "confidence": 0.5, "evidence": {"signature_check": {"doubted": True}}}
+    assert bench._row(res, "fracture", "r", "lift-end", None, 1.0)["signature_doubted"] is True
+    assert bench._row({"effect": "plasticity", "signature_check": {"doubted": False}}, "plasticity", "r",
+                      "press-release", None, 1.0)["signature_doubted"] is False
+    assert bench._row({"effect": "none"}, "none", "r", "drag", None, 1.0)["signature_doubted"] is None
+    rows = [dict(_row("dough-lift-end-2-fracture", "fracture", "gripper_slip", "lift-end", 0.01), signature_doubted=True),
+            dict(_row("dough-lift-end-1-fracture", "fracture", "gripper_slip", "lift-end", 0.01), signature_doubted=False),
+            dict(_row("dough-press-release-0-plasticity", "plasticity", "plasticity", "press-release", 0.01),
+                 signature_doubted=False),
+            _row("dough-drag-0-none", "none", "none", "drag", 0.004)]
+    (tmp_path / "rows.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert bench.main(["--summarise", str(tmp_path / "rows.jsonl")]) == 0
+    out = capsys.readouterr().out
+    assert "checked against their signature: 3 named verdicts" in out
+    assert "doubted (the named effect's fit does not bring its trusted feature closer): 1, of them right 0" in out
+    assert "not doubted and wrong: 1" in out
+
+
 def test_make_with_effect_params_synthesises_them_and_keeps_them_for_scoring(bench, tmp_path):
     """``--make --effect-params viscosity=80``: the recording is made with that viscosity (its ground truth says
     so), its problem's name ends with it, and the pickle keeps it (for ``--floor``'s true material)."""
