@@ -1096,7 +1096,7 @@ def _heldout_gap(per: List[Dict[str, np.ndarray]], fits: List["_Fit"], winner: O
 
 
 def _nan_list(a) -> list:
-    return [None if not np.isfinite(v) else float(v) for v in np.asarray(a, np.float64)]
+    return [_finite_or_none(v) for v in np.asarray(a, np.float64)]
 
 
 def _friction_equivalent(mu: Optional[float], base_friction: float, factor: float) -> bool:
@@ -1159,7 +1159,7 @@ def _localise(scene: Scene, obs: Observations, objective: Objective, X_base: np.
                 [objective.tracks[:1], objective._predicted_tracks(np.asarray(X_sim, np.float64))]))
         f = summary_features(phases, objective.points[:T], P_sim, scene.ee_positions[:T], scene.ee_grip[:T], radius,
                              obs.fps, table_z=table_z, **kw)
-        return {k: (None if not np.isfinite(v) else float(v)) for k, v in f.items()}
+        return {k: _finite_or_none(v) for k, v in f.items()}
 
     P_best = None if X_best is None else objective.predicted_points(np.asarray(X_best[:T], np.float64))
     where = localise(phases, objective.points[:T], P_base, scene.ee_positions[:T], radius, table_z=table_z)
