@@ -67,6 +67,21 @@ def _effect_params(text, effects):
     return out
 
 
+def _base_params(text):
+    """``--base-params`` as {name: value} for E, nu and density (the object's base material)."""
+    out = {}
+    for item in (text.split(",") if text else []):
+        k, eq, v = (x.strip() for x in item.partition("="))
+        if not eq or k not in ("E", "nu", "density"):
+            raise SystemExit(f"--base-params takes E, nu or density as NAME=VALUE pairs separated by commas, "
+                             f"got {item!r}")
+        try:
+            out[k] = float(v)
+        except ValueError:
+            raise SystemExit(f"--base-params: {k} must be a number, got {v!r}") from None
+    return out
+
+
 def make(args):
     from empm_gym.identification.data import load_recording, view_jackknife_bodies
     from empm_gym.perception.scripts import SCRIPTS
@@ -75,6 +90,7 @@ def make(args):
 
     effects = ["none", *EFFECTS] if args.effects == "all" else args.effects.split(",")
     params = _effect_params(args.effect_params, effects)
+    base = _base_params(args.base_params)
     out = Path(args.problems) if args.problems else Path(args.make) / "problems"
     out.mkdir(parents=True, exist_ok=True)
     only = set(args.only_scripts.split(",")) if args.only_scripts else None
@@ -90,7 +106,8 @@ def make(args):
         for script in scripts:
             for seed in range(args.first_seed, args.first_seed + args.seeds):
                 eparams = {k: v for k, v in params.items() if effect != "none" and k in EFFECTS[effect].param_names}
-                name = f"{args.object}-{script}-{seed}-{effect}" + "".join(f"-{k}{v:g}" for k, v in eparams.items())
+                name = f"{args.object}-{script}-{seed}-{effect}" + "".join(f"-{k}{v:g}" for k, v in
+                                                                             {**base, **eparams}.items())
                 rec = Path(args.make) / name
                 t0 = time.perf_counter()
                 if (out / f"{name}.pkl").exists() and args.keep_existing:
@@ -99,7 +116,7 @@ def make(args):
                     changed = False
                     if "signature_m" not in prob:
                         prob["signature_m"] = effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
-                                                               effect_params=eparams or None)
+                                                               effect_params=eparams or None, base_params=base)
                         changed = True
                     if args.view_bodies and "view_bodies" not in prob and rec.exists():
                         prob["view_bodies"] = view_jackknife_bodies(rec, prob["scene"], particles_per_cell=args.ppc)
@@ -110,7 +127,7 @@ def make(args):
                     print(f"{name}: kept, held-out signature {1e3 * prob['signature_m']:.2f} mm", flush=True)
                     continue
                 synthesize(rec, args.object, script=script, effect=effect, effect_params=eparams or None,
-                           frames=args.frames, cameras=args.cameras,
+                           **base, frames=args.frames, cameras=args.cameras,
                            width=args.width, height=args.height, seed=seed, overwrite=True, progress=False)
                 truth = [e["name"] for e in json.loads((rec / "ground_truth.json").read_text())["effects"]]
                 try:
@@ -125,10 +142,11 @@ def make(args):
                 with open(out / f"{name}.pkl", "wb") as f:
                     pickle.dump({"scene": scene, "obs": obs, "truth": truth[0] if truth else "none",
                                  "script": script, "seed": seed, "truth_params": eparams,
+                                 "base_params": base,
                                  **({"view_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc)}
                                     if args.view_bodies else {}),
                                  "signature_m": effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
-                                                                 effect_params=eparams or None)}, f)
+                                                                 effect_params=eparams or None, base_params=base)}, f)
                 print(f"{name}: {len(scene.particles)} particles, {obs.num_frames} frames "
                       f"({time.perf_counter() - t0:.1f} s)", flush=True)
     return out
@@ -249,7 +267,8 @@ def floors(problems: Path, args):
         if prob["truth"] == "none":
             continue
         obs = prob["obs"]
-        mat, _ = effect_material(args.object, prob["truth"], prob.get("truth_params") or None)
+        mat, _ = effect_material(args.object, prob["truth"], prob.get("truth_params") or None,
+                                 **prob.get("base_params", {}))
         mu = mat.get("friction")
         sc = dataclasses.replace(prob["scene"], device=args.device, motion_margin=cfg.motion_margin)
         sc = sc.with_material(mat, table_friction=mu)
@@ -393,6 +412,10 @@ def main(argv=None):
     p.add_argument("--effect-params", default=None,
                    help="with --make: NAME=VALUE pairs (comma-separated) replacing effect defaults, e.g. viscosity=200 "
                         "(a detection limit); the recordings' names end with them")
+    p.add_argument("--base-params", default=None,
+                   help="with --make: E, nu, density as NAME=VALUE pairs (comma-separated) replacing the object's base "
+                        "material, e.g. E=1e4,density=1100 (a material the doctor's rules were not chosen on); the "
+                        "recordings' names end with them")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--first-seed", type=int, default=0, help="seeds --first-seed ... --first-seed + --seeds - 1")
     p.add_argument("--frames", type=int, default=30)

@@ -68,29 +68,37 @@ def test_the_signature_checks_doubts_are_tallied_right_and_wrong(bench, tmp_path
 
 
 def test_make_with_effect_params_synthesises_them_and_keeps_them_for_scoring(bench, tmp_path):
-    """``--make --effect-params viscosity=80``: the recording is made with that viscosity (its ground truth says
-    so), its problem's name ends with it, and the pickle keeps it (for ``--floor``'s true material)."""
+    """``--make --effect-params viscosity=80 --base-params E=3e4,density=900``: the recording is made with that
+    viscosity on that base material (its ground truth says so), its problem's name ends with them, and the pickle
+    keeps them (for ``--floor``'s true material)."""
     import pickle
 
     rc = bench.main(["--object", "block", "--make", str(tmp_path / "rec"), "--problems", str(tmp_path / "prob"),
-                     "--effects", "viscosity", "--effect-params", "viscosity=80", "--scripts", "1", "--seeds", "1",
+                     "--effects", "viscosity", "--effect-params", "viscosity=80", "--base-params", "E=3e4,density=900",
+                     "--scripts", "1", "--seeds", "1",
                      "--frames", "4", "--cameras", "2", "--width", "160", "--height", "120", "--only-make"])
     assert rc == 0
     (pkl,) = (tmp_path / "prob").glob("*.pkl")
-    assert pkl.stem == "block-squeeze-ring-0-viscosity-viscosity80"
+    assert pkl.stem == "block-squeeze-ring-0-viscosity-E30000-density900-viscosity80"
     with open(pkl, "rb") as f:
         prob = pickle.load(f)
     assert prob["truth"] == "viscosity" and prob["truth_params"] == {"viscosity": 80.0}
+    assert prob["base_params"] == {"E": 3.0e4, "density": 900.0}
     gt = json.loads((tmp_path / "rec" / pkl.stem / "ground_truth.json").read_text())
     assert gt["effects"] == [{"name": "viscosity", "params": {"viscosity": 80.0}}]
+    assert gt["material"]["E"] == 3.0e4 and gt["material"]["density"] == 900.0
 
 
-@pytest.mark.parametrize("text, said", [("viscosty=200", "'viscosty' is no parameter"),
-                                        ("viscosity", "NAME=VALUE"), ("viscosity=lots", "must be a number")])
-def test_bad_effect_params_are_refused_before_anything_is_made(bench, tmp_path, text, said):
-    """A misspelt, bare or non-numeric ``--effect-params`` entry stops ``--make`` with a message naming it,
-    before any recording is written (a misspelt name would otherwise leave the default silently)."""
+@pytest.mark.parametrize("flag, text, said", [("--effect-params", "viscosty=200", "'viscosty' is no parameter"),
+                                              ("--effect-params", "viscosity", "NAME=VALUE"),
+                                              ("--effect-params", "viscosity=lots", "must be a number"),
+                                              ("--base-params", "youngs=1e4", "E, nu or density"),
+                                              ("--base-params", "E=soft", "E must be a number")])
+def test_bad_effect_params_are_refused_before_anything_is_made(bench, tmp_path, flag, text, said):
+    """A misspelt, bare or non-numeric ``--effect-params`` or ``--base-params`` entry stops ``--make`` with a
+    message naming it, before any recording is written (a misspelt name would otherwise leave the default
+    silently)."""
     with pytest.raises(SystemExit, match=said):
         bench.main(["--object", "block", "--make", str(tmp_path / "rec"), "--problems", str(tmp_path / "prob"),
-                    "--effects", "viscosity", "--effect-params", text, "--only-make"])
+                    "--effects", "viscosity", flag, text, "--only-make"])
     assert not (tmp_path / "rec").exists() and not (tmp_path / "prob").exists()
