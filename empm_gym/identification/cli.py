@@ -210,6 +210,8 @@ def _identify(args) -> int:
                        # the grid's share (a finer or coarser grid) costs probe batches that a time budget's
                        # estimate leaves out
                        refine_grid=plan is None or plan.budget_s is None)
+        if body_info.get("hidden_note"):  # the interval holds the rebuilt bodies, all on the same completion
+            a["identifiability"]["warnings"].append(body_info["hidden_note"])
         res.extra.update(a)
         undetermined = [k for k, u in a["uncertainty"].items() if not u["determined"]]
     res.save(out)

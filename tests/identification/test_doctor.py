@@ -375,6 +375,10 @@ def doctor_names_the_hidden_effect(tmp_path, effect, script):
     print(f"{effect} on {script}: verdict {res['effect']} ({res['confidence']:.2f}); base held-out "
           f"{1e3 * res['base']['heldout']['chamfer_m']:.2f} mm; {table}")
     assert res["effect"] == effect, res["reason"]
+    # two clamps hide most of the dough from every camera (squeeze-lift, lift-end, pull-apart): the notes say how
+    # much of the body the loader's completion supplied; pressed or pushed, nothing is said
+    hidden = [n for n in res["notes"] if "completed by a prior" in n]
+    assert len(hidden) == (script in ("squeeze-lift", "lift-end", "pull-apart")), res["notes"]
     if effect != "none":
         best = next(c for c in res["candidates"] if c["effect"] == effect)
         assert best["heldout"]["loss"] < res["base"]["heldout"]["loss"]

@@ -78,9 +78,27 @@ def test_closed_clamps_hold_no_phantom_material(tmp_path):
                      width=320, height=180, progress=False)
     gt = json.loads((rec / "ground_truth.json").read_text())
     size = np.asarray(gt["scene"]["object_geometry"]["size_m"])
-    scene, _, _ = load_recording(rec, progress=False)
+    info = {}
+    scene, _, _ = load_recording(rec, progress=False, info=info)
     assert abs(scene.volumes.sum() / np.prod(size) - 1.0) < 0.25
     assert np.abs(scene.particles[:, 0]).max() < size[0] / 2 + 0.01   # within a cell of the true ends
+    # the clamps hide most of the dough: the loader says how much of the body its completion supplied
+    assert 0.5 < info["hidden_share"] < 0.9, info["hidden_share"]
+    assert f"{100 * info['hidden_share']:.0f} % of the frame-0 body" in info["hidden_note"]
+
+
+def test_a_body_the_cameras_see_whole_carries_no_completion_note(tmp_path):
+    """Pressed from above (press-release), nothing of the dough is hidden from every camera at frame 0: the share
+    completed by the hidden-part prior is small (the pusher over it hides a little of its top) and no note is given
+    (the clamps' case is above)."""
+    from empm_gym.identification.data import HIDDEN_NOTE_SHARE
+    from empm_gym.perception.synth import synthesize
+
+    rec = synthesize(tmp_path / "rec", "dough", script="press-release", effect="none", frames=4, cameras=3,
+                     width=320, height=180, progress=False)
+    info = {}
+    load_recording(rec, progress=False, info=info)
+    assert info["hidden_share"] < HIDDEN_NOTE_SHARE and info["hidden_note"] is None
 
 
 # -- recovery through the whole pipeline ---------------------------------------------------------------

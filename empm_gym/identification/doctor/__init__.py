@@ -35,4 +35,4 @@ def diagnose_recording(rec_dir, *, out_dir=None, base=None, config=None, dx: flo
                                              symmetry=info.get("symmetry"))) if view_bodies
               else ())
     return diagnose(scene, obs, views, base=base, config=config, out_dir=out_dir, progress=progress, effects=effects,
-                    other_bodies=others)
+                    other_bodies=others, body_notes=[info["hidden_note"]] if info.get("hidden_note") else ())

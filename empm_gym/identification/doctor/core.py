@@ -628,7 +628,8 @@ def _simulate_fits(fits: List["_Fit"], T: int) -> np.ndarray:
 
 def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, base: Optional[MaterialConfig] = None,
              config: Optional[DoctorConfig] = None, out_dir=None, progress: bool = True,
-             effects: Optional[Sequence[str]] = None, other_bodies: Sequence = ()) -> dict:
+             effects: Optional[Sequence[str]] = None, other_bodies: Sequence = (),
+             body_notes: Sequence[str] = ()) -> dict:
     """Diagnose a loaded recording (see the module docstring); returns the ``doctor.json`` content.
 
     ``scene``, ``obs``, ``views`` come from :func:`empm_gym.identification.data.load_recording`; ``base``
@@ -637,7 +638,9 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     catalogue less those in ``base``). ``other_bodies`` (``[(label, Scene or None)]``, for instance
     :func:`~empm_gym.identification.data.view_jackknife_bodies`, or a callable returning them, called only when
     a candidate is to be checked) are further variants of the frame-0 body on
-    which a named effect must hold its gain. With ``out_dir`` the report files are written there.
+    which a named effect must hold its gain. ``body_notes`` (what the loader says of the frame-0 body, for instance
+    ``info["hidden_note"]`` of :func:`~empm_gym.identification.data.load_recording`) join the notes. With
+    ``out_dir`` the report files are written there.
     """
     from tqdm.auto import tqdm
 
@@ -661,6 +664,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     if unknown:
         raise DoctorError(f"unknown effects {unknown}; known: {', '.join(EFFECTS)}")
     grid, grid_notes = _grid_notes(scene)
+    grid_notes = grid_notes + list(body_notes)
     result = {"schema": 1, "frames": T, "fit_frames": [0, F - 1], "heldout_frames": [F, T - 1], "fps": obs.fps,
               "noise_sigma_m": noise, "observed_motion_m": motion, "driven_motion_m": driven, "grid": grid,
               "notes": grid_notes}
