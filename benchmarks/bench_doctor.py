@@ -46,40 +46,38 @@ FIRST_OTHER = {"none": "squeeze-lift", "plasticity": "squeeze-ring", "viscosity"
 EXPRESSED_M = 1.0e-3
 
 
+def _name_values(text, flag, known, unknown_msg):
+    """``flag``'s NAME=VALUE pairs (comma-separated) as {name: float}; a bare item, a name not in ``known``
+    (``unknown_msg(name)`` says why) or a value that is no number stops the run with a message naming it."""
+    out = {}
+    for item in (text.split(",") if text else []):
+        k, eq, v = (x.strip() for x in item.partition("="))
+        if not eq:
+            raise SystemExit(f"{flag} takes NAME=VALUE pairs separated by commas, got {item!r}")
+        if k not in known:
+            raise SystemExit(f"{flag}: {unknown_msg(k)}")
+        try:
+            out[k] = float(v)
+        except ValueError:
+            raise SystemExit(f"{flag}: {k} must be a number, got {v!r}") from None
+    return out
+
+
 def _effect_params(text, effects):
     """``--effect-params`` as {name: value}; each name must be a parameter of one of ``effects`` (a misspelt one
     would otherwise leave the defaults in place without a word)."""
     from empm_gym.sim.effects import EFFECTS
 
     known = {p for e in effects if e != "none" for p in EFFECTS[e].param_names}
-    out = {}
-    for item in (text.split(",") if text else []):
-        k, eq, v = (x.strip() for x in item.partition("="))
-        if not eq:
-            raise SystemExit(f"--effect-params takes NAME=VALUE pairs separated by commas, got {item!r}")
-        if k not in known:
-            raise SystemExit(f"--effect-params: {k!r} is no parameter of the effects made ({', '.join(effects)}); "
-                             f"theirs: {', '.join(sorted(known)) or 'none'}")
-        try:
-            out[k] = float(v)
-        except ValueError:
-            raise SystemExit(f"--effect-params: {k} must be a number, got {v!r}") from None
-    return out
+    return _name_values(text, "--effect-params", known,
+                        lambda k: f"{k!r} is no parameter of the effects made ({', '.join(effects)}); "
+                                  f"theirs: {', '.join(sorted(known)) or 'none'}")
 
 
 def _base_params(text):
     """``--base-params`` as {name: value} for E, nu and density (the object's base material)."""
-    out = {}
-    for item in (text.split(",") if text else []):
-        k, eq, v = (x.strip() for x in item.partition("="))
-        if not eq or k not in ("E", "nu", "density"):
-            raise SystemExit(f"--base-params takes E, nu or density as NAME=VALUE pairs separated by commas, "
-                             f"got {item!r}")
-        try:
-            out[k] = float(v)
-        except ValueError:
-            raise SystemExit(f"--base-params: {k} must be a number, got {v!r}") from None
-    return out
+    return _name_values(text, "--base-params", ("E", "nu", "density"),
+                        lambda k: f"{k!r} is not one of E, nu or density")
 
 
 def make(args):
