@@ -240,3 +240,19 @@ def test_a_clamped_block_does_not_hang_on_the_rounding_of_its_grid(script):
     assert _shifted_grid_rms("block", "none", script, (0.0, 0.0, 0.0)) < 1e-4
     g = S._script("block", script, 30)[3][0]
     assert S.grid_shift_off_faces(g, *S._script("block", script, 30)[:3:2], 0.01).tolist() == [0.0, 0.0]
+
+
+def test_grid_shift_off_faces_moves_only_a_grid_that_holds_a_face_on_its_nodes():
+    """A box whose face stays on a node plane moves the grid by a quarter cell along that axis only; a face that
+    sweeps across the nodes (a pusher in motion), a face between node planes and a sphere move nothing."""
+    T, dx = 40, 0.01
+    box = {"shape": "box", "half_extents": (0.0175, 0.03, 0.028)}
+    held = np.zeros((T, 1, 3))
+    held[:, 0] = (-0.0275, 0.0, 0.032)                       # inner x face at -1 cm, on a node of a -8 cm grid
+    assert S.grid_shift_off_faces((-0.08, -0.065, -0.04), held, [box], dx).tolist() == pytest.approx([0.0025, 0.0])
+    assert S.grid_shift_off_faces((-0.0825, -0.065, -0.04), held, [box], dx).tolist() == [0.0, 0.0]  # off the nodes
+    sweep = held.copy()
+    sweep[:, 0, 0] += np.linspace(0.0, 0.05, T)              # 5 cells in 40 frames: on a node 1 frame in 8
+    assert S.grid_shift_off_faces((-0.08, -0.065, -0.04), sweep, [box], dx).tolist() == [0.0, 0.0]
+    sphere = {"shape": "sphere", "radius": 0.0175}
+    assert S.grid_shift_off_faces((-0.08, -0.065, -0.04), held, [sphere], dx).tolist() == [0.0, 0.0]
