@@ -1017,9 +1017,7 @@ def select_verdict(candidates: Sequence[dict], variants: Optional[dict]) -> Tupl
     well, and which of them a short CMA-ES search puts ahead on one discretisation is then a matter of its
     random path: on rope lift-end-0 fracture, fracture gained 81.2 % held out and plasticity 78.1 % in one run,
     76.4 % and 77.9 % in another (session 26), while fracture gained more on all five variants in both."""
-    ranked = sorted(candidates, key=lambda c: c["heldout"]["loss"])
-    sig = [c["effect"] for c in ranked if c.get("gain") and gain_is_significant(c["gain"])
-           and not c.get("equivalent_to_base", False)]
+    sig = _significant(candidates)
     passing = sig
     if variants and variants.get("variants"):
         checked = variants.get("candidates", {})
@@ -1075,9 +1073,14 @@ def _contenders(candidates: Sequence[dict], variants: dict) -> List[str]:
     grid stayed at the base model (-0.1 %); the stiffness field, 15-22 % everywhere, was named with confidence
     1.00. Counted against fracture, it comes first on 2 of 5 discretisations, and its confidence says so."""
     checked = (variants or {}).get("candidates", {})
+    return [n for n in _significant(candidates) if n in checked]
+
+
+def _significant(candidates: Sequence[dict]) -> List[str]:
+    """Names of the candidates (``doctor.json``'s ``candidates``) whose held-out gain is significant
+    (:func:`gain_is_significant`) and that are not the base model's table, lowest held-out loss first."""
     return [c["effect"] for c in sorted(candidates, key=lambda c: c["heldout"]["loss"])
-            if c.get("gain") and gain_is_significant(c["gain"]) and not c.get("equivalent_to_base", False)
-            and c["effect"] in checked]
+            if c.get("gain") and gain_is_significant(c["gain"]) and not c.get("equivalent_to_base", False)]
 
 
 def _discretisation_gain(gain, variant_gains: Sequence[float]):
