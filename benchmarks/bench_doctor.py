@@ -92,6 +92,8 @@ def make(args):
     out = Path(args.problems) if args.problems else Path(args.make) / "problems"
     out.mkdir(parents=True, exist_ok=True)
     only = set(args.only_scripts.split(",")) if args.only_scripts else None
+    # the synthesiser's grid: the doctor's (--dx) unless --synth-dx gives another, as another simulator's would be
+    synth_dx = args.dx if args.synth_dx is None else args.synth_dx
     unknown = sorted((only or set()) - set(SCRIPTS))
     if unknown:
         raise SystemExit(f"--only-scripts: unknown script(s) {unknown}; known: {', '.join(SCRIPTS)}")
@@ -114,7 +116,8 @@ def make(args):
                     changed = False
                     if "signature_m" not in prob:
                         prob["signature_m"] = effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
-                                                               effect_params=eparams or None, base_params=base)
+                                                               effect_params=eparams or None, base_params=base,
+                                                               dx=synth_dx)
                         changed = True
                     if args.view_bodies and "view_bodies" not in prob and rec.exists():
                         prob["view_bodies"] = view_jackknife_bodies(rec, prob["scene"], particles_per_cell=args.ppc)
@@ -125,7 +128,7 @@ def make(args):
                     print(f"{name}: kept, held-out signature {1e3 * prob['signature_m']:.2f} mm", flush=True)
                     continue
                 synthesize(rec, args.object, script=script, effect=effect, effect_params=eparams or None,
-                           **base, frames=args.frames, cameras=args.cameras,
+                           **base, frames=args.frames, cameras=args.cameras, dx=synth_dx,
                            width=args.width, height=args.height, seed=seed, overwrite=True, progress=False)
                 truth = [e["name"] for e in json.loads((rec / "ground_truth.json").read_text())["effects"]]
                 try:
@@ -144,7 +147,8 @@ def make(args):
                                  **({"view_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc)}
                                     if args.view_bodies else {}),
                                  "signature_m": effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
-                                                                 effect_params=eparams or None, base_params=base)}, f)
+                                                                 effect_params=eparams or None, base_params=base,
+                                                                 dx=synth_dx)}, f)
                 print(f"{name}: {len(scene.particles)} particles, {obs.num_frames} frames "
                       f"({time.perf_counter() - t0:.1f} s)", flush=True)
     return out
@@ -422,6 +426,9 @@ def main(argv=None):
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--dx", type=float, default=0.01)
     p.add_argument("--ppc", type=float, default=8)
+    p.add_argument("--synth-dx", type=float, default=None,
+                   help="the synthesiser's grid cell (m) for --make; default --dx, the doctor's (a finer one makes "
+                        "recordings of physics the doctor's grid does not share, as another simulator's would)")
     p.add_argument("--max-points", type=int, default=1500)
     p.add_argument("--iters", type=int, default=8)
     p.add_argument("--popsize", type=int, default=8)
