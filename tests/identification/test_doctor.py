@@ -845,6 +845,32 @@ def test_each_candidate_starts_from_the_base_model_and_scans_its_effect():
     assert cand["fit_loss"] <= res["base"]["fit_loss"] * 1.01, (cand["fit_loss"], res["base"]["fit_loss"])
 
 
+def test_every_candidate_starts_inside_its_box_on_a_fine_grid():
+    """The viscosity's box shrinks with the grid cell (its explicit step limit): on a soft body at dx = 5 mm it
+    ends below the registry's start of 10 Pa s, and a rope diagnosed there failed with "init viscosity=10.0
+    lies outside its bounds (0.5, 8.85)" (session 34). Every candidate's start lies in its box, the material it
+    starts from holds that start, and a one-generation fit of the viscosity runs there."""
+    from empm_gym.identification.doctor.core import _candidate_box
+    from empm_gym.sim import MaterialConfig
+    from empm_gym.sim.effects import PARAMETERS
+
+    soft = MaterialConfig(E=2e3, nu=0.3, density=1000.0)
+    _, box, _ = _candidate_box("viscosity", soft, (2e3, 6e3), 0.005)
+    assert box["viscosity"][1] < PARAMETERS["viscosity"].start  # the case: the registry's start lies outside
+    for effect in EFFECTS:
+        init, bounds, start = _candidate_box(effect, soft, (2e3, 6e3), 0.005)
+        for p, v in init.items():
+            assert bounds[p][0] <= v <= bounds[p][1], (effect, p, v, bounds[p])
+            assert p == "E" or start.get(p) == v, (effect, p)
+
+    scene, obs = _pushed_block(MaterialConfig(E=3.0e3, nu=0.3, density=1000.0))
+    scene = dataclasses.replace(scene, dx=0.005, grid=None)
+    cfg = DoctorConfig(base_iters=1, candidate_iters=1, popsize=4, variants=0, base_E=3e3, E_bounds=(2e3, 6e3))
+    res = diagnose(scene, obs, effects=["viscosity"], config=cfg, progress=False)
+    (cand,) = res["candidates"]
+    assert cand["params"]["viscosity"] < PARAMETERS["viscosity"].start  # fitted inside the fine grid's box
+
+
 def PARAMETERS_LOG(name):
     from empm_gym.sim.effects import PARAMETERS
 

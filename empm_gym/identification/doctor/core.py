@@ -421,13 +421,15 @@ def _variant_starts(like: "_Fit", base_fit: "_Fit", variant_base: "_Fit",
 
 def _candidate_box(name: str, base_material: MaterialConfig, E_range: Tuple[float, float], dx: float):
     """(start values, search box, material the fit starts from) of candidate ``name`` ("base": E alone) with E
-    in ``E_range`` from ``base_material``'s E and the effect's parameters from their registry starts."""
+    in ``E_range`` from ``base_material``'s E and the effect's parameters from their registry starts, clipped
+    to the box (the viscosity's box shrinks with the cell: a rope at dx = 5 mm capped it at 8.8 Pa s, under
+    the registry's start of 10, and the fit refused to start)."""
     ps = () if name == "base" else candidate_params(name)
     Elo, Ehi = E_range
-    init = {"E": base_material.E, **{p: PARAMETERS[p].start for p in ps}}
     bounds = {"E": (Elo, Ehi), **{p: _search_box(p, base_material.replace(E=Ehi), dx) for p in ps}}
+    init = {"E": base_material.E, **{p: float(np.clip(PARAMETERS[p].start, *bounds[p])) for p in ps}}
     start_mat = base_material.replace(**({} if name == "base" else
-                                         {p: PARAMETERS[p].start for p in EFFECTS[name].param_names}))
+                                         {p: init.get(p, PARAMETERS[p].start) for p in EFFECTS[name].param_names}))
     return init, bounds, start_mat
 
 
@@ -705,13 +707,11 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     scene = dataclasses.replace(scene, dt_materials=_clock(names, base_fit.material, E_range, scene.dx))
 
     def first_generation(name: str) -> List[Dict[str, float]]:
-        ps = () if name == "base" else candidate_params(name)
-        own = _effect_starts(_candidate_box(name, base_fit.material, E_range, scene.dx)[1], base_fit.params["E"],
-                             cfg.popsize)
+        init, box, _ = _candidate_box(name, base_fit.material, E_range, scene.dx)
+        own = _effect_starts(box, base_fit.params["E"], cfg.popsize)
         # the base model inside the candidate first, then the scan of E (when the base fit's E is no
         # measurement), then the scan of the effect's parameter; one member at least is left sampled
-        return (own[:1] + [{"E": E, **{p: PARAMETERS[p].start for p in ps}} for E in spread]
-                + own[1:])[:cfg.popsize - 1]
+        return (own[:1] + [{**init, "E": E} for E in spread] + own[1:])[:cfg.popsize - 1]
 
     fits: List[_Fit] = [_fit_candidate(name, scene, obs, base_fit.material, E_range, F, cfg, progress,
                                        starts=first_generation(name))
