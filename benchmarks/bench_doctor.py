@@ -9,7 +9,8 @@ another (the GPU):
 
 ``--make`` synthesises every effect of the catalogue and ``none`` on ``--scripts`` (natural script of the
 effect first, then the others listed) with ``--seeds`` seeds, loads each recording with
-:func:`empm_gym.identification.data.load_recording` and pickles what the doctor reads (the scene and the
+:func:`empm_gym.identification.doctor.load_for_doctor` (on the grid `empm doctor` would choose, unless ``--dx``
+gives one) and pickles what the doctor reads (the scene and the
 observations) plus, for scoring only, the effect named in ``ground_truth.json``. The doctor never sees
 that label. Without ``--problems`` it diagnoses in the same process.
 """
@@ -81,7 +82,8 @@ def _base_params(text):
 
 
 def make(args):
-    from empm_gym.identification.data import load_recording, view_jackknife_bodies
+    from empm_gym.identification.data import view_jackknife_bodies
+    from empm_gym.identification.doctor import DEFAULT_DX, load_for_doctor
     from empm_gym.perception.scripts import SCRIPTS
     from empm_gym.perception.synth import effect_signature, synthesize
     from empm_gym.sim.effects import EFFECTS
@@ -93,7 +95,7 @@ def make(args):
     out.mkdir(parents=True, exist_ok=True)
     only = set(args.only_scripts.split(",")) if args.only_scripts else None
     # the synthesiser's grid: the doctor's (--dx) unless --synth-dx gives another, as another simulator's would be
-    synth_dx = args.dx if args.synth_dx is None else args.synth_dx
+    synth_dx = (args.dx or DEFAULT_DX) if args.synth_dx is None else args.synth_dx
     unknown = sorted((only or set()) - set(SCRIPTS))
     if unknown:
         raise SystemExit(f"--only-scripts: unknown script(s) {unknown}; known: {', '.join(SCRIPTS)}")
@@ -132,7 +134,8 @@ def make(args):
                            width=args.width, height=args.height, seed=seed, overwrite=True, progress=False)
                 truth = [e["name"] for e in json.loads((rec / "ground_truth.json").read_text())["effects"]]
                 try:
-                    scene, obs, _ = load_recording(rec, dx=args.dx, particles_per_cell=args.ppc, progress=False)
+                    scene, obs, _, _, notes = load_for_doctor(rec, dx=args.dx, particles_per_cell=args.ppc,
+                                                              progress=False)
                 except ValueError as e:  # e.g. squeeze-ring's plate hides a rope from every camera
                     print(f"{name}: skipped, the recording cannot be loaded: {e}", flush=True)
                     continue
@@ -142,7 +145,7 @@ def make(args):
                               for p in obs.points]
                 with open(out / f"{name}.pkl", "wb") as f:
                     pickle.dump({"scene": scene, "obs": obs, "truth": truth[0] if truth else "none",
-                                 "script": script, "seed": seed, "truth_params": eparams,
+                                 "script": script, "seed": seed, "truth_params": eparams, "body_notes": notes,
                                  "base_params": base,
                                  **({"view_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc)}
                                     if args.view_bodies else {}),
@@ -173,7 +176,8 @@ def diagnose_all(problems: Path, args):
         t0 = time.perf_counter()
         others = [(label, None if sc is None else dataclasses.replace(sc, device=args.device))
                   for label, sc in prob.get("view_bodies", ())] if args.view_bodies else ()
-        res = diagnose(scene, prob["obs"], None, config=cfg, progress=False, other_bodies=others)
+        res = diagnose(scene, prob["obs"], None, config=cfg, progress=False, other_bodies=others,
+                       body_notes=prob.get("body_notes", ()))
         wall = time.perf_counter() - t0
         if args.dump:
             from empm_gym.identification.doctor.core import _jsonable
@@ -424,7 +428,9 @@ def main(argv=None):
     p.add_argument("--cameras", type=int, default=3)
     p.add_argument("--width", type=int, default=848)
     p.add_argument("--height", type=int, default=480)
-    p.add_argument("--dx", type=float, default=0.01)
+    p.add_argument("--dx", type=lambda v: None if v == "auto" else float(v), default=None,
+                   help="the doctor's grid cell (m) for --make; default auto: as `empm doctor` chooses it "
+                        "(doctor.load_for_doctor)")
     p.add_argument("--ppc", type=float, default=8)
     p.add_argument("--synth-dx", type=float, default=None,
                    help="the synthesiser's grid cell (m) for --make; default --dx, the doctor's (a finer one makes "

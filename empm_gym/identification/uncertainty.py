@@ -15,7 +15,7 @@ were never used to fit either model.
 
 from __future__ import annotations
 
-from typing import Dict, Optional, Sequence
+from typing import Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -189,6 +189,23 @@ def grid_resolution(scene):
                            f"recorded from a simulation 4.8 cells across: fitted 2.0 cells across, E +28 %; 3.2 "
                            f"cells across, +8 %); {advice}")
     return res, None, None
+
+
+def resolving_dx(scene, *, halvings: int = 2) -> Tuple[float, dict]:
+    """The grid cell [m] on which ``scene``'s frame-0 body is at least :data:`MARGINAL_CELLS_ACROSS` cells across:
+    the scene's own cell, halved at most ``halvings`` times, and its :func:`grid_resolution` at the scene's cell.
+
+    A grid too coarse for the body changes how it moves by more than many effects do, and a fit reads that as
+    physics. The doctor at dx = 1 cm on ropes 1.9 cells across, recorded by a simulation at 5 mm (the same
+    material, no effect): table friction, a stiffness field and plasticity named on 3 of 6 (confidence 0.77 to
+    1.00); at 5 mm (4.5 cells across), 0 of 6 (benchmarks/RESULTS.md, session 34)."""
+    res, _, _ = grid_resolution(scene)
+    dx = float(res["dx_m"])
+    for _ in range(halvings):
+        if res["thickness_m"] / dx >= MARGINAL_CELLS_ACROSS:
+            break
+        dx /= 2.0
+    return dx, res
 
 
 def _quadratic_features(dz: np.ndarray) -> np.ndarray:

@@ -911,3 +911,34 @@ def test_every_candidate_steps_with_the_same_substeps():
         X, _, _ = _ForwardSim(dataclasses.replace(sc, dt_materials=(top,)), [base], [0.5]).run(T)
         ring.append(np.abs(np.diff(X[3:, 0, :, 2].max(1))).sum())  # the top's motion once it has landed
     assert ring[1] < 0.8 * ring[0], ring
+
+
+def test_the_doctor_chooses_a_grid_that_resolves_the_body(tmp_path):
+    """Without a cell given, the doctor loads a 2.4 cm rope (under 3 cells across at 1 cm) on the 1 cm grid halved,
+    the body filled again there, and says so; a cell given is kept. On ropes recorded by a 5 mm simulation with
+    no effect, the doctor at 1 cm named an effect on 3 of 6, at 5 mm on none (benchmarks/RESULTS.md, session 34).
+    Images too coarse to fill the finer lattice (the same rope at 212 x 120 pixels: 117 cm^3 there against 163
+    on the coarser one) leave the grid as it was, and the note says why."""
+    from empm_gym.identification.doctor import DEFAULT_DX, load_for_doctor
+    from empm_gym.identification.uncertainty import MARGINAL_CELLS_ACROSS, grid_resolution
+    from empm_gym.perception.synth import synthesize
+
+    for width, height, refined in ((424, 240, True), (212, 120, False)):
+        rec = synthesize(tmp_path / f"rope{width}", "rope", script="press-release", effect="none", frames=6,
+                         width=width, height=height, seed=0, progress=False)
+        coarse, obs, _, _, notes = load_for_doctor(rec, dx=DEFAULT_DX, progress=False)
+        assert coarse.dx == DEFAULT_DX and not any(n.startswith("grid:") for n in notes)
+        res = grid_resolution(coarse)[0]
+        assert res["cells_across"] < MARGINAL_CELLS_ACROSS
+        scene, obs2, _, _, notes = load_for_doctor(rec, progress=False)
+        (note,) = [n for n in notes if n.startswith("grid:")]
+        assert f"{res['cells_across']:.1f} cells across" in note and obs2.num_frames == obs.num_frames
+        if not refined:
+            assert scene.dx == DEFAULT_DX and "was not used" in note, note
+            assert np.array_equal(scene.particles, coarse.particles)
+            continue
+        assert scene.dx == pytest.approx(DEFAULT_DX / 2) and scene.grid_config().dx == pytest.approx(DEFAULT_DX / 2)
+        assert grid_resolution(scene)[0]["cells_across"] >= MARGINAL_CELLS_ACROSS and "chosen for the body" in note
+        # the same body, filled more finely: its volume within a tenth, several times the particles
+        assert scene.volumes.sum() == pytest.approx(coarse.volumes.sum(), rel=0.1)
+        assert len(scene.particles) > 5 * len(coarse.particles)

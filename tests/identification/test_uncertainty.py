@@ -275,3 +275,19 @@ def test_a_coarser_grid_without_a_minimum_is_left_out_and_said():
     assert any("on the coarser grid (dx = 0.0167 m) the loss has no minimum" in w for w in idf["warnings"])
     assert "coarser grid" not in idf["method"]
     assert not a["uncertainty"]["E"]["determined"]
+
+
+def test_resolving_dx_halves_the_cell_until_the_body_is_three_cells_across():
+    """The doctor's grid for a body: its own cell where the body is resolved, halved while it is fewer than
+    MARGINAL_CELLS_ACROSS cells across (a 1.9 cm rope at 1 cm: 5 mm, 3.8 cells), at most twice."""
+    from empm_gym.identification.uncertainty import MARGINAL_CELLS_ACROSS, resolving_dx
+
+    def rope(radius):
+        x, v = sample_cylinder((-0.12, 0, radius), (0.12, 0, radius), radius, 0.0025, 1, seed=0)
+        return Scene(x, v, fps=30.0, dx=0.01)
+
+    for radius, expect in ((0.02, 0.01), (0.0095, 0.005), (0.006, 0.0025), (0.0035, 0.0025)):
+        dx, res = resolving_dx(rope(radius))
+        assert res["dx_m"] == 0.01 and dx == pytest.approx(expect), (radius, res)
+        assert res["thickness_m"] / dx >= MARGINAL_CELLS_ACROSS or dx == pytest.approx(0.0025)
+        assert dx == 0.01 or res["thickness_m"] / (2 * dx) < MARGINAL_CELLS_ACROSS  # no finer than needed

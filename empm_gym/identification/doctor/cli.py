@@ -66,7 +66,9 @@ def register(subparsers) -> None:
     p.add_argument("--train-fraction", type=float, default=0.7, help="leading fraction of frames fitted (0.7)")
     p.add_argument("--iters", type=int, default=8, help="CMA-ES generations per fit (default 8)")
     p.add_argument("--popsize", type=int, default=8, help="CMA-ES population = simulated worlds (default 8)")
-    p.add_argument("--dx", type=float, default=0.01, help="simulation grid cell in m (default 0.01)")
+    p.add_argument("--dx", type=float, default=None,
+                   help="simulation grid cell in m (default: 0.01, halved at most twice while the body is fewer than "
+                        "3 cells across its thin parts)")
     p.add_argument("--particles-per-cell", type=float, default=8, help="particles per cell of the body (8)")
     p.add_argument("--device", default=None, help="Warp device (cpu, cuda:0)")
     p.add_argument("--variants", type=int, default=2,
