@@ -89,6 +89,27 @@ def test_make_with_effect_params_synthesises_them_and_keeps_them_for_scoring(ben
     assert gt["material"]["E"] == 3.0e4 and gt["material"]["density"] == 900.0
 
 
+def test_make_on_another_grid_than_the_doctors(bench, tmp_path):
+    """``--synth-dx``: the recording is simulated on its own grid cell (its ground truth says so) while the
+    problem holds the body on the doctor's (``--dx``): recordings of physics the doctor's grid does not share, as
+    another simulator's would be (benchmarks/RESULTS.md, session 34). Without it both are the doctor's."""
+    import pickle
+
+    for synth_dx, expect in (("0.02", 0.02), (None, 0.01)):
+        out = tmp_path / (synth_dx or "same")
+        rc = bench.main(["--object", "block", "--make", str(out / "rec"), "--problems", str(out / "prob"),
+                         "--effects", "none", "--only-scripts", "squeeze-ring", "--seeds", "1", "--dx", "0.01",
+                         *(["--synth-dx", synth_dx] if synth_dx else []),
+                         "--frames", "4", "--cameras", "2", "--width", "160", "--height", "120", "--only-make"])
+        assert rc == 0
+        (pkl,) = (out / "prob").glob("*.pkl")
+        gt = json.loads((out / "rec" / pkl.stem / "ground_truth.json").read_text())
+        assert gt["scene"]["grid"]["dx"] == expect
+        with open(pkl, "rb") as f:
+            prob = pickle.load(f)
+        assert prob["scene"].dx == 0.01 and isinstance(prob["body_notes"], list)
+
+
 @pytest.mark.parametrize("flag, text, said", [("--effect-params", "viscosty=200", "'viscosty' is no parameter"),
                                               ("--effect-params", "viscosity", "NAME=VALUE"),
                                               ("--effect-params", "viscosity=lots", "must be a number"),
