@@ -81,6 +81,19 @@ def _base_params(text):
                         lambda k: f"{k!r} is not one of E, nu or density")
 
 
+def _dx_arg(text: str):
+    """``--dx``: a cell in metres, or "auto" (None: the doctor's own choice)."""
+    if text == "auto":
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not v > 0.0:
+        raise argparse.ArgumentTypeError(f"--dx must be a positive cell size in m or 'auto', got {text!r}")
+    return v
+
+
 def make(args):
     from empm_gym.identification.data import view_jackknife_bodies
     from empm_gym.identification.doctor import DEFAULT_DX, load_for_doctor
@@ -428,7 +441,7 @@ def main(argv=None):
     p.add_argument("--cameras", type=int, default=3)
     p.add_argument("--width", type=int, default=848)
     p.add_argument("--height", type=int, default=480)
-    p.add_argument("--dx", type=lambda v: None if v == "auto" else float(v), default=None,
+    p.add_argument("--dx", type=_dx_arg, default=None,
                    help="the doctor's grid cell (m) for --make; default auto: as `empm doctor` chooses it "
                         "(doctor.load_for_doctor)")
     p.add_argument("--ppc", type=float, default=8)

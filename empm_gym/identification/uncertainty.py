@@ -198,7 +198,9 @@ def resolving_dx(scene, *, halvings: int = 2) -> Tuple[float, dict]:
     A grid too coarse for the body changes how it moves by more than many effects do, and a fit reads that as
     physics. The doctor at dx = 1 cm on ropes 1.9 cells across, recorded by a simulation at 5 mm (the same
     material, no effect): table friction, a stiffness field and plasticity named on 3 of 6 (confidence 0.77 to
-    1.00); at 5 mm (4.5 cells across), 0 of 6 (benchmarks/RESULTS.md, session 34)."""
+    1.00); at 5 mm (4.5 cells across), 0 of 6 (benchmarks/RESULTS.md, session 34). (:func:`_finer_grid_scene` is
+    the other use of the same threshold: a variant of an identification's scene, its particles unchanged, for the
+    grid's share of an interval; here the body is filled again on the cell chosen.)"""
     res, _, _ = grid_resolution(scene)
     dx = float(res["dx_m"])
     for _ in range(halvings):

@@ -19,6 +19,10 @@ __all__ = ["DEFAULT_DX", "DoctorConfig", "DoctorError", "candidate_params", "dia
 
 #: The grid cell [m] the doctor starts from when none is given (:func:`diagnose_recording`).
 DEFAULT_DX = 0.01
+#: Largest relative change of the frame-0 body's volume when :func:`load_for_doctor` fills it again on a finer
+#: grid: beyond it the finer fill is not the same body (a rope imaged at 212 x 120 pixels, 2.7 mm each, filled on a
+#: 2.5 mm lattice to 117 cm^3 against 163 cm^3 on the 5 mm one) and the grid is not refined.
+REFILL_VOLUME_TOL = 0.1
 
 
 def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: float = 8, device=None,
@@ -55,11 +59,6 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
                              f"Every verdict on this grid may be the grid's, not the material's")
     return scene, obs, views, info, notes
 
-
-#: Largest relative change of the frame-0 body's volume when :func:`load_for_doctor` fills it again on a finer
-#: grid: beyond it the finer fill is not the same body (a rope imaged at 212 x 120 pixels, 2.7 mm each, filled on a
-#: 2.5 mm lattice to 117 cm^3 against 163 cm^3 on the 5 mm one) and the grid is not refined.
-REFILL_VOLUME_TOL = 0.1
 
 
 def diagnose_recording(rec_dir, *, out_dir=None, base=None, config=None, dx: Optional[float] = None,
