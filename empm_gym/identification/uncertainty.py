@@ -15,7 +15,7 @@ were never used to fit either model.
 
 from __future__ import annotations
 
-from typing import Dict, Optional, Sequence, Tuple
+from typing import Callable, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -191,23 +191,31 @@ def grid_resolution(scene):
     return res, None, None
 
 
-def resolving_dx(scene, *, halvings: int = 2) -> Tuple[float, dict]:
-    """The grid cell [m] on which ``scene``'s frame-0 body is at least :data:`MARGINAL_CELLS_ACROSS` cells across:
-    the scene's own cell, halved at most ``halvings`` times, and its :func:`grid_resolution` at the scene's cell.
+def resolving_dx(scene, refill: Callable[[float], object], *, halvings: int = 2) -> Tuple[object, list]:
+    """``(scene, levels)``: ``scene`` on a grid cell on which its frame-0 body is at least
+    :data:`MARGINAL_CELLS_ACROSS` cells across: its own cell, halved at most ``halvings`` times, the body filled
+    again on each finer cell by ``refill(dx)`` (a scene, or None where it cannot be: the coarser one is kept).
+    ``levels``: the :func:`grid_resolution` of every grid looked at, coarsest first.
 
-    A grid too coarse for the body changes how it moves by more than many effects do, and a fit reads that as
-    physics. The doctor at dx = 1 cm on ropes 1.9 cells across, recorded by a simulation at 5 mm (the same
-    material, no effect): table friction, a stiffness field and plasticity named on 3 of 6 (confidence 0.77 to
-    1.00); at 5 mm (4.5 cells across), 0 of 6 (benchmarks/RESULTS.md, session 34). (:func:`_finer_grid_scene` is
-    the other use of the same threshold: a variant of an identification's scene, its particles unchanged, for the
-    grid's share of an interval; here the body is filled again on the cell chosen.)"""
-    res, _, _ = grid_resolution(scene)
-    dx = float(res["dx_m"])
+    The body's thickness is measured again on each finer fill before the cell is halved once more: a body
+    filled on a coarse lattice reads thinner than it is (a 2.3 cm rope filled at 1 cm read 1.2 cm, and the
+    cell was halved twice, to 80,000 particles, where 5 mm resolves it 4.6 cells across; benchmarks/RESULTS.md,
+    session 35). A grid too coarse for the body changes how it moves by more than many effects do, and a fit
+    reads that as physics: the doctor at dx = 1 cm on ropes 1.9 cells across, recorded by a simulation at 5 mm
+    (the same material, no effect), named table friction, a stiffness field and plasticity on 3 of 6 (confidence
+    0.77 to 1.00); at 5 mm (4.5 cells across), 0 of 6 (session 34). (:func:`_finer_grid_scene` is the other use
+    of the same threshold: a variant of an identification's scene, its particles unchanged, for the grid's share
+    of an interval; here the body is filled again on the cell chosen.)"""
+    levels = [grid_resolution(scene)[0]]
     for _ in range(halvings):
-        if res["thickness_m"] / dx >= MARGINAL_CELLS_ACROSS:
+        if levels[-1]["cells_across"] >= MARGINAL_CELLS_ACROSS:
             break
-        dx /= 2.0
-    return dx, res
+        finer = refill(levels[-1]["dx_m"] / 2.0)
+        if finer is None:
+            break
+        scene = finer
+        levels.append(grid_resolution(scene)[0])
+    return scene, levels
 
 
 def _quadratic_features(dz: np.ndarray) -> np.ndarray:

@@ -279,15 +279,27 @@ def test_a_coarser_grid_without_a_minimum_is_left_out_and_said():
 
 def test_resolving_dx_halves_the_cell_until_the_body_is_three_cells_across():
     """The doctor's grid for a body: its own cell where the body is resolved, halved while it is fewer than
-    MARGINAL_CELLS_ACROSS cells across (a 1.9 cm rope at 1 cm: 5 mm, 3.8 cells), at most twice."""
+    MARGINAL_CELLS_ACROSS cells across (a 1.9 cm rope at 1 cm: 5 mm, 3.8 cells), at most twice; the body is
+    measured again on each finer fill, so a body that reads thin on the coarse lattice is not refined past what
+    its finer fill needs (session 35: a 2.3 cm rope read 1.2 cm at 1 cm and got 2.5 mm, 80,000 particles)."""
     from empm_gym.identification.uncertainty import MARGINAL_CELLS_ACROSS, resolving_dx
 
-    def rope(radius):
+    def rope(radius, dx=0.01):
         x, v = sample_cylinder((-0.12, 0, radius), (0.12, 0, radius), radius, 0.0025, 1, seed=0)
-        return Scene(x, v, fps=30.0, dx=0.01)
+        return Scene(x, v, fps=30.0, dx=dx)
 
     for radius, expect in ((0.02, 0.01), (0.0095, 0.005), (0.006, 0.0025), (0.0035, 0.0025)):
-        dx, res = resolving_dx(rope(radius))
-        assert res["dx_m"] == 0.01 and dx == pytest.approx(expect), (radius, res)
-        assert res["thickness_m"] / dx >= MARGINAL_CELLS_ACROSS or dx == pytest.approx(0.0025)
-        assert dx == 0.01 or res["thickness_m"] / (2 * dx) < MARGINAL_CELLS_ACROSS  # no finer than needed
+        asked = []
+        scene, levels = resolving_dx(rope(radius), lambda dx: asked.append(dx) or rope(radius, dx))
+        assert scene.dx == pytest.approx(expect) and levels[0]["dx_m"] == 0.01, (radius, levels)
+        assert asked == pytest.approx([0.01 / 2 ** k for k in range(1, len(levels))])
+        assert [r["dx_m"] for r in levels] == pytest.approx([0.01] + asked)
+        assert levels[-1]["cells_across"] >= MARGINAL_CELLS_ACROSS or scene.dx == pytest.approx(0.0025)
+        assert all(r["cells_across"] < MARGINAL_CELLS_ACROSS for r in levels[:-1])  # no finer than needed
+    # thin on the coarse fill, 2.3 cm on the finer one: 5 mm is enough
+    scene, levels = resolving_dx(rope(0.006), lambda dx: rope(0.0115, dx))
+    assert scene.dx == pytest.approx(0.005) and len(levels) == 2 and levels[1]["cells_across"] >= MARGINAL_CELLS_ACROSS
+    # a finer fill refused: the coarse scene is kept
+    coarse = rope(0.006)
+    scene, levels = resolving_dx(coarse, lambda dx: None)
+    assert scene is coarse and len(levels) == 1

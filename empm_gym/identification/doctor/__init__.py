@@ -30,7 +30,8 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
     """``(scene, obs, views, info, notes)`` of a recording as the doctor simulates it: what
     :func:`~empm_gym.identification.data.load_recording` returns (``info`` filled), on the grid cell ``dx`` [m]
     or, without it, on one that resolves the body: :data:`DEFAULT_DX`, halved (at most twice) while the
-    frame-0 body is fewer than :data:`~empm_gym.identification.uncertainty.MARGINAL_CELLS_ACROSS` cells across
+    frame-0 body, filled again from the views on each finer cell and measured there, is fewer than
+    :data:`~empm_gym.identification.uncertainty.MARGINAL_CELLS_ACROSS` cells across
     (:func:`~empm_gym.identification.uncertainty.resolving_dx`). ``notes``: what the loader says of the body
     and, where the cell was refined, why."""
     from ..data import load_recording, rebuilt_scene
@@ -42,21 +43,31 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
                                        info=info)
     notes = [info["hidden_note"]] if info.get("hidden_note") else []
     if dx is None:
-        fine, res = resolving_dx(scene)
-        if fine < scene.dx:
+        coarse, refused = scene, []
+
+        def refill(fine):
             # the same recording, the frame-0 body filled again at the finer cell (what the cameras saw is the same)
-            finer = rebuilt_scene(rec_dir, dataclasses.replace(scene, dx=fine), particles_per_cell=particles_per_cell)
-            why = (f"at {res['dx_m']:g} m the body is {res['cells_across']:.1f} cells across its thin parts "
-                   f"({100 * res['thickness_m']:.1f} cm), too coarse to tell the grid's effect on its motion from a "
-                   f"missing physical effect")
-            v0, v1 = float(np.sum(scene.volumes)), float(np.sum(finer.volumes))
-            if abs(v1 / v0 - 1.0) <= REFILL_VOLUME_TOL:
-                scene = finer
-                notes.append(f"grid: dx = {fine:g} m, chosen for the body: {why} (give dx to choose)")
-            else:
-                notes.append(f"grid: {why}; the finer grid ({fine:g} m) was not used: the views fill the body there "
-                             f"to {1e6 * v1:.0f} cm^3 against {1e6 * v0:.0f} cm^3 (images too coarse for its lattice?). "
-                             f"Every verdict on this grid may be the grid's, not the material's")
+            finer = rebuilt_scene(rec_dir, dataclasses.replace(coarse, dx=fine), particles_per_cell=particles_per_cell)
+            v0, v1 = float(np.sum(coarse.volumes)), float(np.sum(finer.volumes))
+            if abs(v1 / v0 - 1.0) > REFILL_VOLUME_TOL:
+                refused.append((fine, v0, v1))
+                return None
+            return finer
+
+        scene, levels = resolving_dx(scene, refill)
+        res = levels[0]
+        why = (f"at {res['dx_m']:g} m the body is {res['cells_across']:.1f} cells across its thin parts "
+               f"({100 * res['thickness_m']:.1f} cm), too coarse to tell the grid's effect on its motion from a "
+               f"missing physical effect")
+        if len(levels) > 1:
+            at = "; ".join(f"{r['cells_across']:.1f} cells across at {r['dx_m']:g} m" for r in levels[1:])
+            notes.append(f"grid: dx = {scene.dx:g} m, chosen for the body: {why} ({at}; give dx to choose)")
+        if refused:
+            fine, v0, v1 = refused[0]
+            notes.append(f"grid: {why if len(levels) == 1 else 'not refined further'}; the finer grid ({fine:g} m) "
+                         f"was not used: the views fill the body there to {1e6 * v1:.0f} cm^3 against "
+                         f"{1e6 * v0:.0f} cm^3 (images too coarse for its lattice?). Every verdict on this grid may "
+                         f"be the grid's, not the material's")
     return scene, obs, views, info, notes
 
 
