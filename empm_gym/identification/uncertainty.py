@@ -191,9 +191,10 @@ def grid_resolution(scene):
     return res, None, None
 
 
-def resolving_dx(scene, refill: Callable[[float], object], *, halvings: int = 2) -> Tuple[object, list]:
-    """``(scene, levels)``: ``scene`` on a grid cell on which its frame-0 body is at least
-    :data:`MARGINAL_CELLS_ACROSS` cells across: its own cell, halved at most ``halvings`` times, the body filled
+def resolving_dx(scene, refill: Callable[[float], object], *, cells: float = MARGINAL_CELLS_ACROSS,
+                 halvings: int = 2) -> Tuple[object, list]:
+    """``(scene, levels)``: ``scene`` on a grid cell on which its frame-0 body is at least ``cells`` cells
+    across (:data:`MARGINAL_CELLS_ACROSS` unless given): its own cell, halved at most ``halvings`` times, the body filled
     again on each finer cell by ``refill(dx)`` (a scene, or None where it cannot be: the coarser one is kept).
     ``levels``: the :func:`grid_resolution` of every grid looked at, coarsest first.
 
@@ -208,7 +209,7 @@ def resolving_dx(scene, refill: Callable[[float], object], *, halvings: int = 2)
     of an interval; here the body is filled again on the cell chosen.)"""
     levels = [grid_resolution(scene)[0]]
     for _ in range(halvings):
-        if levels[-1]["cells_across"] >= MARGINAL_CELLS_ACROSS:
+        if levels[-1]["cells_across"] >= cells:
             break
         finer = refill(levels[-1]["dx_m"] / 2.0)
         if finer is None:

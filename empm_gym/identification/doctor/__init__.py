@@ -13,8 +13,8 @@ import numpy as np
 
 from .core import DoctorConfig, DoctorError, candidate_params, diagnose
 
-__all__ = ["DEFAULT_DX", "DoctorConfig", "DoctorError", "candidate_params", "diagnose", "diagnose_recording",
-           "load_for_doctor"]
+__all__ = ["DEFAULT_DX", "DOCTOR_CELLS_ACROSS", "DoctorConfig", "DoctorError", "candidate_params", "diagnose",
+           "diagnose_recording", "load_for_doctor"]
 
 
 #: The grid cell [m] the doctor starts from when none is given (:func:`diagnose_recording`).
@@ -26,6 +26,14 @@ DEFAULT_DX = 0.01
 #: a 5 mm one to 171 (the clamps' prior, resolved), and the 5 mm grid is the one that tells its motion right
 #: (benchmarks/RESULTS.md, sessions 34-35).
 REFILL_VOLUME_TOL = 0.1
+#: Cells the doctor's grid puts across the frame-0 body's thin parts at least (:func:`load_for_doctor`), more than
+#: identification's :data:`~empm_gym.identification.uncertainty.MARGINAL_CELLS_ACROSS`: what is at stake is not a
+#: few per cent of E but a grid's artefact named as physics. On recordings made by a 5 mm simulation
+#: (benchmarks/RESULTS.md, sessions 34-35) the doctor at 1 cm named an effect on 3 of 6 `none` ropes (1.9 cells
+#: across) and on the dough lifted by one end on both seeds (3.4 cells, fracture, confidence 1.00); ropes at 5 mm
+#: (4.2-4.6 cells): 0 of 12; the dough at 5 mm (6.8 cells): 0 of 7, and 16 of its 19 recordings named, against
+#: 13 of 19 at 1 cm.
+DOCTOR_CELLS_ACROSS = 4.0
 
 
 def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: float = 8, device=None,
@@ -34,7 +42,7 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
     :func:`~empm_gym.identification.data.load_recording` returns (``info`` filled), on the grid cell ``dx`` [m]
     or, without it, on one that resolves the body: :data:`DEFAULT_DX`, halved (at most twice) while the
     frame-0 body, filled again from the views on each finer cell and measured there, is fewer than
-    :data:`~empm_gym.identification.uncertainty.MARGINAL_CELLS_ACROSS` cells across
+    :data:`DOCTOR_CELLS_ACROSS` cells across
     (:func:`~empm_gym.identification.uncertainty.resolving_dx`). ``notes``: what the loader says of the body
     and, where the cell was refined, why."""
     from ..data import load_recording, rebuilt_scene
@@ -57,7 +65,7 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
                 return None
             return finer
 
-        scene, levels = resolving_dx(scene, refill)
+        scene, levels = resolving_dx(scene, refill, cells=DOCTOR_CELLS_ACROSS)
         res = levels[0]
         why = (f"at {res['dx_m']:g} m the body is {res['cells_across']:.1f} cells across its thin parts "
                f"({100 * res['thickness_m']:.1f} cm), too coarse to tell the grid's effect on its motion from a "
