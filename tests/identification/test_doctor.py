@@ -914,7 +914,7 @@ def test_every_candidate_steps_with_the_same_substeps():
 
 
 def test_the_doctor_chooses_a_grid_that_resolves_the_body(tmp_path):
-    """Without a cell given, the doctor loads a 2.4 cm rope (under 3 cells across at 1 cm) on the 1 cm grid halved,
+    """Without a cell given, the doctor loads a 2.4 cm rope (under 4 cells across at 1 cm) on the 1 cm grid halved,
     the body filled again there, and says so; a cell given is kept. On ropes recorded by a 5 mm simulation with
     no effect, the doctor at 1 cm named an effect on 3 of 6, at 5 mm on none (benchmarks/RESULTS.md, session 34).
     Images too coarse to fill the finer lattice (the same rope at 212 x 120 pixels: 117 cm^3 there against 163

@@ -68,7 +68,7 @@ def register(subparsers) -> None:
     p.add_argument("--popsize", type=int, default=8, help="CMA-ES population = simulated worlds (default 8)")
     p.add_argument("--dx", type=float, default=None,
                    help="simulation grid cell in m (default: 0.01, halved at most twice while the body is fewer than "
-                        "3 cells across its thin parts)")
+                        "4 cells across its thin parts, measured on each finer fill)")
     p.add_argument("--particles-per-cell", type=float, default=8, help="particles per cell of the body (8)")
     p.add_argument("--device", default=None, help="Warp device (cpu, cuda:0)")
     p.add_argument("--variants", type=int, default=2,
