@@ -262,12 +262,13 @@ AMBIGUOUS_GAP_DEG = (150.0, 210.0)
 def rebuilt_scene(rec_dir, scene, *, particles_per_cell: float, cameras: Optional[List[int]] = None,
                   points: Optional[np.ndarray] = None, voxel_m: float = 0.003, complete_hidden: bool = True,
                   ee_friction: float = 0.8, single_view: Optional[bool] = None,
-                  symmetry_axis: Optional[Sequence[float]] = None):
+                  symmetry_axis: Optional[Sequence[float]] = None, info: Optional[dict] = None):
     """``scene`` (made by :func:`load_recording` from ``rec_dir``, a path or an open Recording) with its frame-0
     body built again: at another fill (``particles_per_cell``), from the cameras ``cameras`` only (default all), from the fused frame-0
     ``points`` when given, with the completion ``single_view`` (None: as :func:`frame0_body` decides) and its
     half-turn axis at ``symmetry_axis`` when given; the closed grippers grown to reach the new body. ValueError
-    when the views cannot close a body."""
+    when the views cannot close a body. ``info`` (a dict) receives :func:`frame0_body`'s report on the new body,
+    its hidden share measured (one more fill)."""
     from dataclasses import replace
 
     from empm_gym.perception.fusion import load_controls
@@ -279,10 +280,12 @@ def rebuilt_scene(rec_dir, scene, *, particles_per_cell: float, cameras: Optiona
     plane = (np.array([0.0, 0.0, 1.0]), -float(scene.table.height)) if scene.table is not None else None
     controls = load_controls(rec)
     cfgs, pos, grip = controls_to_end_effectors(controls, friction=ee_friction)
-    x0, vol, _ = frame0_body(rec, plane, cfgs, pos, grip, controls.get("orientations"), dx=scene.dx,
-                             particles_per_cell=particles_per_cell, voxel_m=voxel_m, complete_hidden=complete_hidden,
-                             points=points, single_view=single_view, symmetry_axis=symmetry_axis,
-                             measure_hidden=False)
+    x0, vol, report = frame0_body(rec, plane, cfgs, pos, grip, controls.get("orientations"), dx=scene.dx,
+                                  particles_per_cell=particles_per_cell, voxel_m=voxel_m,
+                                  complete_hidden=complete_hidden, points=points, single_view=single_view,
+                                  symmetry_axis=symmetry_axis, measure_hidden=info is not None)
+    if info is not None:
+        info.update(report)
     grown, _ = attach_grippers(cfgs, pos, grip, x0, scene.dx)
     return replace(scene, particles=x0, volumes=vol, ee_configs=grown)
 

@@ -194,8 +194,8 @@ def grid_resolution(scene):
 def resolving_dx(scene, refill: Callable[[float], object], *, cells: float = MARGINAL_CELLS_ACROSS,
                  halvings: int = 2) -> Tuple[object, list]:
     """``(scene, levels)``: ``scene`` on a grid cell on which its frame-0 body is at least ``cells`` cells
-    across (:data:`MARGINAL_CELLS_ACROSS` unless given): its own cell, halved at most ``halvings`` times, the body filled
-    again on each finer cell by ``refill(dx)`` (a scene, or None where it cannot be: the coarser one is kept).
+    across (:data:`MARGINAL_CELLS_ACROSS` unless given): its own cell, halved at most ``halvings`` times, the
+    body filled again on each finer cell by ``refill(dx)`` (a scene, or None where it cannot be: the coarser one is kept).
     ``levels``: the :func:`grid_resolution` of every grid looked at, coarsest first.
 
     The body's thickness is measured again on each finer fill before the cell is halved once more: a body

@@ -52,17 +52,20 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
     scene, obs, views = load_recording(rec_dir, dx=DEFAULT_DX if dx is None else dx,
                                        particles_per_cell=particles_per_cell, device=device, progress=progress,
                                        info=info)
-    notes = [info["hidden_note"]] if info.get("hidden_note") else []
+    grid_notes = []
     if dx is None:
         coarse, refused = scene, []
 
         def refill(fine):
             # the same recording, the frame-0 body filled again at the finer cell (what the cameras saw is the same)
-            finer = rebuilt_scene(rec_dir, dataclasses.replace(coarse, dx=fine), particles_per_cell=particles_per_cell)
+            report = {}
+            finer = rebuilt_scene(rec_dir, dataclasses.replace(coarse, dx=fine), particles_per_cell=particles_per_cell,
+                                  info=report)
             v0, v1 = float(np.sum(coarse.volumes)), float(np.sum(finer.volumes))
             if v1 < (1.0 - REFILL_VOLUME_TOL) * v0:
                 refused.append((fine, v0, v1))
                 return None
+            info.update(hidden_share=report["hidden_share"], hidden_note=report["hidden_note"])  # of this body
             return finer
 
         scene, levels = resolving_dx(scene, refill, cells=DOCTOR_CELLS_ACROSS)
@@ -72,13 +75,14 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
                f"missing physical effect")
         if len(levels) > 1:
             at = "; ".join(f"{r['cells_across']:.1f} cells across at {r['dx_m']:g} m" for r in levels[1:])
-            notes.append(f"grid: dx = {scene.dx:g} m, chosen for the body: {why} ({at}; give dx to choose)")
+            grid_notes.append(f"grid: dx = {scene.dx:g} m, chosen for the body: {why} ({at}; give dx to choose)")
         if refused:
             fine, v0, v1 = refused[0]
-            notes.append(f"grid: {why if len(levels) == 1 else 'not refined further'}; the finer grid ({fine:g} m) "
-                         f"was not used: the views fill the body there to {1e6 * v1:.0f} cm^3 against "
-                         f"{1e6 * v0:.0f} cm^3 (images too coarse for its lattice?). Every verdict on this grid may "
-                         f"be the grid's, not the material's")
+            grid_notes.append(
+                f"grid: {why if len(levels) == 1 else 'not refined further'}; the finer grid ({fine:g} m) was not "
+                f"used: the views fill the body there to {1e6 * v1:.0f} cm^3 against {1e6 * v0:.0f} cm^3 (images too "
+                f"coarse for its lattice?). Every verdict on this grid may be the grid's, not the material's")
+    notes = ([info["hidden_note"]] if info.get("hidden_note") else []) + grid_notes
     return scene, obs, views, info, notes
 
 
