@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import logging
 import math
 
 import numpy as np
@@ -913,7 +914,7 @@ def test_every_candidate_steps_with_the_same_substeps():
     assert ring[1] < 0.8 * ring[0], ring
 
 
-def test_the_doctor_chooses_a_grid_that_resolves_the_body(tmp_path):
+def test_the_doctor_chooses_a_grid_that_resolves_the_body(tmp_path, caplog):
     """Without a cell given, the doctor loads a 2.4 cm rope (under 4 cells across at 1 cm) on the 1 cm grid halved,
     the body filled again there, and says so; a cell given is kept. On ropes recorded by a 5 mm simulation with
     no effect, the doctor at 1 cm named an effect on 3 of 6, at 5 mm on none (benchmarks/RESULTS.md, session 34).
@@ -938,8 +939,14 @@ def test_the_doctor_chooses_a_grid_that_resolves_the_body(tmp_path):
         assert coarse.dx == DEFAULT_DX and not any(n.startswith("grid:") for n in notes)
         res = grid_resolution(coarse)[0]
         assert res["cells_across"] < DOCTOR_CELLS_ACROSS
-        scene, obs2, _, _, notes = load_for_doctor(rec, progress=False)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="empm_gym.identification"):
+            scene, obs2, _, _, notes = load_for_doctor(rec, device="cpu", progress=False)
         (note,) = [n for n in notes if n.startswith("grid:")]
+        # said before any fit starts, with what the finer grid costs on the CPU and how to avoid it
+        said = [r.getMessage() for r in caplog.records if note in r.getMessage()]
+        assert len(said) == (1 if refined else 0), (said, note)
+        assert not refined or "On the CPU this costs up to 16x" in said[0] and "--dx 0.01" in said[0]
         assert f"{res['cells_across']:.1f} cells across" in note and obs2.num_frames == obs.num_frames
         if not refined:
             assert scene.dx == DEFAULT_DX and "was not used" in note, note

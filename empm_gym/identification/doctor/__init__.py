@@ -7,6 +7,7 @@ per frame, point, region; summary features), :mod:`.core` (base fit, candidates,
 """
 
 import dataclasses
+import logging
 from typing import Optional
 
 import numpy as np
@@ -82,6 +83,14 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
                 f"grid: {why if len(levels) == 1 else 'not refined further'}; the finer grid ({fine:g} m) was not "
                 f"used: the views fill the body there to {1e6 * v1:.0f} cm^3 against {1e6 * v0:.0f} cm^3 (images too "
                 f"coarse for its lattice?). Every verdict on this grid may be the grid's, not the material's")
+    if grid_notes and scene.dx < DEFAULT_DX:
+        import warp as wp
+
+        # said before the fits start, not only in doctor.json: on the CPU the finer grid costs hours, not minutes
+        slow = (f" On the CPU this costs up to {(DEFAULT_DX / scene.dx) ** 4:.0f}x the {DEFAULT_DX:g} m run "
+                f"({len(scene.particles)} particles, and more substeps; a rope at 5 mm took 8x); --dx {DEFAULT_DX:g} "
+                f"gives a quicker, coarser look." if wp.get_device(device).is_cpu else "")
+        logging.getLogger("empm_gym.identification").warning("%s: %s%s", rec_dir, grid_notes[0], slow)
     notes = ([info["hidden_note"]] if info.get("hidden_note") else []) + grid_notes
     return scene, obs, views, info, notes
 
