@@ -195,8 +195,8 @@ def resolving_dx(scene, refill: Callable[[float], object], *, cells: float = MAR
                  halvings: int = 2) -> Tuple[object, list]:
     """``(scene, levels)``: ``scene`` on a grid cell on which its frame-0 body is at least ``cells`` cells
     across (:data:`MARGINAL_CELLS_ACROSS` unless given): its own cell, halved at most ``halvings`` times, the
-    body filled again on each finer cell by ``refill(dx)`` (a scene, or None where it cannot be: the coarser one is kept).
-    ``levels``: the :func:`grid_resolution` of every grid looked at, coarsest first.
+    body filled again on each finer cell by ``refill(dx)`` (a scene, or None where it cannot be: the coarser one
+    is kept). ``levels``: the :func:`grid_resolution` of every grid looked at, coarsest first.
 
     The body's thickness is measured again on each finer fill before the cell is halved once more: a body
     filled on a coarse lattice reads thinner than it is (a 2.3 cm rope filled at 1 cm read 1.2 cm, and the
@@ -204,9 +204,10 @@ def resolving_dx(scene, refill: Callable[[float], object], *, cells: float = MAR
     session 35). A grid too coarse for the body changes how it moves by more than many effects do, and a fit
     reads that as physics: the doctor at dx = 1 cm on ropes 1.9 cells across, recorded by a simulation at 5 mm
     (the same material, no effect), named table friction, a stiffness field and plasticity on 3 of 6 (confidence
-    0.77 to 1.00); at 5 mm (4.5 cells across), 0 of 6 (session 34). (:func:`_finer_grid_scene` is the other use
-    of the same threshold: a variant of an identification's scene, its particles unchanged, for the grid's share
-    of an interval; here the body is filled again on the cell chosen.)"""
+    0.77 to 1.00); at 5 mm (4.5 cells across), 0 of 6 (session 34); the doctor asks for 4 cells
+    (``doctor.DOCTOR_CELLS_ACROSS``). (:func:`_finer_grid_scene` is the other use of :data:`MARGINAL_CELLS_ACROSS`:
+    a variant of an identification's scene, its particles unchanged, for the grid's share of an interval; here the
+    body is filled again on the cell chosen.)"""
     levels = [grid_resolution(scene)[0]]
     for _ in range(halvings):
         if levels[-1]["cells_across"] >= cells:
