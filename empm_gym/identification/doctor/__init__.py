@@ -90,7 +90,7 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
         slow = (f" On the CPU this costs up to {(DEFAULT_DX / scene.dx) ** 4:.0f}x the {DEFAULT_DX:g} m run "
                 f"({len(scene.particles)} particles, and more substeps; a rope at 5 mm took 8x); --dx {DEFAULT_DX:g} "
                 f"gives a quicker, coarser look." if wp.get_device(device).is_cpu else "")
-        logging.getLogger("empm_gym.identification").warning("%s: %s%s", rec_dir, grid_notes[0], slow)
+        logging.getLogger("empm_gym.identification").warning("%s: %s.%s", rec_dir, grid_notes[0], slow)
     notes = ([info["hidden_note"]] if info.get("hidden_note") else []) + grid_notes
     return scene, obs, views, info, notes
 
