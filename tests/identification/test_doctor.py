@@ -383,6 +383,20 @@ HIDDEN_2 = [
     ("heterogeneous_stiffness", "pull-apart"),
 ]
 
+def test_a_search_smaller_than_the_measured_one_is_said():
+    """A base fit short of its optimum lets any added parameter gain (a dough with no effect, 1 generation of 3:
+    plasticity, confidence 1.00): the notes say when a run searched less than the benchmark measured."""
+    from empm_gym.identification.doctor.core import MEASURED_SEARCH, _search_note
+
+    assert _search_note(DoctorConfig()) is None  # the defaults search at least as much
+    m = MEASURED_SEARCH
+    assert _search_note(DoctorConfig(base_iters=m["iters"], candidate_iters=m["iters"], popsize=m["popsize"],
+                                     variants=m["variants"])) is None
+    for less in ({"base_iters": 1}, {"candidate_iters": m["iters"] - 1}, {"popsize": 3}, {"variants": 0}):
+        note = _search_note(dataclasses.replace(DoctorConfig(), **less))
+        assert note and note.startswith("search:") and f"{list(less.values())[0]}" in note, (less, note)
+
+
 _CPU = DoctorConfig(base_iters=3, candidate_iters=3, popsize=5, E_refit_factor=2.0, motion_margin=0.015, variants=1,
                    variant_iters=2, variant_top=1)
 
@@ -411,6 +425,8 @@ def doctor_names_the_hidden_effect(tmp_path, effect, script):
     # much of the body the loader's completion supplied; pressed or pushed, nothing is said
     hidden = [n for n in res["notes"] if "completed by a prior" in n]
     assert len(hidden) == (script in ("squeeze-lift", "lift-end", "pull-apart")), res["notes"]
+    # the CPU's small search is said (3 generations of 5, 1 variant: less than the doctor was measured with)
+    assert sum(n.startswith("search: the fits ran 3 (base model)") for n in res["notes"]) == 1, res["notes"]
     if effect != "none":
         best = next(c for c in res["candidates"] if c["effect"] == effect)
         assert best["heldout"]["loss"] < res["base"]["heldout"]["loss"]

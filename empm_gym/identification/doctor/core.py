@@ -570,6 +570,27 @@ def _widened(f: "_Fit", scene: Scene, obs: Observations, base_material: Material
     return g
 
 
+#: The search the doctor's accuracy was measured with (benchmarks/bench_doctor.py: CMA-ES generations of every
+#: fit, worlds per generation, discretisation variants); :func:`_search_note` says when a run searched less.
+MEASURED_SEARCH = {"iters": 6, "popsize": 8, "variants": 2}
+
+
+def _search_note(cfg: "DoctorConfig") -> Optional[str]:
+    """A note where ``cfg`` searches less than :data:`MEASURED_SEARCH`: with a base fit that has not found its
+    optimum, any candidate that adds a parameter can gain on it, and the verdict is the search's, not the
+    material's (a dough lifted by one end with no effect, 1 generation of 3 worlds and no variants: plasticity,
+    confidence 1.00, on a 1 cm and a 5 mm grid alike; benchmarks/RESULTS.md, session 35)."""
+    m = MEASURED_SEARCH
+    if (min(cfg.base_iters, cfg.candidate_iters) >= m["iters"] and cfg.popsize >= m["popsize"]
+            and cfg.variants >= m["variants"]):
+        return None
+    return (f"search: the fits ran {cfg.base_iters} (base model) and {cfg.candidate_iters} (each candidate) "
+            f"generations of {cfg.popsize} worlds, checked on {cfg.variants} variant(s); the doctor's accuracy was "
+            f"measured with {m['iters']} generations of {m['popsize']} and {m['variants']} variants. With less "
+            f"search a base fit short of its optimum lets any added parameter gain: the verdict and its confidence "
+            f"may be the search's, not the material's")
+
+
 def _grid_notes(scene: Scene) -> Tuple[dict, List[str]]:
     """The doctor's body against its grid (:func:`~empm_gym.identification.uncertainty.grid_resolution`):
     ``({thickness_m, dx_m, cells_across}, notes)``, a note where the grid is too coarse for the body or
@@ -857,8 +878,9 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                               **({"best": {k: _nan_list(v[heldout]) for k, v in per[fits.index(winner)].items()}}
                                  if winner else {}),
                               "loss_by_candidate": {f.name: _nan_list(pf["loss"][heldout]) for f, pf in zip(fits, per)}},
-        "notes": grid_notes + warnings + ["density is not fitted: from motion alone only E / density is determined "
-                             f"(assumed density {base_mat.density:g} kg/m^3)"],
+        "notes": grid_notes + warnings + [n for n in [_search_note(cfg)] if n] + [
+            "density is not fitted: from motion alone only E / density is determined "
+            f"(assumed density {base_mat.density:g} kg/m^3)"],
         "wall_time_s": None,
     })
     result["wall_time_s"] = round(time.perf_counter() - t_start, 2)
