@@ -578,8 +578,9 @@ MEASURED_SEARCH = {"iters": 6, "popsize": 8, "variants": 2}
 def _search_note(cfg: "DoctorConfig") -> Optional[str]:
     """A note where ``cfg`` searches less than :data:`MEASURED_SEARCH`: with a base fit that has not found its
     optimum, any candidate that adds a parameter can gain on it, and the verdict is the search's, not the
-    material's (a dough lifted by one end with no effect, 1 generation of 3 worlds and no variants: plasticity,
-    confidence 1.00, on a 1 cm and a 5 mm grid alike; benchmarks/RESULTS.md, session 35)."""
+    material's (a dough lifted by one end, recorded by ``empm synth`` with no effect, 1 generation of 3 worlds
+    and no variants: plasticity, confidence 1.00, with the doctor at 1 cm and at 5 mm; benchmarks/RESULTS.md,
+    session 35)."""
     m = MEASURED_SEARCH
     if (min(cfg.base_iters, cfg.candidate_iters) >= m["iters"] and cfg.popsize >= m["popsize"]
             and cfg.variants >= m["variants"]):
