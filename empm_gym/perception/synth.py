@@ -739,7 +739,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
             if v is not None:
                 d[k] = float(v)
         material = MaterialConfig(**d)
-        effects = []
+        effects = _effects_of(material)  # the default dough yields (yield_stress 2 kPa): ground truth says so
     if material.get("friction") is not None:
         table_friction = float(material.get("friction"))
     rng = np.random.default_rng(seed)
@@ -925,7 +925,8 @@ def register(subparsers) -> None:
     p.add_argument("--effect", default=None, metavar="NAME",
                    help="record the base model (elastic body, table friction 0.5, rigid grip) plus effect NAME "
                         "(none, plasticity, viscosity, table_friction, gripper_slip, heterogeneous_stiffness, "
-                        "fracture); only ground_truth.json names it")
+                        "fracture); only ground_truth.json names it. Without --effect or --material the "
+                        "object's defaults are recorded: the dough is then plastic (yield_stress 2 kPa)")
     p.add_argument("--effect-param", dest="effect_param", action="append", default=[], metavar="KEY=VALUE",
                    help="a parameter of --effect (SI units; repeatable), e.g. yield_stress=1500")
     p.add_argument("--material", default=None, metavar="FILE",

@@ -53,6 +53,16 @@ def test_every_script_runs_on_rope_and_dough(tmp_path, obj, script):
     assert rec.ground_truth()["material"]["yield_stress"] is None    # --effect: the dough is elastic
 
 
+def test_the_default_dough_is_recorded_as_plastic(tmp_path):
+    """Without ``effect`` the synthesiser records the object's defaults: the dough yields at 2 kPa, and its
+    ground truth names plasticity (it once said "effects: none", and a doctor that named plasticity on such a
+    dough was counted wrong); the default rope is elastic."""
+    gt = Recording(S.synthesize(tmp_path / "d", "dough", script="lift-end", **TINY)).ground_truth()
+    assert gt["effects"] == [{"name": "plasticity", "params": {"yield_stress": 2000.0}}]
+    gt = Recording(S.synthesize(tmp_path / "r", "rope", script="lift-end", **TINY)).ground_truth()
+    assert gt["material"]["yield_stress"] is None and gt["effects"] == []
+
+
 def test_recording_without_ground_truth_reveals_nothing(tmp_path):
     """Same object, script and seed, different effects: the same files, metadata, calibration and controls."""
     recs = {e: S.synthesize(tmp_path / e, "dough", effect=e, script="squeeze-ring", seed=3, **TINY)

@@ -576,20 +576,20 @@ MEASURED_SEARCH = {"iters": 6, "popsize": 8, "variants": 2}
 
 
 def _search_note(cfg: "DoctorConfig") -> Optional[str]:
-    """A note where ``cfg`` searches less than :data:`MEASURED_SEARCH`: with a base fit that has not found its
-    optimum, any candidate that adds a parameter can gain on it, and the verdict is the search's, not the
-    material's (a dough lifted by one end, recorded by ``empm synth`` with no effect, 1 generation of 3 worlds
-    and no variants: plasticity, confidence 1.00, with the doctor at 1 cm and at 5 mm; benchmarks/RESULTS.md,
-    session 35)."""
+    """A note where ``cfg`` searches less than :data:`MEASURED_SEARCH`: the doctor's accuracy and its
+    confidence were measured with that search, not with a smaller one. A base fit short of its optimum would let
+    any added parameter gain on it; what a smaller search does to the verdict has not been measured. (On a
+    dough lifted by one end, 1 generation of 3 worlds and no variants named plasticity on the synthesiser's
+    default, plastic dough and ``none`` on the elastic one: right on both; benchmarks/RESULTS.md, session 36.)"""
     m = MEASURED_SEARCH
     if (min(cfg.base_iters, cfg.candidate_iters) >= m["iters"] and cfg.popsize >= m["popsize"]
             and cfg.variants >= m["variants"]):
         return None
     return (f"search: the fits ran {cfg.base_iters} (base model) and {cfg.candidate_iters} (each candidate) "
             f"generations of {cfg.popsize} worlds, checked on {cfg.variants} variant(s); the doctor's accuracy was "
-            f"measured with {m['iters']} generations of {m['popsize']} and {m['variants']} variants. With less "
-            f"search a base fit short of its optimum lets any added parameter gain: the verdict and its confidence "
-            f"may be the search's, not the material's")
+            f"measured with {m['iters']} generations of {m['popsize']} and {m['variants']} variants, not with less. "
+            f"A base fit short of its optimum lets any added parameter gain: the verdict and its confidence may "
+            f"then be the search's, not the material's")
 
 
 def _grid_notes(scene: Scene) -> Tuple[dict, List[str]]:
