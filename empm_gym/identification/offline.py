@@ -29,6 +29,7 @@ observations and scene are stored beside it, and resuming with others raises :cl
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -375,6 +376,51 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
     adjoint recomputes costs less. ``memory_budget_bytes`` (None: 1 GB) is what the CPU's "auto" compares the taped
     rollout with.
     """
+    prep = _prepare_fit(observations, scene, params=params, method=method, init=init, iters=iters, frames=frames,
+                        lr=lr, betas=betas, popsize=popsize, sigma0=sigma0, l_dist=l_dist, l_trk=l_trk,
+                        chamfer=chamfer, max_points=max_points, observation=observation, bounds=bounds, seed=seed,
+                        extra_starts=extra_starts, tol=tol)
+    prior = None if resume is None else _check_resume(resume, prep.settings, prep.digest, iters)
+    t0 = time.perf_counter()
+    if method == "adam":
+        hist_l, hist_p, extra, state = _fit_adam(scene, prep.objective, prep.space, prep.init_vals, prep.base_mat,
+                                                 iters, lr, tuple(betas), progress, checkpoint_every,
+                                                 memory_budget_bytes, callback, stop, prior, tol)
+    else:
+        hist_l, hist_p, extra, state = _fit_cmaes(scene, prep.objective, prep.space, prep.init_vals, prep.base_mat,
+                                                  iters, popsize, sigma0, seed, progress, callback, stop, prior,
+                                                  prep.starts)
+    wall = time.perf_counter() - t0 + (float(prior["wall_time_s"]) if prior else 0.0)
+    return _fit_result(prep, hist_l, hist_p, extra, state, wall)
+
+
+@dataclass
+class _PreparedFit:
+    """One fit's checked inputs (:func:`_prepare_fit`): what :func:`identify` and :func:`identify_lockstep` run."""
+
+    scene: Scene
+    method: str
+    params: Tuple[str, ...]
+    init_vals: Dict[str, float]
+    space: ParamSpace
+    F: int
+    observation: str
+    objective: "Objective"
+    base_mat: MaterialConfig
+    starts: List[Dict[str, float]]
+    settings: dict
+    digest: str
+    iters: int
+    popsize: int
+    sigma0: float
+    seed: int
+
+
+def _prepare_fit(observations: Observations, scene: Scene, *, params, method, init, iters, frames, lr, betas, popsize,
+                 sigma0, l_dist, l_trk, chamfer, max_points, observation, bounds, seed, extra_starts, tol
+                 ) -> _PreparedFit:
+    """Check :func:`identify`'s arguments (a clear error naming what and why) and build the fit's search space,
+    objective and starting material."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if iters < 1:
@@ -408,34 +454,33 @@ def identify(observations: Observations, scene: Scene, *, params: Sequence[str] 
                              seed, lr, betas, popsize, sigma0)
     if starts:
         settings["extra_starts"] = starts
-    digest = _problem_digest(scene, objective, base_mat)
-    prior = None if resume is None else _check_resume(resume, settings, digest, iters)
-    t0 = time.perf_counter()
-    if method == "adam":
-        hist_l, hist_p, extra, state = _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, tuple(betas),
-                                                 progress, checkpoint_every, memory_budget_bytes, callback, stop, prior,
-                                                 tol)
-    else:
-        hist_l, hist_p, extra, state = _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize,
-                                                  sigma0, seed, progress, callback, stop, prior, starts)
-    wall = time.perf_counter() - t0 + (float(prior["wall_time_s"]) if prior else 0.0)
+    return _PreparedFit(scene=scene, method=method, params=params, init_vals=init_vals, space=space, F=F,
+                        observation=observation, objective=objective, base_mat=base_mat, starts=starts,
+                        settings=settings, digest=_problem_digest(scene, objective, base_mat), iters=int(iters),
+                        popsize=int(popsize), sigma0=float(sigma0), seed=int(seed))
+
+
+def _fit_result(prep: _PreparedFit, hist_l, hist_p, extra: dict, state: dict, wall: float) -> "FitResult":
+    """The :class:`FitResult` of a fit run from ``prep``: its best iterate, history and resumable state."""
     done = len(hist_l)
-    complete = done >= iters or extra.get("converged_at") is not None
+    complete = done >= prep.iters or extra.get("converged_at") is not None
     # what assess_fit needs to rebuild the objective and the search box
-    extra["bounds"], extra["observation"] = settings["bounds"], observation
-    extra["objective"] = {"l_dist": l_dist, "l_trk": l_trk, "chamfer": chamfer, "max_points": max_points, "seed": seed}
+    extra["bounds"], extra["observation"] = prep.settings["bounds"], prep.observation
+    s = prep.settings
+    extra["objective"] = {k: s[k] for k in ("l_dist", "l_trk", "chamfer", "max_points", "seed")}
     if not complete:
-        extra["resume"] = {"format": _RESUME_FORMAT, "settings": settings, "data_sha256": digest, "state": state}
+        extra["resume"] = {"format": _RESUME_FORMAT, "settings": prep.settings, "data_sha256": prep.digest,
+                           "state": state}
     if done:
         best = int(np.argmin(hist_l))
         best_p, best_l = hist_p[best], float(hist_l[best])
     else:  # stopped before the first iteration
-        best_p, best_l = dict(init_vals), float("nan")
-    mat, mu = space.material(best_p, base_mat, scene.table_friction)
-    return FitResult(method=method, params=dict(best_p), material=mat, friction=mu, loss=best_l,
+        best_p, best_l = dict(prep.init_vals), float("nan")
+    mat, mu = prep.space.material(best_p, prep.base_mat, prep.scene.table_friction)
+    return FitResult(method=prep.method, params=dict(best_p), material=mat, friction=mu, loss=best_l,
                      loss_history=[float(v) for v in hist_l], param_history=hist_p, wall_time_s=wall,
-                     frames_used=F, fps=scene.fps, init=init_vals, extra=extra, complete=complete,
-                     iterations_done=done, iterations_requested=iters)
+                     frames_used=prep.F, fps=prep.scene.fps, init=prep.init_vals, extra=extra, complete=complete,
+                     iterations_done=done, iterations_requested=prep.iters)
 
 
 def _fit_settings(method, params, init_vals, space, F, observation, l_dist, l_trk, chamfer, max_points, seed, lr,
@@ -747,47 +792,89 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
     return hist_l, hist_p, {"lr": lr, "betas": list(betas), "skipped_steps": skipped, "converged_at": converged_at}, state
 
 
+class _CMAES:
+    """One CMA-ES search in a fit's space (pycma): ``ask`` the next generation's candidates (SI values),
+    ``tell`` their losses; the history of the best member per generation.
+
+    pycma draws its samples from numpy's global generator, which its constructor seeds: each search keeps
+    that generator's state as its own and restores it around every draw, so that several searches stepped in
+    turn (:func:`identify_lockstep`) draw what each would draw alone."""
+
+    def __init__(self, space: ParamSpace, init_vals: Dict[str, float], popsize: int, sigma0: float, seed: int,
+                 starts: Sequence[Dict[str, float]] = ()):
+        import warnings
+
+        import cma
+
+        if popsize < 2:
+            raise ValueError(f"popsize must be >= 2 for CMA-ES, got {popsize}")
+        self.space, self.n = space, len(space.names)
+        z0 = space.to_z(init_vals)
+        lo, hi = list(space.z_lo), list(space.z_hi)
+        # pycma does not support 1-D problems (its issues #86, #302): add a dummy coordinate the loss ignores
+        self.dummy = len(z0) == 1
+        if self.dummy:
+            z0, lo, hi = np.append(z0, 0.0), lo + [-1.0], hi + [1.0]
+        opts = {"popsize": int(popsize), "seed": int(seed) + 1, "verbose": -9, "bounds": [lo, hi],
+                "maxstd": float("inf"), "tolfun": 0.0, "tolx": 1e-6}
+        outside = np.random.get_state()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            self.es = cma.CMAEvolutionStrategy(list(z0), float(sigma0), opts)  # seeds numpy's global generator
+        if starts:  # members of the first generation (pycma's inject: they replace its first samples)
+            self.es.inject([list(space.to_z(st)) + ([0.0] if self.dummy else []) for st in starts], force=True)
+        self._rng = np.random.get_state()
+        np.random.set_state(outside)
+        self.hist_l: List[float] = []
+        self.hist_p: List[Dict[str, float]] = []
+        self.gen_mean: List[Dict[str, float]] = []
+        self.pop_losses: List[List[float]] = []
+        self._Z = None
+
+    def _own_rng(self, fn, *a):
+        import warnings
+
+        outside = np.random.get_state()
+        np.random.set_state(self._rng)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                return fn(*a)
+        finally:
+            self._rng = np.random.get_state()
+            np.random.set_state(outside)
+
+    def ask(self) -> List[Dict[str, float]]:
+        self._Z = self._own_rng(self.es.ask)
+        return [self.space.from_z(z[:self.n]) for z in self._Z]
+
+    def tell(self, cand: List[Dict[str, float]], losses: Sequence[float]) -> int:
+        """Record the generation ``cand`` (from :meth:`ask`) scored ``losses``; the index of its best member."""
+        losses = [float(v) for v in losses]
+        self._own_rng(self.es.tell, self._Z, losses)
+        i = int(np.argmin(losses))
+        self.hist_l.append(losses[i])
+        self.hist_p.append(cand[i])
+        self.gen_mean.append(self.space.from_z(self.es.mean[:self.n]))
+        self.pop_losses.append(losses)
+        return i
+
+    def generation(self, losses_of) -> Tuple[List[Dict[str, float]], int]:
+        """ask, evaluate (``losses_of(candidates) -> losses``), tell: the candidates and the best one's index."""
+        cand = self.ask()
+        return cand, self.tell(cand, losses_of(cand))
+
+    def extra(self, popsize: int, sigma0: float) -> dict:
+        return {"popsize": popsize, "sigma0": sigma0, "evaluations": popsize * len(self.hist_l),
+                "mean_history": self.gen_mean}
+
+
 def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sigma0, seed, progress, callback,
                stop=None, prior=None, starts=()):
-    import warnings
-
-    import cma
-
-    if popsize < 2:
-        raise ValueError(f"popsize must be >= 2 for CMA-ES, got {popsize}")
     F = objective.frames
-    z0 = space.to_z(init_vals)
-    lo, hi = list(space.z_lo), list(space.z_hi)
-    # pycma does not support 1-D problems (its issues #86, #302): add a dummy coordinate the loss ignores
-    dummy = len(z0) == 1
-    if dummy:
-        z0, lo, hi = np.append(z0, 0.0), lo + [-1.0], hi + [1.0]
-    opts = {"popsize": int(popsize), "seed": int(seed) + 1, "verbose": -9, "bounds": [lo, hi],
-            "maxstd": float("inf"), "tolfun": 0.0, "tolx": 1e-6}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        es = cma.CMAEvolutionStrategy(list(z0), float(sigma0), opts)  # seeds numpy's global generator
-    n = len(space.names)
-    if starts:  # members of the first generation (pycma's inject: they replace its first samples)
-        es.inject([list(space.to_z(st)) + ([0.0] if dummy else []) for st in starts], force=True)
-    hist_l, hist_p, gen_mean, pop_losses = [], [], [], []
-
-    def generation(losses_of):
-        """ask, evaluate (``losses_of(candidates) -> losses``), tell; record; the candidates' values."""
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            Z = es.ask()
-        cand = [space.from_z(z[:n]) for z in Z]
-        losses = [float(v) for v in losses_of(cand)]
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            es.tell(Z, losses)
-        i = int(np.argmin(losses))
-        hist_l.append(losses[i])
-        hist_p.append(cand[i])
-        gen_mean.append(space.from_z(es.mean[:n]))
-        pop_losses.append(losses)
-        return cand, i
+    cm = _CMAES(space, init_vals, popsize, sigma0, seed, starts)
+    hist_l, hist_p = cm.hist_l, cm.hist_p
+    generation = cm.generation
 
     if prior is not None:
         # rebuild the strategy (and numpy's global random state, which pycma draws from) by replaying the
@@ -822,5 +909,77 @@ def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sig
         bar.set_postfix(loss=f"{hist_l[-1]:.5f}", **{k: f"{v:.4g}" for k, v in cand[i].items()})
         bar.update(1)
     bar.close()
-    extra = {"popsize": popsize, "sigma0": sigma0, "evaluations": popsize * len(hist_l), "mean_history": gen_mean}
-    return hist_l, hist_p, extra, {"population_losses": pop_losses}
+    return hist_l, hist_p, cm.extra(popsize, sigma0), {"population_losses": cm.pop_losses}
+
+
+def identify_lockstep(observations: Observations, fits: Sequence[Tuple[Scene, dict]], *, progress: bool = True,
+                      desc: str = "identify (cmaes, lockstep)") -> List["FitResult"]:
+    """Several CMA-ES fits (``fits``: ``(scene, keyword arguments of identify)`` each, ``method`` "cmaes") run
+    generation by generation in turn, the members of every fit that share a simulation simulated as the worlds
+    of one batched model: the results are those of :func:`identify` called on each alone, on the CPU to the
+    last bit (each search draws its own random numbers, each world its own material), at a fraction of the
+    launches.
+
+    Fits share a simulation when their scenes hold the same body (particles), grid, controls and substep count
+    per frame (their ``dt_materials`` and the end-effectors' speed), and they fit as many frames for as many
+    generations. A diagnosis fits the base model and every effect on one body with one clock (the doctor's
+    candidates): on a GPU, one generation of 8 worlds of a few thousand particles costs about as much as one of
+    56. ``stop``, ``resume``, ``callback`` and ``method="adam"`` are not supported here (use :func:`identify`)."""
+    t0 = time.perf_counter()
+    preps: List[_PreparedFit] = []
+    for scene, kw in fits:
+        kw = dict(kw)
+        bad = sorted(set(kw) & {"stop", "resume", "callback", "checkpoint_every", "memory_budget_bytes", "progress"})
+        if bad or kw.get("method", "cmaes") != "cmaes":
+            raise ValueError(f"identify_lockstep runs CMA-ES fits only, without {bad or 'method=' + kw['method']}: "
+                             f"use identify for those")
+        kw["method"] = "cmaes"
+        args = {"params": ("E",), "init": None, "iters": 30, "frames": None, "lr": 0.15, "betas": (0.8, 0.95),
+                "popsize": 6, "sigma0": 0.5, "l_dist": 1.0, "l_trk": 100.0, "chamfer": "both", "max_points": 2000,
+                "observation": "auto", "bounds": None, "seed": 0, "extra_starts": (), "tol": 1e-4, **kw}
+        preps.append(_prepare_fit(observations, scene, **args))
+
+    def key(i: int, p: _PreparedFit) -> tuple:
+        # the substeps a simulation takes follow the stiffest material it holds; a fit shares its worlds only
+        # where its scene's dt_materials fix them for every point of its box (the box's corners bound the
+        # wave speed), else the others' materials would change its substeps: it then runs alone
+        sc = p.scene
+        vel = sc.ee_velocities(p.F)
+        speed = float(np.max(np.linalg.norm(vel, axis=-1))) if vel.size else 0.0
+        names = [n for n in p.params if n != "friction"]
+        corners = [p.space.material({**p.init_vals, **{n: p.space.bounds[n][(k >> j) & 1] for j, n in enumerate(names)}},
+                                    p.base_mat, sc.table_friction)[0] for k in range(2 ** len(names))]
+        fixed = substeps_for(sc, [], speed)[0] if sc.dt_materials else None
+        if fixed is None or substeps_for(sc, corners, speed)[0] != fixed:
+            return ("alone", i)
+        return (id(sc.particles), repr(sc.grid_config()), str(sc.device), p.F, p.iters, fixed)
+
+    groups: Dict[tuple, List[int]] = {}
+    for i, p in enumerate(preps):
+        groups.setdefault(key(i, p), []).append(i)
+    searches = [_CMAES(p.space, p.init_vals, p.popsize, p.sigma0, p.seed, p.starts) for p in preps]
+    total = sum(p.iters for p in (preps[g[0]] for g in groups.values()))
+    bar = _bar(total, desc, progress)
+    for idx in groups.values():
+        first = preps[idx[0]]
+        dt_materials = []
+        for i in idx:
+            dt_materials += [m for m in preps[i].scene.dt_materials if m not in dt_materials]
+        sc = dataclasses.replace(first.scene, dt_materials=tuple(dt_materials))
+        mats0 = [m for i in idx for m in [preps[i].base_mat] * preps[i].popsize]
+        sim = _ForwardSim(sc, mats0, [preps[i].scene.table_friction for i in idx for _ in range(preps[i].popsize)])
+        for _ in range(first.iters):
+            cands = [searches[i].ask() for i in idx]
+            mats = [preps[i].space.material(v, preps[i].base_mat, preps[i].scene.table_friction)
+                    for i, cand in zip(idx, cands) for v in cand]
+            sim.set([m for m, _ in mats], [mu for _, mu in mats])
+            X, _, _ = sim.run(first.F)
+            w = 0
+            for i, cand in zip(idx, cands):
+                searches[i].tell(cand, [preps[i].objective.numpy(X[:, w + k]) for k in range(len(cand))])
+                w += len(cand)
+            bar.update(1)
+    bar.close()
+    wall = (time.perf_counter() - t0) / max(1, len(preps))
+    return [_fit_result(p, cm.hist_l, cm.hist_p, cm.extra(p.popsize, p.sigma0), {"population_losses": cm.pop_losses},
+                        wall) for p, cm in zip(preps, searches)]

@@ -211,3 +211,44 @@ def test_adam_stops_once_converged_and_the_fit_is_complete(rope):
     assert abs(r.params["E"] / ROPE_E - 1) < 0.05 and r.loss == min(r.loss_history)
     with pytest.raises(ValueError, match="tol must be"):
         identify(rope.obs, rope.scene, params=("E",), method="adam", iters=2, tol=-1.0, progress=False)
+
+
+def test_lockstep_fits_are_the_fits_one_by_one(monkeypatch):
+    """identify_lockstep steps several CMA-ES fits in turn, their worlds one batched simulation: on the CPU the
+    results are those of identify alone to the last bit (each search draws its own random numbers; the scene's
+    dt_materials fix the substeps, as the doctor's clock does). A fit whose box is not covered by them runs
+    alone (its substeps follow its own candidates) and is also unchanged."""
+    import dataclasses
+
+    from empm_gym.identification.offline import identify_lockstep
+    from empm_gym.sim import MaterialConfig
+
+    p = scenes.rope_lift(E=ROPE_E, frames=8, lift_frames=6)
+    clock = (MaterialConfig(E=2e5, nu=0.3, density=1000.0, viscosity=5.0),)
+    sc = dataclasses.replace(p.scene, dt_materials=clock)
+    common = dict(method="cmaes", iters=3, popsize=3, seed=4, max_points=300)
+    fits = [(sc, dict(params=("E",), init={"E": ROPE_E / 3}, bounds={"E": (1e4, 2e5)}, **common)),
+            (sc, dict(params=("E", "viscosity"), init={"E": ROPE_E, "viscosity": 1.0},
+                      bounds={"E": (1e4, 2e5), "viscosity": (0.1, 5.0)}, extra_starts=[{"E": 3e4, "viscosity": 0.1}],
+                      **common)),
+            (p.scene, dict(params=("E",), init={"E": ROPE_E * 2}, bounds={"E": (1e4, 4e5)}, **{**common, "popsize": 4}))]
+    from empm_gym.identification import offline
+
+    worlds = []
+
+    class Counted(offline._ForwardSim):
+        def __init__(self, scene, materials, frictions):
+            worlds.append(len(materials))
+            super().__init__(scene, materials, frictions)
+
+    monkeypatch.setattr(offline, "_ForwardSim", Counted)
+    together = identify_lockstep(p.obs, fits, progress=False)
+    assert worlds == [3 + 3, 4]  # the first two share one simulation of 6 worlds; the third runs alone
+    monkeypatch.undo()
+    for (scene, kw), r in zip(fits, together):
+        alone = identify(p.obs, scene, progress=False, **kw)
+        assert r.params == alone.params and r.loss_history == alone.loss_history, (kw["params"], r.params, alone.params)
+        assert r.param_history == alone.param_history and r.extra["evaluations"] == alone.extra["evaluations"]
+    assert together[1].params["viscosity"] != 1.0  # the viscosity was searched, not left at its start
+    with pytest.raises(ValueError, match="CMA-ES fits only"):
+        identify_lockstep(p.obs, [(sc, dict(params=("E",), method="adam"))], progress=False)

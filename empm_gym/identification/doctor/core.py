@@ -454,17 +454,17 @@ def _clock(names: Sequence[str], base_material: MaterialConfig, E_range: Tuple[f
     return tuple(out)
 
 
-def _fit_candidate(name: str, scene: Scene, obs: Observations, base_material: MaterialConfig, E_range, F: int,
-                   cfg: DoctorConfig, progress: bool, like: Optional["_Fit"] = None,
-                   starts: Sequence[Dict[str, float]] = ()) -> "_Fit":
-    """Fit candidate ``name`` ("base": E alone) on ``scene``: E within ``E_range`` from ``base_material``'s E,
-    the effect's parameters from their registry start; or, with ``like`` (the same candidate fitted on another
-    discretisation), from ``like``'s optimum in ``like``'s box with a shorter, narrower search; ``starts``
-    are further members of the first CMA-ES generation."""
+def _candidate_spec(name: str, scene: Scene, base_material: MaterialConfig, E_range, F: int, cfg: DoctorConfig,
+                    like: Optional["_Fit"] = None, starts: Sequence[Dict[str, float]] = ()) -> tuple:
+    """What :func:`_fit_candidates` fits for candidate ``name`` ("base": E alone) on ``scene``: E within
+    ``E_range`` from ``base_material``'s E, the effect's parameters from their registry start; or, with ``like``
+    (the same candidate fitted on another discretisation), from ``like``'s optimum in ``like``'s box with a
+    shorter, narrower search; ``starts`` are further members of the first CMA-ES generation. Returns
+    ``(name, scene, identify's keyword arguments, (effect parameters, box, starting material))``."""
     ps = () if name == "base" else candidate_params(name)
     if like is None:
         init, bounds, start_mat = _candidate_box(name, base_material, E_range, scene.dx)
-        iters, sigma0 = cfg.candidate_iters, None
+        iters, sigma0 = cfg.candidate_iters, cfg.sigma0
     else:
         bounds, start_mat = like.bounds, like.start_material
         init = {k: float(np.clip(v, *bounds[k])) for k, v in like.params.items()}
@@ -472,10 +472,36 @@ def _fit_candidate(name: str, scene: Scene, obs: Observations, base_material: Ma
     # the scene's clock (the diagnosis's common substeps, :func:`_clock`) and the corners of this fit's box
     sc = dataclasses.replace(scene.with_material(start_mat),
                              dt_materials=tuple(scene.dt_materials) + _box_corners(start_mat, bounds))
-    f = _fit(name, sc, obs, ("E",) + ps, init, bounds, start_mat, F, cfg, progress, iters, sigma0=sigma0,
-             starts=starts)
-    f.added, f.scene, f.bounds, f.start_material = len(ps), sc, bounds, start_mat
-    return f
+    params = ("E",) + ps
+    fit_scene = sc.with_material(start_mat, table_friction=BASE_TABLE_FRICTION if "friction" not in params
+                                 else sc.table_friction)
+    kw = dict(params=params, method="cmaes", init=init, bounds=bounds, iters=iters, frames=F, popsize=cfg.popsize,
+              sigma0=sigma0, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed, extra_starts=list(starts))
+    return name, fit_scene, kw, (ps, bounds, start_mat, sc)
+
+
+def _fit_candidates(specs: Sequence[tuple], obs: Observations, progress: bool, desc: str) -> List["_Fit"]:
+    """Fit every candidate of ``specs`` (:func:`_candidate_spec`) on the same body, generation by generation
+    in turn, their worlds simulated together where they share the clock (:func:`~..offline.identify_lockstep`:
+    the same fits as one by one)."""
+    from ..offline import identify_lockstep
+
+    results = identify_lockstep(obs, [(sc, kw) for _, sc, kw, _ in specs], progress=progress, desc=desc)
+    out = []
+    for (name, _, _, (ps, bounds, start_mat, sc)), res in zip(specs, results):
+        f = _Fit(name=name, params=dict(res.params), material=res.material, friction=float(res.friction),
+                 fit_loss=float(res.loss), wall_s=float(res.wall_time_s))
+        f.added, f.scene, f.bounds, f.start_material = len(ps), sc, bounds, start_mat
+        out.append(f)
+    return out
+
+
+def _fit_candidate(name: str, scene: Scene, obs: Observations, base_material: MaterialConfig, E_range, F: int,
+                   cfg: DoctorConfig, progress: bool, like: Optional["_Fit"] = None,
+                   starts: Sequence[Dict[str, float]] = ()) -> "_Fit":
+    """One candidate's fit (:func:`_candidate_spec`, :func:`_fit_candidates`)."""
+    return _fit_candidates([_candidate_spec(name, scene, base_material, E_range, F, cfg, like, starts)], obs,
+                           progress, f"doctor: {name}")[0]
 
 
 def fitted_text(fit: dict) -> str:
@@ -667,8 +693,6 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     ``info["hidden_note"]`` of :func:`~empm_gym.identification.data.load_recording`) join the notes. With
     ``out_dir`` the report files are written there.
     """
-    from tqdm.auto import tqdm
-
     cfg = config or DoctorConfig()
     t_start = time.perf_counter()
     T, F = _check_inputs(scene, obs, cfg)
@@ -735,10 +759,10 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         # measurement), then the scan of the effect's parameter; one member at least is left sampled
         return (own[:1] + [{**init, "E": E} for E in spread] + own[1:])[:cfg.popsize - 1]
 
-    fits: List[_Fit] = [_fit_candidate(name, scene, obs, base_fit.material, E_range, F, cfg, progress,
-                                       starts=first_generation(name))
-                        for name in tqdm(["base"] + names, desc="doctor: candidates", disable=not progress,
-                                         leave=False)]
+    # every candidate and the base model's refit, generation by generation, their worlds simulated together
+    fits: List[_Fit] = _fit_candidates([_candidate_spec(name, scene, base_fit.material, E_range, F, cfg,
+                                                        starts=first_generation(name)) for name in ["base"] + names],
+                                       obs, progress, "doctor: candidates")
     # a window centred on an E that the base model's refit leaves at the box's bound is widened more readily
     loose = _at_bound(fits[0].params["E"], (lo, hi))
     fits = [_widened(f, scene, obs, base_fit.material, (lo, hi), F, cfg, progress, loose) for f in fits]
@@ -931,9 +955,10 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
     found: Dict[str, List[Dict[str, float]]] = {f.name: [] for f in checked}  # each candidate's optima so far
     for label, kind, vs in tqdm(variants, desc="doctor: variants", disable=not progress, leave=False):
         vfits = [_fit_candidate("base", vs, obs, base_fit.start_material, None, F, cfg, progress, like=base_fit)]
-        vfits += [_fit_candidate(f.name, vs, obs, base_fit.start_material, None, F, cfg, progress, like=f,
-                                 starts=_variant_starts(f, base_fit, vfits[0], found[f.name])[:max(0, cfg.popsize - 2)])
-                  for f in checked]
+        vfits += _fit_candidates([_candidate_spec(f.name, vs, base_fit.start_material, None, F, cfg, like=f,
+                                                  starts=_variant_starts(f, base_fit, vfits[0],
+                                                                         found[f.name])[:max(0, cfg.popsize - 2)])
+                                  for f in checked], obs, progress, "doctor: variant refits")
         if box is not None:
             vfits = [_widened(vf, vs, obs, base_fit.start_material, box, F, cfg, progress, loose) for vf in vfits]
         for f, vf in zip(checked, vfits[1:]):
