@@ -12,8 +12,10 @@ Pipeline (:func:`diagnose`):
    controls and by regions of the object (:mod:`.phases`, :mod:`.features`), and summary features.
 3. **Candidates.** Every effect of :data:`empm_gym.sim.effects.EFFECTS` that the base model lacks is added
    and refitted together with E (CMA-ES, the same loss, from the base fit's E; its first generation holds the
-   base model inside it and its effect's parameter spread over its box, :func:`_effect_starts`), each
-   candidate in its own batched simulation. The base model is refitted the same way (the null candidate) and is the base model
+   base model inside it and its effect's parameter spread over its box, :func:`_effect_starts`), the
+   candidates and the base model's refit stepped generation by generation in turn, all their worlds one batched
+   simulation (:func:`~empm_gym.identification.offline.identify_lockstep`: the same fits as one by one, at a
+   fraction of the launches). The base model is refitted the same way (the null candidate) and is the base model
    from then on: a candidate must gain by its effect, not by a second search of E. A fit whose E ends at an
    edge of that window is fitted again with the window stretched to the base box on that side, and when the
    base fit itself ends at a bound of its box every candidate searches the whole box (:func:`_widened`). The
