@@ -4,7 +4,7 @@ fitting and held-out losses as the doctor scores them (per held-out frame: Chamf
 What a row of ``doctor.json`` says a fit scored can be checked here: the same body (the doctor's, or one of the
 bodies rebuilt without a camera), the same substeps per frame (the clock: the corners of every candidate's box for
 an E window), the same score. Session 36 used it to find that a stiffness field's held-out score on a rope pulled
-apart changes fourfold between 482 and 488 substeps a frame (benchmarks/RESULTS.md).
+apart changes fourfold between 547 and 627 substeps a frame (benchmarks/RESULTS.md).
 
     python benchmarks/resimulate.py PROBLEM.pkl --E-window 21337,192036 \\
         --material E=43103,stiffness_slope_1=0.9055 --material E=62424 [--body "without camera 0"] [--device cuda:0]
