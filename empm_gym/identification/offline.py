@@ -924,7 +924,8 @@ def identify_lockstep(observations: Observations, fits: Sequence[Tuple[Scene, di
     per frame (their ``dt_materials`` and the end-effectors' speed), and they fit as many frames for as many
     generations. A diagnosis fits the base model and every effect on one body with one clock (the doctor's
     candidates): on a GPU, one generation of 8 worlds of a few thousand particles costs about as much as one of
-    56. ``stop``, ``resume``, ``callback`` and ``method="adam"`` are not supported here (use :func:`identify`)."""
+    56. ``stop``, ``resume``, ``callback`` and ``method="adam"`` are not supported here (use :func:`identify`).
+    Each result's ``wall_time_s`` is its share of the whole run (the run's wall time over the number of fits)."""
     t0 = time.perf_counter()
     preps: List[_PreparedFit] = []
     for scene, kw in fits:
