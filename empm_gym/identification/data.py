@@ -364,12 +364,21 @@ def _frame_ranges(frames) -> str:
     return ", ".join(out)
 
 
+def _warn_body(path, report: dict) -> None:
+    """Log what :func:`load_recording` says of the frame-0 body (``report``: its ``info``): the single-view
+    prior and the share the end-effectors hide."""
+    if report.get("single_view"):
+        _log.warning("%s: %s", path, report["body_completion"])
+    if report.get("hidden_note"):
+        _log.warning("%s: %s", path, report["hidden_note"])
+
+
 def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27, voxel_m: float = 0.003,
                    material: Optional[MaterialConfig] = None, table_friction: float = 0.5,
                    ee_friction: float = 0.8, use_tracks: bool = True, frames: Optional[int] = None,
                    grow_grippers: bool = True, complete_hidden: bool = True,
                    single_view: Optional[bool] = None, info: Optional[dict] = None,
-                   device: Optional[str] = None, progress: bool = True):
+                   device: Optional[str] = None, progress: bool = True, warn: bool = True):
     """(Scene, Observations, Views) of the recording in ``rec_dir`` (see the module docstring).
 
     ``dx`` (m) is the simulation grid cell, ``particles_per_cell`` the density of the frame-0 fill (27: a
@@ -395,7 +404,9 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     (logger ``empm_gym.identification``) and, when ``info`` (a dict) is given, in
     ``info["body_completion"]`` (one line, for the material file's fit section), with ``info["view_gap_deg"]``,
     ``info["single_view"]`` and ``info["symmetry"]`` (the axis, how far the views leave it open, how much of
-    the turned surface the depth images contradict, whether the prior was used).
+    the turned surface the depth images contradict, whether the prior was used). ``warn=False`` leaves those
+    warnings to the caller (``info`` still holds them): the doctor may fill the body again on a finer grid, and
+    says what it says of the body it simulates.
     """
     from tqdm.auto import tqdm
 
@@ -429,10 +440,8 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     x0, vol, report = frame0_body(rec, plane, cfgs, pos, grip, orient, dx=dx, particles_per_cell=particles_per_cell,
                                   voxel_m=voxel_m, complete_hidden=complete_hidden, single_view=single_view,
                                   points=pts[0])
-    if report["single_view"]:
-        _log.warning("%s: %s", rec.path, report["body_completion"])
-    if report.get("hidden_note"):
-        _log.warning("%s: %s", rec.path, report["hidden_note"])
+    if warn:
+        _warn_body(rec.path, report)
     if info is not None:
         info.update(report)
     if grow_grippers:

@@ -978,6 +978,9 @@ def test_the_doctor_chooses_a_grid_that_resolves_the_body(tmp_path, caplog):
             (hidden,) = hidden
             assert f"of {1e6 * scene.volumes.sum():.0f} cm^3)" in hidden, hidden
             assert f"of {1e6 * coarse.volumes.sum():.0f} cm^3)" not in hidden
+            # and so does the warning logged while loading, once (it once quoted the 1 cm fill first)
+            logged = [r.getMessage() for r in caplog.records if "hide it from every camera" in r.getMessage()]
+            assert len(logged) == 1 and hidden in logged[0], logged
         if script == "squeeze-lift":
             assert grown > 1.1  # what the tolerance must not refuse
         elif obj == "rope":

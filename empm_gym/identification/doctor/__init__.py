@@ -46,13 +46,13 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
     :data:`DOCTOR_CELLS_ACROSS` cells across
     (:func:`~empm_gym.identification.uncertainty.resolving_dx`). ``notes``: what the loader says of the body
     and, where the cell was refined, why."""
-    from ..data import load_recording, rebuilt_scene
+    from ..data import _warn_body, load_recording, rebuilt_scene
     from ..uncertainty import resolving_dx
 
     info = {}
     scene, obs, views = load_recording(rec_dir, dx=DEFAULT_DX if dx is None else dx,
                                        particles_per_cell=particles_per_cell, device=device, progress=progress,
-                                       info=info)
+                                       info=info, warn=False)  # said below, of the body simulated
     grid_notes = []
     if dx is None:
         coarse, refused = scene, []
@@ -83,6 +83,7 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
                 f"grid: {why if len(levels) == 1 else 'not refined further'}; the finer grid ({fine:g} m) was not "
                 f"used: the views fill the body there to {1e6 * v1:.0f} cm^3 against {1e6 * v0:.0f} cm^3 (images too "
                 f"coarse for its lattice?). Every verdict on this grid may be the grid's, not the material's")
+    _warn_body(rec_dir, info)
     if grid_notes and scene.dx < DEFAULT_DX:
         import warp as wp
 
