@@ -1,19 +1,15 @@
 """The doctor benchmark's scoring (benchmarks/bench_doctor.py), on constructed result rows: no simulation."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
+
+from tests import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def bench():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_doctor.py"
-    spec = importlib.util.spec_from_file_location("bench_doctor", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("bench_doctor")
 
 
 def _row(name, truth, verdict, script, base_loss):

@@ -1,22 +1,17 @@
 """benchmarks/resimulate.py: re-simulating given materials on a problem the way the doctor scores them."""
 
-import importlib.util
 import pickle
 import re
-from pathlib import Path
 
 import pytest
 
+from tests import load_benchmark
 from tests.identification import scenes
 
 
 @pytest.fixture(scope="module")
 def resimulate():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "resimulate.py"
-    spec = importlib.util.spec_from_file_location("resimulate", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("resimulate")
 
 
 def test_the_true_material_scores_best_and_bad_input_is_named(resimulate, tmp_path, capsys):

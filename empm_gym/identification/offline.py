@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import inspect
 import json
 import math
 import time
@@ -912,6 +913,11 @@ def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sig
     return hist_l, hist_p, cm.extra(popsize, sigma0), {"population_losses": cm.pop_losses}
 
 
+#: identify's defaults of what :func:`_prepare_fit` takes (one place: identify's signature)
+_IDENTIFY_DEFAULTS = {k: v.default for k, v in inspect.signature(identify).parameters.items()
+                      if k in inspect.signature(_prepare_fit).parameters and v.default is not inspect.Parameter.empty}
+
+
 def identify_lockstep(observations: Observations, fits: Sequence[Tuple[Scene, dict]], *, progress: bool = True,
                       desc: str = "identify (cmaes, lockstep)") -> List["FitResult"]:
     """Several CMA-ES fits (``fits``: ``(scene, keyword arguments of identify)`` each, ``method`` "cmaes") run
@@ -935,10 +941,7 @@ def identify_lockstep(observations: Observations, fits: Sequence[Tuple[Scene, di
             raise ValueError(f"identify_lockstep runs CMA-ES fits only, without {bad or 'method=' + kw['method']}: "
                              f"use identify for those")
         kw["method"] = "cmaes"
-        args = {"params": ("E",), "init": None, "iters": 30, "frames": None, "lr": 0.15, "betas": (0.8, 0.95),
-                "popsize": 6, "sigma0": 0.5, "l_dist": 1.0, "l_trk": 100.0, "chamfer": "both", "max_points": 2000,
-                "observation": "auto", "bounds": None, "seed": 0, "extra_starts": (), "tol": 1e-4, **kw}
-        preps.append(_prepare_fit(observations, scene, **args))
+        preps.append(_prepare_fit(observations, scene, **{**_IDENTIFY_DEFAULTS, **kw}))
 
     def key(i: int, p: _PreparedFit) -> tuple:
         # the substeps a simulation takes follow the stiffest material it holds; a fit shares its worlds only
