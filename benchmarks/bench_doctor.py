@@ -362,6 +362,20 @@ def _shown_on_the_body(rows, floor_rows):
                   f"verdict {r['verdict']}")
 
 
+CONFIDENCE_BINS = (0.0, 0.5, 0.9, 1.0)
+
+
+def _by_confidence(rows, edges=CONFIDENCE_BINS):
+    """``(low, high, [verdict right?, ...])`` for each confidence bin [low, high) (the last one closed): how far a
+    user can trust the confidence the doctor reports, a bin at a time."""
+    out = []
+    for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        last = k == len(edges) - 2
+        out.append((lo, hi, [r["verdict"] == r["truth"] for r in rows
+                             if lo <= r["confidence"] < hi or (last and r["confidence"] == hi)]))
+    return out
+
+
 def _table(rows):
     """Confusion matrix, accuracy, false effects on none, median reduction and wall time of result rows."""
     from empm_gym.sim.effects import EFFECTS
@@ -392,6 +406,8 @@ def _table(rows):
           f"wall time per recording median {np.median(walls):.1f} s, max {np.max(walls):.1f} s")
     if natural:
         print(f"on each effect's natural script only: accuracy {100 * np.mean(natural):.1f} % of {len(natural)}")
+    print("accuracy by the verdict's confidence: " + "; ".join(
+        f"{lo:.1f}-{hi:.1f}: {sum(ok)} of {len(ok)} right" for lo, hi, ok in _by_confidence(full)))
     before = [(r["truth"], r["before_variants"]) for r in full if "before_variants" in r]
     if before:
         print(f"without the variants check: accuracy {100 * np.mean([t == v for t, v in before]):.1f} %, false effects "

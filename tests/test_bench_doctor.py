@@ -119,3 +119,19 @@ def test_bad_effect_params_are_refused_before_anything_is_made(bench, tmp_path, 
         bench.main(["--object", "block", "--make", str(tmp_path / "rec"), "--problems", str(tmp_path / "prob"),
                     "--effects", "viscosity", flag, text, "--only-make"])
     assert not (tmp_path / "rec").exists() and not (tmp_path / "prob").exists()
+
+
+def test_accuracy_is_tallied_by_the_verdicts_confidence(bench, tmp_path, capsys):
+    """Each verdict falls in one confidence bin, [0, 0.5), [0.5, 0.9) or [0.9, 1.0] (1.0 in the last, 0.5 and 0.9
+    in the upper of the two they border), and each bin says how many of its verdicts were right."""
+    rows = [dict(_row("a-0-none", "none", "none", "drag", 0.01), confidence=1.0),
+            dict(_row("b-0-fracture", "fracture", "gripper_slip", "lift-end", 0.01), confidence=0.9),
+            dict(_row("c-0-plasticity", "plasticity", "plasticity", "press-release", 0.01), confidence=0.5),
+            dict(_row("d-0-viscosity", "viscosity", "none", "push-slide", 0.01), confidence=0.4),
+            dict(_row("e-0-none", "none", "none", "lift-end", 0.01), confidence=0.0)]
+    bins = bench._by_confidence(rows)
+    assert [(lo, hi, ok) for lo, hi, ok in bins] == [(0.0, 0.5, [False, True]), (0.5, 0.9, [True]),
+                                                     (0.9, 1.0, [True, False])]
+    (tmp_path / "rows.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert bench.main(["--summarise", str(tmp_path / "rows.jsonl")]) == 0
+    assert "0.0-0.5: 1 of 2 right; 0.5-0.9: 1 of 1 right; 0.9-1.0: 1 of 2 right" in capsys.readouterr().out
