@@ -47,7 +47,7 @@ from empm_gym.sim.effects import PARAMETERS, parameter
 from empm_gym.sim.material_file import material_dict
 
 from .losses import chamfer_distance, chamfer_frames, chamfer_frames_torch, pad_frames, tracking_loss
-from .problem import PARAM_NAMES, Observations, ParamSpace, Scene, _ForwardSim, substeps_for
+from .problem import PARAM_NAMES, Observations, ParamSpace, Scene, _ForwardSim, run_together, substeps_for
 
 __all__ = ["identify", "FitResult", "Objective", "ResumeError", "read_resume_state", "default_bounds",
            "surface_embedding", "METHODS", "OBSERVATION_MODELS"]
@@ -964,20 +964,28 @@ def identify_lockstep(observations: Observations, fits: Sequence[Tuple[Scene, di
     searches = [_CMAES(p.space, p.init_vals, p.popsize, p.sigma0, p.seed, p.starts) for p in preps]
     total = sum(p.iters for p in (preps[g[0]] for g in groups.values()))
     bar = _bar(total, desc, progress)
+    sims = []
     for idx in groups.values():
-        first = preps[idx[0]]
         dt_materials = []
         for i in idx:
             dt_materials += [m for m in preps[i].scene.dt_materials if m not in dt_materials]
-        sc = dataclasses.replace(first.scene, dt_materials=tuple(dt_materials))
+        sc = dataclasses.replace(preps[idx[0]].scene, dt_materials=tuple(dt_materials))
         mats0 = [m for i in idx for m in [preps[i].base_mat] * preps[i].popsize]
-        sim = _ForwardSim(sc, mats0, [preps[i].scene.table_friction for i in idx for _ in range(preps[i].popsize)])
-        for _ in range(first.iters):
+        sims.append((idx, _ForwardSim(sc, mats0, [preps[i].scene.table_friction for i in idx
+                                                  for _ in range(preps[i].popsize)])))
+    # generation by generation; the groups' simulations (different bodies or clocks: separate models) advance a
+    # frame each in turn, side by side on a GPU (problem.run_together)
+    for gen in range(max(preps[idx[0]].iters for idx, _ in sims)):
+        live = [(idx, sim) for idx, sim in sims if gen < preps[idx[0]].iters]
+        asked = []
+        for idx, sim in live:
             cands = [searches[i].ask() for i in idx]
             mats = [preps[i].space.material(v, preps[i].base_mat, preps[i].scene.table_friction)
                     for i, cand in zip(idx, cands) for v in cand]
             sim.set([m for m, _ in mats], [mu for _, mu in mats])
-            X, _, _ = sim.run(first.F)
+            asked.append(cands)
+        runs = run_together([sim.steps(preps[idx[0]].F, queued=True) for idx, sim in live])
+        for (idx, _), cands, (X, _, _) in zip(live, asked, runs):
             w = 0
             for i, cand in zip(idx, cands):
                 searches[i].tell(cand, [preps[i].objective.numpy(X[:, w + k]) for k in range(len(cand))])

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from typing import Dict, Optional, Sequence, Tuple
 
@@ -407,6 +408,26 @@ class _ForwardSim:
 
         ``velocities`` / ``omegas`` [frames-1, K, 3] and ``grips`` [frames-1, K] override the scene's controls.
         """
+        steps = self.steps(frames, state=state, start_frame=start_frame, velocities=velocities, omegas=omegas,
+                           grips=grips)
+        while True:
+            try:
+                t, a = next(steps)
+            except StopIteration as done:
+                return done.value
+            if on_frame is not None:
+                on_frame(t, a)
+
+    def steps(self, frames: int, *, state=None, start_frame: int = 0, velocities=None, omegas=None, grips=None,
+              queued: bool = False):
+        """:meth:`run` a frame at a time: a generator that yields ``(frame, state it ends in)`` after each frame
+        and returns :meth:`run`'s result.
+
+        ``queued`` (CUDA): each frame's substeps, the copy of its positions and its divergence check are queued
+        on this simulation's own stream and read back once, after the last frame (the states yielded are then
+        still being computed). Advanced in turn (:func:`run_together`), the frames of several simulations run
+        side by side on one GPU, where each alone, a few thousand particles a world, leaves most of it idle.
+        The positions are the same either way; on a CPU, ``queued`` changes nothing."""
         sc, m = self.scene, self.model
         W, N, K = m.world_count, len(sc.particles), m.ee_count
         end = start_frame + frames
@@ -418,9 +439,20 @@ class _ForwardSim:
         a = state if state is not None else m.state()
         b = m.state()
         ctrl = m.control()
+        seq = None
+        if K and frames > 1:  # every frame's commands on the device at once; each frame copies its own there
+            n = frames - 1
+            seq = ctrl.sequence(np.broadcast_to(np.asarray(vel[:n], np.float32)[:, None], (n, W, K, 3)),
+                                np.broadcast_to(np.asarray(om[:n], np.float32)[:, None], (n, W, K, 3)),
+                                np.broadcast_to(np.asarray(grip[:n])[:, None], (n, W, K)))
         out = np.empty((frames, W, N, 3), np.float32)
         out[0] = a.particle_x.numpy().reshape(W, N, 3)
         bad = set()
+        stream = self._stream() if queued and m.device.is_cuda else None
+        if stream is not None:
+            x_dev = wp.empty(frames * W * N, dtype=wp.vec3, device=m.device)
+            flags_dev = wp.zeros((frames, W), dtype=int, device=m.device)
+            stream.wait_stream(m.device.stream)  # what set() and the states' creation queued comes first
 
         def substeps(a, b):  # one frame: returns (the state it ends in, the other)
             for _ in range(sub):
@@ -431,37 +463,72 @@ class _ForwardSim:
         graphs = {}  # id(state a frame starts from) -> (CUDA graph of the frame's substeps, a, b after it)
         use_graph = self.graph and m.device.is_cuda
         for t in range(frames - 1):
-            if K:  # written into the control's arrays, which the graphs read
-                ctrl.set(velocity=np.broadcast_to(vel[t], (W, K, 3)), omega=np.broadcast_to(om[t], (W, K, 3)),
-                         grip=np.broadcast_to(grip[t], (W, K)))
-            if use_graph and id(a) not in graphs:
+            with wp.ScopedStream(stream, sync_enter=False) if stream is not None else nullcontext():
+                if seq is not None:  # copied into the control's arrays, which the graphs read
+                    ctrl.set_step(seq, t)
+                if use_graph and id(a) not in graphs:
+                    try:
+                        with wp.ScopedCapture(device=m.device) as cap:
+                            a1, b1 = substeps(a, b)
+                        graphs[id(a)] = (cap.graph, a1, b1)  # captured, not yet run
+                    except Exception as exc:  # a device or driver that cannot capture: launch kernel by kernel
+                        _log.warning("forward simulation: CUDA graph capture failed (%s); launching kernels one by "
+                                     "one", exc)
+                        use_graph = False
+                if use_graph:
+                    g, a1, b1 = graphs[id(a)]
+                    wp.capture_launch(g)
+                    a, b = a1, b1
+                else:
+                    a, b = substeps(a, b)
+                if stream is not None:
+                    wp.copy(x_dev, a.particle_x, dest_offset=(t + 1) * W * N, count=W * N)
+                    self.solver.queue_check(a, flags_dev[t + 1])
+            if stream is None:
                 try:
-                    with wp.ScopedCapture(device=m.device) as cap:
-                        a1, b1 = substeps(a, b)
-                    graphs[id(a)] = (cap.graph, a1, b1)  # captured, not yet run
-                except Exception as exc:  # a device or driver that cannot capture: launch kernel by kernel
-                    _log.warning("forward simulation: CUDA graph capture failed (%s); launching kernels one by one",
-                                 exc)
-                    use_graph = False
-            if use_graph:
-                g, a1, b1 = graphs[id(a)]
-                wp.capture_launch(g)
-                a, b = a1, b1
-            else:
-                a, b = substeps(a, b)
-            try:
-                self.solver.check_state(a, step=t + 1)
-            except SimulationDiverged as exc:
-                bad.update(exc.worlds)
-                if len(bad) == W:
-                    out[t + 1:] = np.nan
-                    return out, sorted(bad), a
-            out[t + 1] = a.particle_x.numpy().reshape(W, N, 3)
-            if bad:
-                out[t + 1, sorted(bad)] = np.nan
-            if on_frame is not None:
-                on_frame(t + 1, a)
+                    self.solver.check_state(a, step=t + 1)
+                except SimulationDiverged as exc:
+                    bad.update(exc.worlds)
+                    if len(bad) == W:
+                        out[t + 1:] = np.nan
+                        return out, sorted(bad), a
+                out[t + 1] = a.particle_x.numpy().reshape(W, N, 3)
+                if bad:
+                    out[t + 1, sorted(bad)] = np.nan
+            yield t + 1, a
+        if stream is not None:
+            m.device.stream.wait_stream(stream)  # later work on the model (the next set()) waits for these frames
+            wp.synchronize_stream(stream)  # and so does the host, before reading what they wrote
+            out[1:] = x_dev.numpy().reshape(frames, W, N, 3)[1:]
+            flags = flags_dev.numpy()
+            for w in range(W):
+                hit = np.nonzero(flags[1:, w])[0]
+                if hit.size:  # NaN from the frame the world diverged at, as run() marks it frame by frame
+                    bad.add(w)
+                    out[1 + hit[0]:, w] = np.nan
         return out, sorted(bad), a
+
+    def _stream(self):
+        """This simulation's own CUDA stream (:meth:`steps` with ``queued``)."""
+        if getattr(self, "_own_stream", None) is None:
+            self._own_stream = wp.Stream(self.model.device)
+        return self._own_stream
+
+
+def run_together(rollouts: Sequence) -> list:
+    """Advance several rollouts (:meth:`_ForwardSim.steps` generators, ``queued`` on CUDA) a frame each in
+    turn until all are done; returns each one's result, in order. Simulations of different bodies or grids,
+    which cannot be worlds of one model, so share one GPU at once."""
+    results: list = [None] * len(rollouts)
+    live = list(range(len(rollouts)))
+    while live:
+        for i in list(live):
+            try:
+                next(rollouts[i])
+            except StopIteration as done:
+                results[i] = done.value
+                live.remove(i)
+    return results
 
 
 def simulate_frames(scene: Scene, materials: Sequence[MaterialConfig], frictions: Optional[Sequence[float]] = None,

@@ -122,6 +122,50 @@ class Control:
             self.ee_grip.assign(wp.array(g.reshape(-1).astype(np.int32), dtype=int, device=self.ee_vel.device))
         return self
 
+    def sequence(self, velocity, omega, grip) -> "ControlSequence":
+        """The commands of T steps, shaped as :meth:`set` takes them with a leading step axis (velocity, omega
+        [T, worlds, ee_count, 3], grip [T, worlds, ee_count]), checked as :meth:`set` checks them and copied to
+        the device once; :meth:`set_step` then sets step t's without a transfer from the host (which may
+        wait for the stream: a simulation queued on a stream of its own would stall on it)."""
+        W, K = self.model.world_count, self.model.ee_count
+        T = len(velocity)
+        v = _checked(velocity, (T, W, K, 3), "Control.velocity")
+        o = _checked(omega, (T, W, K, 3), "Control.omega")
+        g = _checked(grip, (T, W, K), "Control.grip")
+        if not np.all((g == 0) | (g == 1)):
+            raise ValueError(f"Control.grip must hold only 0 (open) or 1 (closed), got {np.unique(g)}")
+        d = self.ee_vel.device
+        return ControlSequence(steps=T, per_step=W * K,
+                               velocity=wp.array(v.reshape(-1, 3), dtype=wp.vec3, device=d),
+                               omega=wp.array(o.reshape(-1, 3), dtype=wp.vec3, device=d),
+                               grip=wp.array(g.reshape(-1).astype(np.int32), dtype=int, device=d),
+                               max_speed=np.max(np.linalg.norm(v, axis=-1), axis=(1, 2)) if v.size else np.zeros(T))
+
+    def set_step(self, seq: "ControlSequence", t: int) -> "Control":
+        """Set the commands of step ``t`` of ``seq`` (:meth:`sequence`), copied on the device on the current
+        stream: the same values :meth:`set` would set from step t's arrays."""
+        if not 0 <= t < seq.steps:
+            raise IndexError(f"Control.set_step: step {t} of a sequence of {seq.steps}")
+        n = seq.per_step
+        if n:
+            wp.copy(self.ee_vel, seq.velocity, src_offset=t * n, count=n)
+            wp.copy(self.ee_omega, seq.omega, src_offset=t * n, count=n)
+            wp.copy(self.ee_grip, seq.grip, src_offset=t * n, count=n)
+        self.max_speed = float(seq.max_speed[t])
+        return self
+
+
+@dataclass
+class ControlSequence:
+    """End-effector commands of several steps on the device (:meth:`Control.sequence`)."""
+
+    steps: int
+    per_step: int
+    velocity: wp.array
+    omega: wp.array
+    grip: wp.array
+    max_speed: np.ndarray
+
 
 def _checked(value, shape, name):
     a = np.asarray(value, dtype=np.float32)

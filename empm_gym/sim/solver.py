@@ -167,16 +167,7 @@ class SolverMPM:
 
     def check_state(self, state: State, step: Optional[int] = None):
         """Raise :class:`SimulationDiverged` if any world's state is non-finite or too fast."""
-        m = self.model
-        self._flags.zero_()
-        wp.launch(
-            K.check_state_kernel,
-            dim=m.particle_count,
-            inputs=[state.particle_x, state.particle_v, state.particle_F, m.particle_world, self.config.max_speed],
-            outputs=[self._flags],
-            device=m.device,
-            record_tape=False,  # a guard, not part of the differentiable computation
-        )
+        self.queue_check(state, self._flags)
         flags = self._flags.numpy()
         if np.any(flags):
             bad = np.nonzero(flags)[0].tolist()
@@ -188,6 +179,21 @@ class SolverMPM:
                 step=step,
                 worlds=bad,
             )
+
+    def queue_check(self, state: State, flags: wp.array):
+        """Queue on the current stream the check of :meth:`check_state` into ``flags`` [worlds] (zeroed first):
+        1 where a world holds non-finite values, 2 where a particle is faster than ``config.max_speed``, else 0.
+        Read later, it lets a simulation run on without waiting for the check (``problem._ForwardSim``)."""
+        m = self.model
+        flags.zero_()
+        wp.launch(
+            K.check_state_kernel,
+            dim=m.particle_count,
+            inputs=[state.particle_x, state.particle_v, state.particle_F, m.particle_world, self.config.max_speed],
+            outputs=[flags],
+            device=m.device,
+            record_tape=False,  # a guard, not part of the differentiable computation
+        )
 
     def sort_particles(self, state: State):
         """Order P2G's threads by (world, stencil base node) of the particles of ``state`` (CUDA). Only the

@@ -252,3 +252,27 @@ def test_lockstep_fits_are_the_fits_one_by_one(monkeypatch):
     assert together[1].params["viscosity"] != 1.0  # the viscosity was searched, not left at its start
     with pytest.raises(ValueError, match="CMA-ES fits only"):
         identify_lockstep(p.obs, [(sc, dict(params=("E",), method="adam"))], progress=False)
+
+
+def test_rollouts_advanced_in_turn_are_the_rollouts_one_by_one():
+    """run_together advances several simulations (different scenes: separate models) a frame each in turn, as the
+    doctor's variants are simulated; each ends as run() alone ends (on the CPU to the bit), and a world whose
+    check fails is NaN from that frame on in either."""
+    import dataclasses
+
+    from empm_gym.identification.problem import _ForwardSim, run_together
+    from empm_gym.sim import MaterialConfig
+
+    scs = [scenes.rope_lift(E=ROPE_E, frames=6, lift_frames=4).scene,
+           dataclasses.replace(scenes.rope_lift(E=ROPE_E, frames=6, lift_frames=3).scene, table_friction=0.2)]
+    mats = [MaterialConfig(E=E, nu=0.3, density=1000.0) for E in (3e4, 9e4)]
+    alone = [_ForwardSim(sc, mats, [0.5, 0.3]).run(6) for sc in scs]
+    together = run_together([_ForwardSim(sc, mats, [0.5, 0.3]).steps(6, queued=True) for sc in scs])
+    for (xa, bad_a, _), (xt, bad_t, _) in zip(alone, together):
+        np.testing.assert_array_equal(xt, xa)
+        assert bad_a == bad_t == []
+    assert np.ptp(together[0][0][:, 0, :, 2]) > 0.02  # the rope was lifted
+    sim = _ForwardSim(scs[0], mats, [0.5, 0.3])
+    sim.solver.config.max_speed = 1e-9  # every moving particle "too fast": both worlds diverge at frame 1
+    (x, bad, _), = run_together([sim.steps(6, queued=True)])
+    assert bad == [0, 1] and not np.isnan(x[0]).any() and np.isnan(x[1:]).all()

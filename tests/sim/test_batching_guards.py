@@ -138,6 +138,31 @@ def test_non_finite_control_raises_before_any_kernel(bad):
         m.control().set(grip=[[0.5]])
 
 
+def test_a_control_sequence_sets_each_step_as_set_does_and_is_checked_alike():
+    """Control.sequence uploads T steps' commands once; set_step(t) leaves the control's arrays (and its host
+    max_speed) exactly as set() with step t's arrays does; bad steps are refused as set() refuses them."""
+    m = block_model(worlds=2, materials=MATERIALS[:2], end_effectors=[GRIPPER])
+    rng = np.random.default_rng(3)
+    vel, om = rng.normal(size=(4, 2, 1, 3)), rng.normal(size=(4, 2, 1, 3))
+    grip = rng.integers(0, 2, size=(4, 2, 1))
+    seq_ctrl, one = m.control(), m.control()
+    seq = seq_ctrl.sequence(vel, om, grip)
+    for t in range(4):
+        seq_ctrl.set_step(seq, t)
+        one.set(velocity=vel[t], omega=om[t], grip=grip[t])
+        for name in ("ee_vel", "ee_omega", "ee_grip"):
+            np.testing.assert_array_equal(getattr(seq_ctrl, name).numpy(), getattr(one, name).numpy())
+        assert seq_ctrl.max_speed == one.max_speed
+    with pytest.raises(IndexError, match="step 4 of a sequence of 4"):
+        seq_ctrl.set_step(seq, 4)
+    bad = vel.copy()
+    bad[2, 1, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        m.control().sequence(bad, om, grip)
+    with pytest.raises(ValueError, match="grip"):
+        m.control().sequence(vel, om, grip * 0.5)
+
+
 def test_non_finite_state_raises_simulation_diverged_with_step_and_world():
     m = block_model(worlds=2)
     s = m.state()

@@ -196,3 +196,33 @@ def test_chamfer_frames_on_the_gpu_matches_kd_trees():
     val.sum().backward()
     np.testing.assert_allclose(val.detach().numpy(), [chamfer_numpy(p, o) for p, o in zip(pred, obs[1:])], rtol=1e-8)
     np.testing.assert_allclose(got.grad.numpy(), ref.grad.numpy()[:8], rtol=1e-8, atol=1e-12)
+
+
+@cuda
+def test_queued_rollouts_side_by_side_are_the_rollouts_one_by_one():
+    """Rollouts queued on their simulations' own streams and advanced a frame each in turn (``run_together``:
+    the doctor's variants, different bodies on one GPU) end where each run alone ends, and a world flagged as
+    diverged is NaN from the same frame as when the check is read frame by frame."""
+    from dataclasses import replace
+
+    from empm_gym.identification.problem import _ForwardSim, run_together
+    from ..identification.scenes import rope_lift
+
+    scenes = [replace(rope_lift(frames=10).scene, device="cuda:0"),
+              replace(rope_lift(E=8e4, frames=10, lift_frames=4).scene, device="cuda:0")]
+    mats = [MaterialConfig(E=E, nu=0.3, density=1000.0) for E in (3e4, 6e4)]
+    alone = [_ForwardSim(sc, mats, [0.5, 0.5]).run(10) for sc in scenes]
+    sims = [_ForwardSim(sc, mats, [0.5, 0.5]) for sc in scenes]
+    together = run_together([s.steps(10, queued=True) for s in sims])
+    for (xa, bad_a, _), (xt, bad_t, _) in zip(alone, together):
+        assert not bad_a and not bad_t
+        np.testing.assert_allclose(xt, xa, atol=2e-5)
+    flagged = []
+    for queued in (False, True):  # every particle "too fast": both worlds diverge at the first frame
+        s = _ForwardSim(scenes[0], mats, [0.5, 0.5])
+        s.solver.config.max_speed = 1e-9
+        (x, bad, _), = run_together([s.steps(10, queued=queued)])
+        flagged.append((bad, np.isnan(x).all(axis=(2, 3))))
+    assert flagged[0][0] == flagged[1][0] == [0, 1]
+    np.testing.assert_array_equal(flagged[1][1], flagged[0][1])
+    assert not flagged[1][1][0].any() and flagged[1][1][1:].all()

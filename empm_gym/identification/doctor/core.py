@@ -66,7 +66,7 @@ from empm_gym.sim import MaterialConfig, stable_dt
 from empm_gym.sim.effects import BASE_TABLE_FRICTION, EFFECTS, PARAMETERS
 
 from ..offline import Objective, identify
-from ..problem import Observations, Scene, Views, _ForwardSim
+from ..problem import Observations, Scene, Views, _ForwardSim, run_together
 from ..uncertainty import block_bootstrap_indices, gain_is_significant, measurement_noise, paired_gain_test
 
 __all__ = ["DoctorConfig", "DoctorError", "diagnose", "candidate_params", "select_verdict", "SIGNATURE_FEATURES"]
@@ -665,18 +665,29 @@ def _box_corners(material: MaterialConfig, bounds: Dict[str, Tuple[float, float]
 def _simulate_fits(fits: List["_Fit"], T: int) -> np.ndarray:
     """Positions [T, len(fits), N, 3] of every fitted model over all T frames, fits that share a substep count
     batched together, each with the substeps it was fitted with."""
-    groups: Dict[float, List[int]] = {}
-    for i, f in enumerate(fits):  # the same stable step (of the clock and the fit's box): the same substeps
-        sc = f.scene
-        groups.setdefault(stable_dt(list(sc.dt_materials) + [f.material], sc.dx, sc.cfl), []).append(i)
-    X = None
-    for idx in groups.values():
-        sc = fits[idx[0]].scene
-        Xg, _, _ = _ForwardSim(sc, [fits[i].material for i in idx], [fits[i].friction for i in idx]).run(T)
-        if X is None:
-            X = np.full((T, len(fits)) + Xg.shape[2:], np.nan, np.float32)
-        X[:, idx] = Xg
-    return X
+    return _simulate_fit_sets([fits], T)[0]
+
+
+def _simulate_fit_sets(sets: Sequence[List["_Fit"]], T: int) -> List[np.ndarray]:
+    """:func:`_simulate_fits` of each set of fits (each of one body: the doctor's, a variant's), all their
+    simulations advanced together (:func:`~empm_gym.identification.problem.run_together`: side by side on a
+    GPU)."""
+    jobs = []  # (set, fits' indices in it, simulation)
+    for k, fits in enumerate(sets):
+        groups: Dict[float, List[int]] = {}
+        for i, f in enumerate(fits):  # the same stable step (of the clock and the fit's box): the same substeps
+            sc = f.scene
+            groups.setdefault(stable_dt(list(sc.dt_materials) + [f.material], sc.dx, sc.cfl), []).append(i)
+        for idx in groups.values():
+            sim = _ForwardSim(fits[idx[0]].scene, [fits[i].material for i in idx], [fits[i].friction for i in idx])
+            jobs.append((k, idx, sim))
+    runs = run_together([sim.steps(T, queued=True) for _, _, sim in jobs])
+    out: List[Optional[np.ndarray]] = [None] * len(sets)
+    for (k, idx, _), (Xg, _, _) in zip(jobs, runs):
+        if out[k] is None:
+            out[k] = np.full((T, len(sets[k])) + Xg.shape[2:], np.nan, np.float32)
+        out[k][:, idx] = Xg
+    return out
 
 
 def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, base: Optional[MaterialConfig] = None,
@@ -954,19 +965,26 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
         return out
     from tqdm.auto import tqdm
 
+    # the base model refitted on every variant at once (their simulations side by side on a GPU); each
+    # candidate's refits then one variant after the other: a refit starts from the candidate's optima on the
+    # variants before it as well
+    vbases = _fit_candidates([_candidate_spec("base", vs, base_fit.start_material, None, F, cfg, like=base_fit)
+                              for _, _, vs in variants], obs, progress, "doctor: variants' base models")
     found: Dict[str, List[Dict[str, float]]] = {f.name: [] for f in checked}  # each candidate's optima so far
-    for label, kind, vs in tqdm(variants, desc="doctor: variants", disable=not progress, leave=False):
-        vfits = [_fit_candidate("base", vs, obs, base_fit.start_material, None, F, cfg, progress, like=base_fit)]
-        vfits += _fit_candidates([_candidate_spec(f.name, vs, base_fit.start_material, None, F, cfg, like=f,
-                                                  starts=_variant_starts(f, base_fit, vfits[0],
-                                                                         found[f.name])[:max(0, cfg.popsize - 2)])
-                                  for f in checked], obs, progress, "doctor: variant refits")
+    refits = []
+    for (label, kind, vs), vbase in tqdm(list(zip(variants, vbases)), desc="doctor: variants", disable=not progress,
+                                         leave=False):
+        vfits = [vbase] + _fit_candidates([_candidate_spec(f.name, vs, base_fit.start_material, None, F, cfg, like=f,
+                                                           starts=_variant_starts(f, base_fit, vbase, found[f.name])
+                                                           [:max(0, cfg.popsize - 2)])
+                                           for f in checked], obs, progress, "doctor: variant refits")
         if box is not None:
             vfits = [_widened(vf, vs, obs, base_fit.start_material, box, F, cfg, progress, loose) for vf in vfits]
         for f, vf in zip(checked, vfits[1:]):
             found[f.name].append(dict(vf.params))
+        refits.append(vfits)
+    for (label, kind, _), vfits, X in zip(variants, refits, _simulate_fit_sets(refits, T)):
         objective = Objective(vfits[0].scene, obs, T, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed)
-        X = _simulate_fits(vfits, T)
         losses = [_per_frame_losses(objective, X[:, w])["loss"][heldout] for w in range(len(vfits))]
         out["base"].append({"variant": label, "kind": kind, "params": vfits[0].params,
                             "heldout_loss": float(np.mean(losses[0]))})
