@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# usage (from the repository's root, on a machine with GPUs): OUT=DIR bash benchmarks/bench_doctor_gpus.sh BUDGET_S PER_GPU PROBLEMS...
+# Diagnoses every PROBLEMS/*.pkl.gz (bench_doctor.py --make's problems, gzipped), largest first, from one queue:
+# PER_GPU processes on each GPU, each taking the next recording when it is done; nothing is started with under
+# 100 s of BUDGET_S left, and every process is stopped at its end. Rows in $OUT/rows.jsonl, slim dumps (what
+# `bench_doctor.py --rescore` reads) in $OUT/slim.jsonl, each process's wall time in $OUT/times.txt.
+# SITE: a folder of installed packages to put first on PYTHONPATH (default /tmp/site).
+# Session 37 ran it on 4 H200s: `bash benchmarks/bench_doctor_gpus.sh 540 5 .dd11` (benchmarks/RESULTS.md).
+export PYTHONPATH=${SITE:-/tmp/site}:$PWD PYTHONUNBUFFERED=1
+B=$1; K=$2; shift 2
+END=$(($(date +%s) + B))
+rm -rf /tmp/res /tmp/logs /tmp/one /tmp/dump /tmp/q /tmp/notrun /tmp/times.txt; mkdir -p /tmp/res /tmp/logs /tmp/one /tmp/dump
+nvidia-smi --query-gpu=name,memory.total --format=csv,noheader > $OUT/gpu.txt
+for d in "$@"; do ls $d/*.pkl.gz; done | xargs ls -S > /tmp/q
+touch /tmp/notrun
+NG=$(nvidia-smi -L | wc -l)
+worker () {  # gpu
+  while true; do
+    f=$(flock /tmp/q.lock bash -c 'f=$(head -n 1 /tmp/q); [ -n "$f" ] && sed -i 1d /tmp/q; echo "$f"')
+    [ -z "$f" ] && return
+    left=$((END - $(date +%s)))
+    if [ $left -lt 100 ]; then echo "$f" >> /tmp/notrun; continue; fi
+    n=$(basename $f .pkl.gz); mkdir -p /tmp/one/$n; gunzip -c $f > /tmp/one/$n/$n.pkl
+    s=$(date +%s)
+    timeout $left python3 benchmarks/bench_doctor.py --problems /tmp/one/$n --device cuda:$1 --iters 6 --popsize 8 \
+      --view-bodies --dump /tmp/dump --jsonl /tmp/res/$n.jsonl > /tmp/logs/$n.log 2>&1
+    echo "$n gpu $1 rc $? process $(( $(date +%s) - s )) s" >> /tmp/times.txt
+  done
+}
+for g in $(seq 0 $((NG - 1))); do for k in $(seq 1 $K); do worker $g & done; done
+wait
+python3 - <<'PY'
+import json, glob, os
+keys = ["base", "candidates", "confidence", "effect", "effect_before_variants", "first_elsewhere", "first_on", "grid",
+        "indistinguishable_from", "noise_sigma_m", "notes", "reason", "recording", "schema", "script", "signature_m",
+        "truth", "variants", "wall_s"]
+with open(os.environ["OUT"] + "/slim.jsonl", "w") as f:
+    for p in sorted(glob.glob("/tmp/dump/*.json")):
+        r = json.load(open(p))
+        s = {k: r.get(k) for k in keys}
+        s["signature_check"] = (r.get("evidence") or {}).get("signature_check")
+        f.write(json.dumps(s) + "\n")
+PY
+cat /tmp/res/*.jsonl > $OUT/rows.jsonl 2>/dev/null
+cp /tmp/times.txt $OUT/times.txt 2>/dev/null
+echo "not run: $(wc -l < /tmp/notrun)"; cat /tmp/notrun
+for l in /tmp/logs/*.log; do grep -q "held-out Chamfer reduction" $l || { echo "== $l"; grep -v "^Warp\|Module\|^$" $l | tail -n 3; }; done
+grep -h "held-out Chamfer reduction" /tmp/logs/*.log | cut -c1-160
