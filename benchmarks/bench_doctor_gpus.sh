@@ -7,24 +7,30 @@
 # SITE: a folder of installed packages to put first on PYTHONPATH (default /tmp/site).
 # Session 37 ran it on 4 H200s: `bash benchmarks/bench_doctor_gpus.sh 540 5 .dd11` (benchmarks/RESULTS.md).
 export PYTHONPATH=${SITE:-/tmp/site}:$PWD PYTHONUNBUFFERED=1
+if [ $# -lt 3 ] || ! [[ "$1" =~ ^[0-9]+$ && "$2" =~ ^[1-9][0-9]*$ ]] || [ -z "$OUT" ]; then
+  echo "usage: OUT=DIR bash benchmarks/bench_doctor_gpus.sh BUDGET_S PER_GPU PROBLEMS... (BUDGET_S, PER_GPU: whole" \
+       "numbers, PER_GPU at least 1; got '$1' '$2'; OUT='$OUT')" >&2
+  exit 2
+fi
 B=$1; K=$2; shift 2
 END=$(($(date +%s) + B))
-rm -rf /tmp/res /tmp/logs /tmp/one /tmp/dump /tmp/q /tmp/notrun /tmp/times.txt; mkdir -p /tmp/res /tmp/logs /tmp/one /tmp/dump
+export W=$(mktemp -d)  # this run's own working folder: nothing outside it and $OUT is written
+mkdir -p $W/res $W/logs $W/one $W/dump "$OUT"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader > $OUT/gpu.txt
-for d in "$@"; do ls $d/*.pkl.gz; done | xargs ls -S > /tmp/q
-touch /tmp/notrun
+for d in "$@"; do ls $d/*.pkl.gz; done | xargs ls -S > $W/q
+touch $W/notrun
 NG=$(nvidia-smi -L | wc -l)
 worker () {  # gpu
   while true; do
-    f=$(flock /tmp/q.lock bash -c 'f=$(head -n 1 /tmp/q); [ -n "$f" ] && sed -i 1d /tmp/q; echo "$f"')
+    f=$(flock $W/q.lock bash -c 'f=$(head -n 1 $W/q); [ -n "$f" ] && sed -i 1d $W/q; echo "$f"')
     [ -z "$f" ] && return
     left=$((END - $(date +%s)))
-    if [ $left -lt 100 ]; then echo "$f" >> /tmp/notrun; continue; fi
-    n=$(basename $f .pkl.gz); mkdir -p /tmp/one/$n; gunzip -c $f > /tmp/one/$n/$n.pkl
+    if [ $left -lt 100 ]; then echo "$f" >> $W/notrun; continue; fi
+    n=$(basename $f .pkl.gz); mkdir -p $W/one/$n; gunzip -c $f > $W/one/$n/$n.pkl
     s=$(date +%s)
-    timeout $left python3 benchmarks/bench_doctor.py --problems /tmp/one/$n --device cuda:$1 --iters 6 --popsize 8 \
-      --view-bodies --dump /tmp/dump --jsonl /tmp/res/$n.jsonl > /tmp/logs/$n.log 2>&1
-    echo "$n gpu $1 rc $? process $(( $(date +%s) - s )) s" >> /tmp/times.txt
+    timeout $left python3 benchmarks/bench_doctor.py --problems $W/one/$n --device cuda:$1 --iters 6 --popsize 8 \
+      --view-bodies --dump $W/dump --jsonl $W/res/$n.jsonl > $W/logs/$n.log 2>&1
+    echo "$n gpu $1 rc $? process $(( $(date +%s) - s )) s" >> $W/times.txt
   done
 }
 for g in $(seq 0 $((NG - 1))); do for k in $(seq 1 $K); do worker $g & done; done
@@ -35,14 +41,14 @@ keys = ["base", "candidates", "confidence", "effect", "effect_before_variants", 
         "indistinguishable_from", "noise_sigma_m", "notes", "reason", "recording", "schema", "script", "signature_m",
         "truth", "variants", "wall_s"]
 with open(os.environ["OUT"] + "/slim.jsonl", "w") as f:
-    for p in sorted(glob.glob("/tmp/dump/*.json")):
+    for p in sorted(glob.glob(os.environ["W"] + "/dump/*.json")):
         r = json.load(open(p))
         s = {k: r.get(k) for k in keys}
         s["signature_check"] = (r.get("evidence") or {}).get("signature_check")
         f.write(json.dumps(s) + "\n")
 PY
-cat /tmp/res/*.jsonl > $OUT/rows.jsonl 2>/dev/null
-cp /tmp/times.txt $OUT/times.txt 2>/dev/null
-echo "not run: $(wc -l < /tmp/notrun)"; cat /tmp/notrun
-for l in /tmp/logs/*.log; do grep -q "held-out Chamfer reduction" $l || { echo "== $l"; grep -v "^Warp\|Module\|^$" $l | tail -n 3; }; done
-grep -h "held-out Chamfer reduction" /tmp/logs/*.log | cut -c1-160
+cat $W/res/*.jsonl > $OUT/rows.jsonl 2>/dev/null
+cp $W/times.txt $OUT/times.txt 2>/dev/null
+echo "not run: $(wc -l < $W/notrun)"; cat $W/notrun
+for l in $W/logs/*.log; do grep -q "held-out Chamfer reduction" $l || { echo "== $l"; grep -v "^Warp\|Module\|^$" $l | tail -n 3; }; done
+grep -h "held-out Chamfer reduction" $W/logs/*.log | cut -c1-160

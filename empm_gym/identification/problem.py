@@ -397,6 +397,7 @@ class _ForwardSim:
         self.graph = True
         self.model = scene.builder(materials, frictions).finalize(scene.device, requires_grad=False)
         self.solver = SolverMPM(self.model, SolverConfig(cfl=scene.cfl, check_every=0))
+        self._own_stream = None  # made on the first queued rollout on CUDA (:meth:`steps`)
 
     def set(self, materials, frictions):
         self.model.set_materials(list(materials))
@@ -510,7 +511,7 @@ class _ForwardSim:
 
     def _stream(self):
         """This simulation's own CUDA stream (:meth:`steps` with ``queued``)."""
-        if getattr(self, "_own_stream", None) is None:
+        if self._own_stream is None:
             self._own_stream = wp.Stream(self.model.device)
         return self._own_stream
 

@@ -116,9 +116,7 @@ class Control:
             o = _checked(omega, (W, K, 3), "Control.omega")
             self.ee_omega.assign(wp.array(o.reshape(-1, 3), dtype=wp.vec3, device=self.ee_vel.device))
         if grip is not None:
-            g = _checked(grip, (W, K), "Control.grip")
-            if not np.all((g == 0) | (g == 1)):
-                raise ValueError(f"Control.grip must hold only 0 (open) or 1 (closed), got {np.unique(g)}")
+            g = _checked_grip(grip, (W, K))
             self.ee_grip.assign(wp.array(g.reshape(-1).astype(np.int32), dtype=int, device=self.ee_vel.device))
         return self
 
@@ -131,9 +129,7 @@ class Control:
         T = len(velocity)
         v = _checked(velocity, (T, W, K, 3), "Control.velocity")
         o = _checked(omega, (T, W, K, 3), "Control.omega")
-        g = _checked(grip, (T, W, K), "Control.grip")
-        if not np.all((g == 0) | (g == 1)):
-            raise ValueError(f"Control.grip must hold only 0 (open) or 1 (closed), got {np.unique(g)}")
+        g = _checked_grip(grip, (T, W, K))
         d = self.ee_vel.device
         return ControlSequence(steps=T, per_step=W * K,
                                velocity=wp.array(v.reshape(-1, 3), dtype=wp.vec3, device=d),
@@ -165,6 +161,14 @@ class ControlSequence:
     omega: wp.array
     grip: wp.array
     max_speed: np.ndarray
+
+
+def _checked_grip(value, shape):
+    """Grip flags of ``shape`` (:func:`_checked`), each 0 (open) or 1 (closed)."""
+    g = _checked(value, shape, "Control.grip")
+    if not np.all((g == 0) | (g == 1)):
+        raise ValueError(f"Control.grip must hold only 0 (open) or 1 (closed), got {np.unique(g)}")
+    return g
 
 
 def _checked(value, shape, name):
