@@ -129,8 +129,8 @@ def body_thickness(particles: np.ndarray, volumes: Optional[np.ndarray] = None, 
     """Thickness [m] of a body's thin parts: the ``quantile`` (default the 20th percentile) over the body of
     its local thickness, the diameter of the largest ball inside the body that holds the point.
 
-    Every particle fills a cube of its own volume (side from ``volumes``, else the nearest-neighbour
-    distance), voxelised at a third of that side; for every distance level k of its Euclidean distance transform, the balls of
+    Every particle fills a cube of its own volume (side from ``volumes``, but never less than the nearest-neighbour
+    distance, so that neighbours' cubes touch), voxelised at a third of that side; for every distance level k of its Euclidean distance transform, the balls of
     radius k around the voxels at least k deep cover the points of local thickness >= 2k voxels. For a rope this is its diameter
     everywhere, for a lump its smallest extent.
     """
@@ -139,13 +139,15 @@ def body_thickness(particles: np.ndarray, volumes: Optional[np.ndarray] = None, 
     x = np.asarray(particles, np.float64).reshape(-1, 3)
     if len(x) < 2:
         raise ValueError("body_thickness: need at least 2 particles")
-    if volumes is not None:
-        h = float(np.cbrt(np.median(np.asarray(volumes, np.float64))))
-    else:
-        from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree
 
-        d, _ = cKDTree(x).query(x, k=2)
-        h = float(np.median(d[:, 1]))
+    d, _ = cKDTree(x).query(x, k=2)
+    h = float(np.median(d[:, 1]))  # the lattice's spacing: cubes of this side leave no gap between neighbours
+    if volumes is not None:
+        # a body whose volumes were scaled to a measured volume can be smaller per particle than its lattice: cubes
+        # of that side leave gaps, and the porous raster reads thin everywhere (a 2.4 cm rope on a 2.5 mm lattice
+        # read 1.8 cm with volumes 2.44 mm on a side, 0.65 cm at 2.25 mm)
+        h = max(h, float(np.cbrt(np.median(np.asarray(volumes, np.float64)))))
     # every particle fills the cube of its own volume, rasterised at a third of its side (coarser for large
     # bodies: at most about a million voxels)
     v = max(h / 3.0, float(np.cbrt(np.prod(np.ptp(x, 0) + h) / 1.0e6)))
@@ -199,9 +201,10 @@ def resolving_dx(scene, refill: Callable[[float], object], *, cells: float = MAR
     is kept). ``levels``: the :func:`grid_resolution` of every grid looked at, coarsest first.
 
     The body's thickness is measured again on each finer fill before the cell is halved once more: a body
-    filled on a coarse lattice reads thinner than it is (a 2.3 cm rope filled at 1 cm read 1.2 cm, and the
+    filled on a coarse lattice may read thinner than it is (a 2.3 cm rope filled at 1 cm read 1.2 cm, and the
     cell was halved twice, to 80,000 particles, where 5 mm resolves it 4.6 cells across; benchmarks/RESULTS.md,
-    session 35). A grid too coarse for the body changes how it moves by more than many effects do, and a fit
+    session 35; most of that was :func:`body_thickness` rasterising particles whose volumes are smaller than their
+    lattice, mended in session 38: it reads 2.3 cm now). A grid too coarse for the body changes how it moves by more than many effects do, and a fit
     reads that as physics: the doctor at dx = 1 cm on ropes 1.9 cells across, recorded by a simulation at 5 mm
     (the same material, no effect), named table friction, a stiffness field and plasticity on 3 of 6 (confidence
     0.77 to 1.00); at 5 mm (4.5 cells across), 0 of 6 (session 34); the doctor asks for 4 cells
