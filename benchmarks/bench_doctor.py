@@ -159,7 +159,7 @@ def make(args):
                 with open(out / f"{name}.pkl", "wb") as f:
                     pickle.dump({"scene": scene, "obs": obs, "truth": truth[0] if truth else "none",
                                  "script": script, "seed": seed, "truth_params": eparams, "body_notes": notes,
-                                 "base_params": base,
+                                 "base_params": base, "synth_dx": synth_dx,
                                  **({"view_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc)}
                                     if args.view_bodies else {}),
                                  "signature_m": effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
@@ -305,6 +305,61 @@ def floors(problems: Path, args):
     return rows
 
 
+def oracles(problems: Path, args):
+    """The held-out Chamfer of each effect recording's own simulation: the synthesiser run again (``ground_truth``'s
+    material, the script and the seed, on the grid the recording was made on), its particles carrying the doctor's
+    frame-0 observed points as the doctor's fits carry them, scored as the doctor scores. A perfect body and a
+    perfect model: what is left is the depth noise of the frames compared, which no model removes. The reduction it
+    gives over the base model bounds what any model, on any body, can show on the recording (:func:`floors` bounds
+    what the doctor's own body allows)."""
+    import dataclasses
+
+    from scipy.spatial import cKDTree
+
+    from empm_gym.identification.doctor import DoctorConfig
+    from empm_gym.identification.doctor.core import _per_frame_losses
+    from empm_gym.identification.offline import Objective
+    from empm_gym.perception.synth import effect_material, simulate
+
+    cfg = DoctorConfig()
+    rows = []
+    for path in sorted(Path(problems).glob("*.pkl")):
+        with open(path, "rb") as f:
+            prob = pickle.load(f)
+        if prob["truth"] == "none":
+            continue
+        synth_dx = prob.get("synth_dx")
+        if synth_dx is None and args.synth_dx is None:
+            raise SystemExit(f"--oracle: {path.name} does not say which grid its recording was made on (problems made "
+                             f"before session 38): give it as --synth-dx")
+        if synth_dx is not None and args.synth_dx is not None and abs(synth_dx - args.synth_dx) > 1e-12:
+            raise SystemExit(f"--oracle: {path.name} was made on a {synth_dx:g} m grid, not --synth-dx {args.synth_dx:g}")
+        synth_dx = args.synth_dx if synth_dx is None else synth_dx
+        obs = prob["obs"]
+        mat, _ = effect_material(args.object, prob["truth"], prob.get("truth_params") or None,
+                                 **prob.get("base_params", {}))
+        T = obs.num_frames
+        X = simulate(args.object, mat, script=prob["script"], frames=T, dx=synth_dx, seed=prob["seed"],
+                     device=args.device)["particles"].astype(np.float64)
+        # the recording's own body lies where its frame-0 points were seen (not, say, another object or script)
+        d0 = float(np.median(cKDTree(X[0]).query(obs.points[0])[0]))
+        if d0 > synth_dx:
+            raise SystemExit(f"--oracle: {path.name}: the synthesiser's frame-0 body lies {1e3 * d0:.1f} mm (median) "
+                             f"from the recording's frame-0 points: not the recording's simulation (--object "
+                             f"{args.object}, --synth-dx {synth_dx:g}?)")
+        sc = dataclasses.replace(prob["scene"], particles=X[0], volumes=float(np.mean(prob["scene"].volumes)))
+        F = int(round(cfg.train_fraction * T))
+        per = _per_frame_losses(Objective(sc, obs, T, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed), X)
+        row = {"recording": path.stem, "truth": prob["truth"], "oracle_chamfer_m": float(np.mean(per["chamfer"][F:])),
+               "oracle_loss": float(np.mean(per["loss"][F:]))}
+        rows.append(row)
+        print(f"{path.stem:48s} its own simulation's held-out Chamfer {1e3 * row['oracle_chamfer_m']:.3f} mm", flush=True)
+        if args.jsonl:
+            with open(args.jsonl, "a") as f:
+                f.write(json.dumps(row) + "\n")
+    return rows
+
+
 def summarise(rows, floor_rows=()):
     """The tables of result rows: the benchmark's set (each effect on its natural and second script) first,
     then any other recordings (the first runs' second scripts) on their own. With ``floor_rows``
@@ -314,7 +369,7 @@ def summarise(rows, floor_rows=()):
     print(f"\n=== the benchmark: each effect on its natural and its second script, none on every script "
           f"({len(bench)} recordings)")
     _table(bench)
-    floor = {r["recording"]: r["floor_chamfer_m"] for r in floor_rows}
+    floor = {r["recording"]: r["floor_chamfer_m"] for r in floor_rows if "floor_chamfer_m" in r}
     both = [r for r in bench if r["recording"] in floor and np.isfinite(r.get("base_chamfer_m", np.nan))]
     if both:
         print("\nheld-out Chamfer reduction with the true effect's fit, against the true material on the doctor's body "
@@ -327,10 +382,34 @@ def summarise(rows, floor_rows=()):
         can = [1.0 - floor[r["recording"]] / r["base_chamfer_m"] for r in both]
         print(f"  all {len(both)}: shown {100 * np.median([r['reduction'] for r in both]):.1f} %, possible "
               f"{100 * np.median(can):.1f} %")
+    _against_the_recordings_own_simulation(bench, floor_rows)
     _shown_on_the_body(bench, floor_rows)
     if rest:
         print(f"\n=== other recordings: the first runs' second scripts ({len(rest)} recordings)")
         _table(rest)
+
+
+def _against_the_recordings_own_simulation(rows, floor_rows):
+    """The reductions beside what a perfect body and model could show (:func:`oracles`), and the share of the gap
+    above that floor that the true effect's fit closes, (base - fit) / (base - own simulation): the held-out Chamfer
+    never reaches zero, since the frames compared carry the depth noise; this says how much of what a model can
+    remove the fit removed."""
+    oracle = {r["recording"]: r["oracle_chamfer_m"] for r in floor_rows if "oracle_chamfer_m" in r}
+    both = [r for r in rows if r["recording"] in oracle and np.isfinite(r.get("base_chamfer_m", np.nan))
+            and np.isfinite(r.get("true_effect_chamfer_m", np.nan))]
+    if not both:
+        return
+    print("\nagainst the recording's own simulation (the synthesiser's particles: a perfect body and model; what is "
+          "left is the depth noise): the most any model can show, and the share of the gap above it the fit closes")
+    for eff in [*dict.fromkeys(r["truth"] for r in both), None]:
+        rs = [r for r in both if eff is None or r["truth"] == eff]
+        can = [1.0 - oracle[r["recording"]] / r["base_chamfer_m"] for r in rs]
+        share = [(r["base_chamfer_m"] - r["true_effect_chamfer_m"]) / (r["base_chamfer_m"] - oracle[r["recording"]])
+                 for r in rs if r["base_chamfer_m"] > oracle[r["recording"]]]
+        print(f"  {eff or f'all {len(rs)}':24s} {len(rs)} recordings: shown {100 * np.median([r['reduction'] for r in rs]):6.1f} %, "
+              f"possible {100 * np.median(can):6.1f} %, base model {1e3 * np.median([r['base_chamfer_m'] for r in rs]):.2f} mm "
+              f"against its own simulation {1e3 * np.median([oracle[r['recording']] for r in rs]):.2f} mm; gap closed "
+              f"{100 * np.median(share) if share else float('nan'):6.1f} % (medians)")
 
 
 def _shown_on_the_body(rows, floor_rows):
@@ -434,7 +513,7 @@ def _table(rows):
               f"{100 * np.nanmedian([r['reduction'] for r in shown if r['truth'] != 'none']):.1f} %")
 
 
-def main(argv=None):
+def _parser():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--make", default=None, help="synthesise and load the recordings into this folder first")
     p.add_argument("--problems", default=None, help="folder of pickled problems (written by --make, read otherwise)")
@@ -486,7 +565,22 @@ def main(argv=None):
     p.add_argument("--floor", action="store_true",
                    help="simulate each effect problem's true material on the doctor's body instead of diagnosing "
                         "(rows to --jsonl; the benchmark's own use of ground truth)")
-    p.add_argument("--floors", nargs="*", default=[], help="--floor rows to print beside --summarise / --rescore")
+    p.add_argument("--oracle", action="store_true",
+                   help="simulate each effect problem's recording again with the synthesiser (its ground truth, on "
+                        "the grid it was made on; --synth-dx for problems that do not record it) and score its own "
+                        "particles: what a perfect body and model reach, the rest depth noise (rows to --jsonl)")
+    p.add_argument("--floors", nargs="*", default=[],
+                   help="--floor and --oracle rows to print beside --summarise / --rescore")
+    return p
+
+
+def parse_args(argv=None):
+    """The benchmark's options (:func:`main`'s) as a namespace."""
+    return _parser().parse_args(argv)
+
+
+def main(argv=None):
+    p = _parser()
     args = p.parse_args(argv)
     floor_rows = [json.loads(line) for f in args.floors for line in Path(f).read_text().splitlines() if line]
     if args.rescore is not None:
@@ -505,6 +599,9 @@ def main(argv=None):
         p.error("give --make or --problems")
     if args.floor:
         floors(problems, args)
+        return 0
+    if args.oracle:
+        oracles(problems, args)
         return 0
     diagnose_all(problems, args)
     return 0
