@@ -161,6 +161,7 @@ def test_the_recordings_own_simulation_reproduces_it_and_only_it(bench, tmp_path
                         {k: v for k, v in prob.items() if k != "synth_dx"}, f)
     slow = bench.oracles(tmp_path / "slow", bench.parse_args(["--object", "block"]))
     assert own[0]["oracle_chamfer_m"] < 8e-3 and slow[0]["oracle_chamfer_m"] > 4 * own[0]["oracle_chamfer_m"], (own, slow)
+    assert own[0]["oracle_chamfer_m"] == pytest.approx(0.5 * (own[0]["oracle_obs_to_pred_m"] + own[0]["oracle_pred_to_obs_m"]))
     with pytest.raises(SystemExit, match="made on a 0.02 m grid, not --synth-dx 0.01"):
         bench.oracles(tmp_path / "prob", bench.parse_args(["--object", "block", "--synth-dx", "0.01"]))
     with pytest.raises(SystemExit, match="does not say which grid"):
@@ -175,7 +176,8 @@ def test_the_gap_closed_is_measured_above_the_recordings_own_simulation(bench, t
                  base_chamfer_m=0.004, true_effect_chamfer_m=0.003, reduction=0.25),
             dict(_row("dough-push-slide-0-table_friction", "table_friction", "table_friction", "push-slide", 0.01),
                  base_chamfer_m=0.010, true_effect_chamfer_m=0.002, reduction=0.8)]
-    oracle = [{"recording": "dough-drag-0-table_friction", "truth": "table_friction", "oracle_chamfer_m": 0.002},
+    oracle = [{"recording": "dough-drag-0-table_friction", "truth": "table_friction", "oracle_chamfer_m": 0.002,
+               "oracle_obs_to_pred_m": 0.003, "oracle_pred_to_obs_m": 0.001},
               {"recording": "dough-push-slide-0-table_friction", "truth": "table_friction", "oracle_chamfer_m": 0.002}]
     (tmp_path / "rows.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     (tmp_path / "oracle.jsonl").write_text("".join(json.dumps(r) + "\n" for r in oracle))
@@ -184,3 +186,5 @@ def test_the_gap_closed_is_measured_above_the_recordings_own_simulation(bench, t
     # possible: 50 % and 80 %, median 65 %; gap closed: 50 % and 100 %, median 75 %
     assert "table_friction           2 recordings: shown   52.5 %, possible   65.0 %" in out
     assert "gap closed   75.0 % (medians)" in out
+    assert "its two halves, dough (1): observed points to the carried ones 3.00 mm" in out
+    assert "carried to observed 1.00 mm" in out
