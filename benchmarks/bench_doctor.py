@@ -419,8 +419,12 @@ def _against_the_recordings_own_simulation(rows, floor_rows):
               f"against its own simulation {1e3 * np.median([oracle[r['recording']] for r in rs]):.2f} mm; gap closed "
               f"{100 * np.median(share) if share else float('nan'):6.1f} % (medians)")
     halves = {r["recording"]: r for r in floor_rows if "oracle_obs_to_pred_m" in r}
-    for obj in dict.fromkeys(r["recording"].split("-")[0] for r in both if r["recording"] in halves):
-        hs = [halves[r["recording"]] for r in both if r["recording"] in halves and r["recording"].split("-")[0] == obj]
+
+    def obj_of(name):  # "rope-drag-10-none" -> rope; a set's own prefix ("d5_dough-...") left out
+        return name.split("-")[0].split("_")[-1]
+
+    for obj in dict.fromkeys(obj_of(r["recording"]) for r in both if r["recording"] in halves):
+        hs = [halves[r["recording"]] for r in both if r["recording"] in halves and obj_of(r["recording"]) == obj]
         print(f"  its two halves, {obj} ({len(hs)}): observed points to the carried ones "
               f"{1e3 * np.median([h['oracle_obs_to_pred_m'] for h in hs]):.2f} mm (noise, and surface seen later but not "
               f"at frame 0), carried to observed {1e3 * np.median([h['oracle_pred_to_obs_m'] for h in hs]):.2f} mm "
