@@ -265,6 +265,29 @@ def rescore(paths):
     return list(rows.values())
 
 
+def _effect_problems(problems: Path, obj: str):
+    """``(path, problem, true material)`` of every effect problem (``none`` left out) in ``problems``: the true
+    material from the problem's ground-truth effect and parameters (the benchmark's own use of it)."""
+    from empm_gym.perception.synth import effect_material
+
+    for path in sorted(Path(problems).glob("*.pkl")):
+        with open(path, "rb") as f:
+            prob = pickle.load(f)
+        if prob["truth"] == "none":
+            continue
+        mat, _ = effect_material(obj, prob["truth"], prob.get("truth_params") or None, **prob.get("base_params", {}))
+        yield path, prob, mat
+
+
+def _emit(row: dict, text: str, rows: list, jsonl):
+    """Keep ``row``, print ``text`` beside its recording's name and append it to ``jsonl`` (if given)."""
+    rows.append(row)
+    print(f"{row['recording']:48s} {text}", flush=True)
+    if jsonl:
+        with open(jsonl, "a") as f:
+            f.write(json.dumps(row) + "\n")
+
+
 def floors(problems: Path, args):
     """The held-out Chamfer of the true material (``ground_truth``'s, read by the benchmark only) simulated on the
     doctor's own body and grid, scored as the doctor scores: what a perfect fit of the right model could reach.
@@ -276,18 +299,11 @@ def floors(problems: Path, args):
     from empm_gym.identification.doctor.core import _per_frame_losses
     from empm_gym.identification.offline import Objective
     from empm_gym.identification.problem import _ForwardSim
-    from empm_gym.perception.synth import effect_material
 
     cfg = DoctorConfig()
     rows = []
-    for path in sorted(Path(problems).glob("*.pkl")):
-        with open(path, "rb") as f:
-            prob = pickle.load(f)
-        if prob["truth"] == "none":
-            continue
+    for path, prob, mat in _effect_problems(problems, args.object):
         obs = prob["obs"]
-        mat, _ = effect_material(args.object, prob["truth"], prob.get("truth_params") or None,
-                                 **prob.get("base_params", {}))
         mu = mat.get("friction")
         sc = dataclasses.replace(prob["scene"], device=args.device, motion_margin=cfg.motion_margin)
         sc = sc.with_material(mat, table_friction=mu)
@@ -297,11 +313,7 @@ def floors(problems: Path, args):
         per = _per_frame_losses(Objective(sc, obs, T, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed), X[:, 0])
         row = {"recording": path.stem, "truth": prob["truth"], "floor_chamfer_m": float(np.mean(per["chamfer"][F:])),
                "floor_loss": float(np.mean(per["loss"][F:]))}
-        rows.append(row)
-        print(f"{path.stem:48s} true material's held-out Chamfer {1e3 * row['floor_chamfer_m']:.3f} mm", flush=True)
-        if args.jsonl:
-            with open(args.jsonl, "a") as f:
-                f.write(json.dumps(row) + "\n")
+        _emit(row, f"true material's held-out Chamfer {1e3 * row['floor_chamfer_m']:.3f} mm", rows, args.jsonl)
     return rows
 
 
@@ -320,15 +332,11 @@ def oracles(problems: Path, args):
     from empm_gym.identification.doctor import DoctorConfig
     from empm_gym.identification.doctor.core import _per_frame_losses
     from empm_gym.identification.offline import Objective
-    from empm_gym.perception.synth import effect_material, simulate
+    from empm_gym.perception.synth import simulate
 
     cfg = DoctorConfig()
     rows = []
-    for path in sorted(Path(problems).glob("*.pkl")):
-        with open(path, "rb") as f:
-            prob = pickle.load(f)
-        if prob["truth"] == "none":
-            continue
+    for path, prob, mat in _effect_problems(problems, args.object):
         synth_dx = prob.get("synth_dx")
         if synth_dx is None and args.synth_dx is None:
             raise SystemExit(f"--oracle: {path.name} does not say which grid its recording was made on (problems made "
@@ -337,8 +345,6 @@ def oracles(problems: Path, args):
             raise SystemExit(f"--oracle: {path.name} was made on a {synth_dx:g} m grid, not --synth-dx {args.synth_dx:g}")
         synth_dx = args.synth_dx if synth_dx is None else synth_dx
         obs = prob["obs"]
-        mat, _ = effect_material(args.object, prob["truth"], prob.get("truth_params") or None,
-                                 **prob.get("base_params", {}))
         T = obs.num_frames
         X = simulate(args.object, mat, script=prob["script"], frames=T, dx=synth_dx, seed=prob["seed"],
                      device=args.device)["particles"].astype(np.float64)
@@ -359,11 +365,7 @@ def oracles(problems: Path, args):
                "oracle_loss": float(np.mean(per["loss"][F:])),
                **{f"oracle_{d}_m": float(np.mean(objective.chamfer(P, direction=d)[F:]))
                   for d in ("obs_to_pred", "pred_to_obs")}}
-        rows.append(row)
-        print(f"{path.stem:48s} its own simulation's held-out Chamfer {1e3 * row['oracle_chamfer_m']:.3f} mm", flush=True)
-        if args.jsonl:
-            with open(args.jsonl, "a") as f:
-                f.write(json.dumps(row) + "\n")
+        _emit(row, f"its own simulation's held-out Chamfer {1e3 * row['oracle_chamfer_m']:.3f} mm", rows, args.jsonl)
     return rows
 
 
