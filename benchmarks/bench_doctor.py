@@ -342,7 +342,8 @@ def oracles(problems: Path, args):
             raise SystemExit(f"--oracle: {path.name} does not say which grid its recording was made on (problems made "
                              f"before session 38): give it as --synth-dx")
         if synth_dx is not None and args.synth_dx is not None and abs(synth_dx - args.synth_dx) > 1e-12:
-            raise SystemExit(f"--oracle: {path.name} was made on a {synth_dx:g} m grid, not --synth-dx {args.synth_dx:g}")
+            raise SystemExit(f"--oracle: {path.name} was made on a {synth_dx:g} m grid, not --synth-dx "
+                             f"{args.synth_dx:g}")
         synth_dx = args.synth_dx if synth_dx is None else synth_dx
         obs = prob["obs"]
         T = obs.num_frames
@@ -416,8 +417,10 @@ def _against_the_recordings_own_simulation(rows, floor_rows):
         can = [1.0 - oracle[r["recording"]] / r["base_chamfer_m"] for r in rs]
         share = [(r["base_chamfer_m"] - r["true_effect_chamfer_m"]) / (r["base_chamfer_m"] - oracle[r["recording"]])
                  for r in rs if r["base_chamfer_m"] > oracle[r["recording"]]]
-        print(f"  {eff or f'all {len(rs)}':24s} {len(rs)} recordings: shown {100 * np.median([r['reduction'] for r in rs]):6.1f} %, "
-              f"possible {100 * np.median(can):6.1f} %, base model {1e3 * np.median([r['base_chamfer_m'] for r in rs]):.2f} mm "
+        shown = 100 * np.median([r["reduction"] for r in rs])
+        base = 1e3 * np.median([r["base_chamfer_m"] for r in rs])
+        print(f"  {eff or f'all {len(rs)}':24s} {len(rs)} recordings: shown {shown:6.1f} %, "
+              f"possible {100 * np.median(can):6.1f} %, base model {base:.2f} mm "
               f"against its own simulation {1e3 * np.median([oracle[r['recording']] for r in rs]):.2f} mm; gap closed "
               f"{100 * np.median(share) if share else float('nan'):6.1f} % (medians)")
     halves = {r["recording"]: r for r in floor_rows if "oracle_obs_to_pred_m" in r}
@@ -428,7 +431,8 @@ def _against_the_recordings_own_simulation(rows, floor_rows):
     for obj in dict.fromkeys(obj_of(r["recording"]) for r in both if r["recording"] in halves):
         hs = [halves[r["recording"]] for r in both if r["recording"] in halves and obj_of(r["recording"]) == obj]
         print(f"  its two halves, {obj} ({len(hs)}): observed points to the carried ones "
-              f"{1e3 * np.median([h['oracle_obs_to_pred_m'] for h in hs]):.2f} mm (noise, and surface seen later but not "
+              f"{1e3 * np.median([h['oracle_obs_to_pred_m'] for h in hs]):.2f} mm (noise, and surface seen later "
+              f"but not "
               f"at frame 0), carried to observed {1e3 * np.median([h['oracle_pred_to_obs_m'] for h in hs]):.2f} mm "
               f"(noise, and surface hidden later) (medians)")
 

@@ -130,9 +130,9 @@ def body_thickness(particles: np.ndarray, volumes: Optional[np.ndarray] = None, 
     its local thickness, the diameter of the largest ball inside the body that holds the point.
 
     Every particle fills a cube of its own volume (side from ``volumes``, but never less than the nearest-neighbour
-    distance, so that neighbours' cubes touch), voxelised at a third of that side; for every distance level k of its Euclidean distance transform, the balls of
-    radius k around the voxels at least k deep cover the points of local thickness >= 2k voxels. For a rope this is its diameter
-    everywhere, for a lump its smallest extent.
+    distance, so that neighbours' cubes touch), voxelised at a third of that side; for every distance level k of its
+    Euclidean distance transform, the balls of radius k around the voxels at least k deep cover the points of local
+    thickness >= 2k voxels. For a rope this is its diameter everywhere, for a lump its smallest extent.
     """
     from scipy import ndimage
 
@@ -146,7 +146,8 @@ def body_thickness(particles: np.ndarray, volumes: Optional[np.ndarray] = None, 
     if volumes is not None:
         # a body whose volumes were scaled to a measured volume can be smaller per particle than its lattice: cubes
         # of that side leave gaps, and the porous raster reads thin everywhere (a 2.4 cm rope on a 2.5 mm lattice
-        # read 1.8 cm with volumes 2.44 mm on a side; a sampled cylinder as thick, 0.65 cm with volumes 2.18 mm on a side)
+        # read 1.8 cm with volumes 2.44 mm on a side; a sampled cylinder as thick, 0.65 cm with volumes 2.18 mm on
+        # a side)
         h = max(h, float(np.cbrt(np.median(np.asarray(volumes, np.float64)))))
     # every particle fills the cube of its own volume, rasterised at a third of its side (coarser for large
     # bodies: at most about a million voxels)
