@@ -432,8 +432,8 @@ def _against_the_recordings_own_simulation(rows, floor_rows):
         hs = [halves[r["recording"]] for r in both if r["recording"] in halves and obj_of(r["recording"]) == obj]
         print(f"  its two halves, {obj} ({len(hs)}): observed points to the carried ones "
               f"{1e3 * np.median([h['oracle_obs_to_pred_m'] for h in hs]):.2f} mm (noise, and surface seen later "
-              f"but not "
-              f"at frame 0), carried to observed {1e3 * np.median([h['oracle_pred_to_obs_m'] for h in hs]):.2f} mm "
+              f"but not at frame 0), carried to observed "
+              f"{1e3 * np.median([h['oracle_pred_to_obs_m'] for h in hs]):.2f} mm "
               f"(noise, and surface hidden later) (medians)")
 
 

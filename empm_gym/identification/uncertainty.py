@@ -135,12 +135,11 @@ def body_thickness(particles: np.ndarray, volumes: Optional[np.ndarray] = None, 
     thickness >= 2k voxels. For a rope this is its diameter everywhere, for a lump its smallest extent.
     """
     from scipy import ndimage
+    from scipy.spatial import cKDTree
 
     x = np.asarray(particles, np.float64).reshape(-1, 3)
     if len(x) < 2:
         raise ValueError("body_thickness: need at least 2 particles")
-    from scipy.spatial import cKDTree
-
     d, _ = cKDTree(x).query(x, k=2)
     h = float(np.median(d[:, 1]))  # the lattice's spacing: cubes of this side leave no gap between neighbours
     if volumes is not None:
@@ -205,8 +204,8 @@ def resolving_dx(scene, refill: Callable[[float], object], *, cells: float = MAR
     filled on a coarse lattice may read thinner than it is (a 2.3 cm rope filled at 1 cm read 1.2 cm, and the
     cell was halved twice, to 80,000 particles, where 5 mm resolves it 4.6 cells across; benchmarks/RESULTS.md,
     session 35; most of that was :func:`body_thickness` rasterising particles whose volumes are smaller than their
-    lattice, mended in session 38: it reads 2.3 cm now). A grid too coarse for the body changes how it moves by more than many effects do, and a fit
-    reads that as physics: the doctor at dx = 1 cm on ropes 1.9 cells across, recorded by a simulation at 5 mm
+    lattice, mended in session 38: it reads 2.3 cm now). A grid too coarse for the body changes how it moves by
+    more than many effects do, and a fit reads that as physics: the doctor at dx = 1 cm on ropes 1.9 cells across, recorded by a simulation at 5 mm
     (the same material, no effect), named table friction, a stiffness field and plasticity on 3 of 6 (confidence
     0.77 to 1.00); at 5 mm (4.5 cells across), 0 of 6 (session 34); the doctor asks for 4 cells
     (``doctor.DOCTOR_CELLS_ACROSS``). (:func:`_finer_grid_scene` is the other use of :data:`MARGINAL_CELLS_ACROSS`:
