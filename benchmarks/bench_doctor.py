@@ -296,8 +296,7 @@ def floors(problems: Path, args):
     import dataclasses
 
     from empm_gym.identification.doctor import DoctorConfig
-    from empm_gym.identification.doctor.core import _per_frame_losses
-    from empm_gym.identification.offline import Objective
+    from empm_gym.identification.doctor.core import _per_frame_losses, heldout_objective
     from empm_gym.identification.problem import _ForwardSim
 
     cfg = DoctorConfig()
@@ -310,7 +309,7 @@ def floors(problems: Path, args):
         T = obs.num_frames if sc.num_frames is None else min(obs.num_frames, sc.num_frames)
         F = int(round(cfg.train_fraction * T))
         X, _, _ = _ForwardSim(sc, [mat], [mu]).run(T)
-        per = _per_frame_losses(Objective(sc, obs, T, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed), X[:, 0])
+        per = _per_frame_losses(heldout_objective(sc, obs, T, cfg), X[:, 0])
         row = {"recording": path.stem, "truth": prob["truth"], "floor_chamfer_m": float(np.mean(per["chamfer"][F:])),
                "floor_loss": float(np.mean(per["loss"][F:]))}
         _emit(row, f"true material's held-out Chamfer {1e3 * row['floor_chamfer_m']:.3f} mm", rows, args.jsonl)
@@ -330,8 +329,7 @@ def oracles(problems: Path, args):
     from scipy.spatial import cKDTree
 
     from empm_gym.identification.doctor import DoctorConfig
-    from empm_gym.identification.doctor.core import _per_frame_losses
-    from empm_gym.identification.offline import Objective
+    from empm_gym.identification.doctor.core import _per_frame_losses, heldout_objective
     from empm_gym.perception.synth import simulate
 
     cfg = DoctorConfig()
@@ -357,14 +355,15 @@ def oracles(problems: Path, args):
                              f"{args.object}, --synth-dx {synth_dx:g}?)")
         sc = dataclasses.replace(prob["scene"], particles=X[0], volumes=float(np.mean(prob["scene"].volumes)))
         F = int(round(cfg.train_fraction * T))
-        objective = Objective(sc, obs, T, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed)
+        objective = heldout_objective(sc, obs, T, cfg)
         per = _per_frame_losses(objective, X)
-        # the Chamfer's two halves: observed points far from the carried ones are surface seen later but not at frame
-        # 0 (no carried point stands for it); carried points far from the observed ones, surface hidden later
-        P = objective.predicted_points(X)
+        # the Chamfer's two halves: observed points far from the simulation are depth noise (and, with the doctor's
+        # unseen_surface off, surface seen later but not at frame 0); carried points far from the observed ones,
+        # surface hidden later
+        P, U = objective.predicted_points(X), objective.unseen_points(X)
         row = {"recording": path.stem, "truth": prob["truth"], "oracle_chamfer_m": float(np.mean(per["chamfer"][F:])),
                "oracle_loss": float(np.mean(per["loss"][F:])),
-               **{f"oracle_{d}_m": float(np.mean(objective.chamfer(P, direction=d)[F:]))
+               **{f"oracle_{d}_m": float(np.mean(objective.chamfer(P, direction=d, unseen=U)[F:]))
                   for d in ("obs_to_pred", "pred_to_obs")}}
         _emit(row, f"its own simulation's held-out Chamfer {1e3 * row['oracle_chamfer_m']:.3f} mm", rows, args.jsonl)
     return rows

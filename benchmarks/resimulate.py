@@ -34,8 +34,7 @@ def _material(text: str) -> dict:
 
 def main(argv=None) -> int:
     from empm_gym.identification.doctor import DoctorConfig
-    from empm_gym.identification.doctor.core import _Fit, _clock, _per_frame_losses, _simulate_fits
-    from empm_gym.identification.offline import Objective
+    from empm_gym.identification.doctor.core import _Fit, _clock, _per_frame_losses, _simulate_fits, heldout_objective
     from empm_gym.sim import MaterialConfig
     from empm_gym.sim.effects import BASE_TABLE_FRICTION, EFFECTS
 
@@ -69,7 +68,7 @@ def main(argv=None) -> int:
                  wall_s=0.0, scene=scene) for m in args.material]
     t0 = time.perf_counter()
     X = _simulate_fits(fits, T)
-    objective = Objective(scene, obs, T, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed)
+    objective = heldout_objective(scene, obs, T, cfg)
     print(f"{args.body or 'the doctor’s body'}: {len(scene.particles)} particles, {T} frames (fitting 0-{F - 1}), "
           f"E window {lo:.6g}-{hi:.6g} Pa")
     for f, w in zip(fits, range(len(fits))):

@@ -50,7 +50,7 @@ from .losses import chamfer_distance, chamfer_frames, chamfer_frames_torch, pad_
 from .problem import PARAM_NAMES, Observations, ParamSpace, Scene, _ForwardSim, run_together, substeps_for
 
 __all__ = ["identify", "FitResult", "Objective", "ResumeError", "read_resume_state", "default_bounds",
-           "surface_embedding", "METHODS", "OBSERVATION_MODELS"]
+           "surface_embedding", "body_surface", "METHODS", "OBSERVATION_MODELS"]
 
 METHODS = ("adam", "cmaes")
 _DIVERGED_LOSS = 1.0e3
@@ -125,6 +125,30 @@ def surface_embedding(points0: np.ndarray, particles0: np.ndarray, k: int = 12) 
     return idx.astype(np.int64), a
 
 
+def body_surface(particles0: np.ndarray, radius: float = 1.8, shift: float = 0.25) -> np.ndarray:
+    """Points on the surface of a body of particles [N, 3] (m): each boundary particle moved half the median
+    particle spacing s outward, where the observed surface of a body lies (:func:`surface_embedding`).
+
+    A particle is on the boundary when the centroid of its neighbours within ``radius`` s lies more than
+    ``shift`` s from it (inside a body the neighbours surround it and their centroid is the particle itself;
+    on a face of a lattice it lies half a spacing inward); outward is away from that centroid. Thin bodies,
+    whose particles are mostly on the boundary, need no count of what a full neighbourhood holds."""
+    from scipy.spatial import cKDTree
+
+    x = np.asarray(particles0, np.float64).reshape(-1, 3)
+    if len(x) < 2:
+        raise ValueError(f"body_surface: a body of {len(x)} particles has no surface to find")
+    tree = cKDTree(x)
+    s = float(np.median(tree.query(x, k=2)[0][:, 1]))
+    dist, idx = tree.query(x, k=min(len(x), 64), distance_upper_bound=radius * s)
+    near = np.isfinite(dist)
+    centre = (x[np.where(near, idx, 0)] * near[..., None]).sum(1) / near.sum(1)[:, None]
+    out = x - centre
+    norm = np.linalg.norm(out, axis=1)
+    edge = norm > shift * s
+    return x[edge] + 0.5 * s * out[edge] / norm[edge, None]
+
+
 class Objective:
     """The identification loss of a scene against observations on the first ``frames`` frames.
 
@@ -133,10 +157,18 @@ class Objective:
     lies outside the particle centres, so comparing observed points with particle centres directly
     (``observation="particles"``) favours bodies that bulge out towards the surface (a softer material).
     Tracked points are carried the same way from their frame-0 position.
+
+    ``unseen_surface=True`` (with ``observation="surface"``): an observed point may also lie on surface the
+    cameras did not see at frame 0 (the underside of a body lifted later, a side turned towards a camera), which
+    no carried frame-0 point stands for. The distance from the observed points to the simulation is then taken
+    to the nearer of the carried points and the simulated body's own surface (:func:`body_surface` at frame 0,
+    carried the same way); the simulated-to-observed half stays with the carried points, as the rest of the
+    body's surface may be hidden from the cameras.
     """
 
     def __init__(self, scene: Scene, obs: Observations, frames: int, *, l_dist: float = 1.0, l_trk: float = 100.0,
-                 chamfer: str = "both", max_points: int = 2000, seed: int = 0, observation: str = "surface"):
+                 chamfer: str = "both", max_points: int = 2000, seed: int = 0, observation: str = "surface",
+                 unseen_surface: bool = False):
         if frames < 2:
             raise ValueError(f"frames must be >= 2 (frame 0 is the initial state), got {frames}")
         if frames > obs.num_frames:
@@ -152,9 +184,13 @@ class Objective:
                 p = p[rng.choice(len(p), max_points, replace=False)]
             self.points.append(np.ascontiguousarray(p))
         self._padded = pad_frames(self.points, scene.device)  # the observed points on the GPU (None on a CPU)
-        self.surf = None
+        if unseen_surface and observation != "surface":
+            raise ValueError("unseen_surface needs observation='surface' (the particles themselves are the body)")
+        self.surf = self.unseen = None
         if observation == "surface":
             self.surf = surface_embedding(self.points[0], scene.particles)
+        if unseen_surface:
+            self.unseen = surface_embedding(body_surface(scene.particles), scene.particles)
         self.track_index = self.track_emb = None
         if obs.tracks is not None and l_trk > 0:
             vis0 = obs.visibility[0]
@@ -185,6 +221,10 @@ class Objective:
         """What the loss compares with the observed points: [frames, S, 3] carried surface points, or X itself."""
         return X if self.surf is None else self._carry(X[: self.frames], self.surf)
 
+    def unseen_points(self, X):
+        """The simulated body's surface carried with X ([frames, K, 3], see ``unseen_surface``), or None."""
+        return None if self.unseen is None else self._carry(X[: self.frames], self.unseen)
+
     def _predicted_tracks(self, X):
         if self.track_emb is None:
             return X[1:self.frames, torch.as_tensor(self.track_index) if isinstance(X, torch.Tensor) else self.track_index]
@@ -192,11 +232,13 @@ class Objective:
 
     def torch(self, X: torch.Tensor) -> torch.Tensor:
         """Loss of simulated positions X [frames, N, 3] (torch), differentiable."""
-        P = self.predicted_points(X)
+        P, U = self.predicted_points(X), self.unseen_points(X)
         if self._padded is not None:  # all pairs on the GPU
-            terms = chamfer_frames_torch(P[1:self.frames], self._padded, direction=self.direction, first=1)
+            terms = self._halves(P[1:self.frames], None if U is None else U[1:self.frames], self.direction,
+                                 lambda p, d: chamfer_frames_torch(p, self._padded, direction=d, first=1))
         else:
-            terms = torch.stack([chamfer_distance(P[t], self.points[t], direction=self.direction)
+            terms = torch.stack([self._halves(P[t], None if U is None else U[t], self.direction,
+                                              lambda p, d: chamfer_distance(p, self.points[t], direction=d))
                                  for t in range(1, self.frames)])
         loss = self.l_dist * terms.mean()
         if self.track_index is not None:
@@ -204,12 +246,30 @@ class Objective:
             loss = loss + self.l_trk * tracking_loss(pred, self.tracks[1:], self.visible[1:])
         return loss
 
-    def chamfer(self, P: np.ndarray, direction: Optional[str] = None, first: int = 0) -> np.ndarray:
+    @staticmethod
+    def _halves(P, U, direction: str, chamfer):
+        """``chamfer(points, direction)`` of the predicted points P, where the observed-to-simulated half
+        also reaches the unseen surface U (None: P alone)."""
+        if U is None:
+            return chamfer(P, direction)
+        cat = torch.cat if isinstance(P, torch.Tensor) else np.concatenate
+        axis = P.ndim - 2
+        if direction == "obs_to_pred":
+            return chamfer(cat([P, U], axis), direction)
+        if direction == "pred_to_obs":
+            return chamfer(P, direction)
+        return 0.5 * (chamfer(P, "pred_to_obs") + chamfer(cat([P, U], axis), "obs_to_pred"))
+
+    def chamfer(self, P: np.ndarray, direction: Optional[str] = None, first: int = 0,
+                unseen: Optional[np.ndarray] = None) -> np.ndarray:
         """Chamfer distance (m) of predicted points P [frames, S, 3] (:meth:`predicted_points`) against the
         observed points of frames ``first`` .. frames - 1 (:func:`~.losses.chamfer_frames`: on the GPU for a
-        CUDA scene)."""
+        CUDA scene). ``unseen`` [frames, K, 3] (:meth:`unseen_points`) joins P in the observed-to-simulated
+        half."""
         obs = self._padded if self._padded is not None else self.points
-        return chamfer_frames(P[first: self.frames], obs, direction=direction or self.direction, first=first)
+        U = None if unseen is None else unseen[first: self.frames]
+        return self._halves(P[first: self.frames], U, direction or self.direction,
+                            lambda p, d: chamfer_frames(p, obs, direction=d, first=first))
 
     def numpy(self, X: np.ndarray) -> float:
         """Loss of simulated positions X [frames, N, 3] (numpy); non-finite input gives a large finite value."""
@@ -225,8 +285,8 @@ class Objective:
         n = self.frames - 1
         if not np.all(np.isfinite(X[: self.frames])):
             return np.full(n, _DIVERGED_LOSS)
-        P = self.predicted_points(np.asarray(X[: self.frames], np.float64))
-        out = self.l_dist * self.chamfer(P, first=1)
+        Xf = np.asarray(X[: self.frames], np.float64)
+        out = self.l_dist * self.chamfer(self.predicted_points(Xf), first=1, unseen=self.unseen_points(Xf))
         if self.track_index is not None:
             vis = self.visible[1:]
             if vis.any():

@@ -276,3 +276,64 @@ def test_rollouts_advanced_in_turn_are_the_rollouts_one_by_one():
     sim.solver.config.max_speed = 1e-9  # every moving particle "too fast": both worlds diverge at frame 1
     (x, bad, _), = run_together([sim.steps(6, queued=True)])
     assert bad == [0, 1] and not np.isnan(x[0]).any() and np.isnan(x[1:]).all()
+
+
+def _box_lattice(n=(10, 8, 6), s=0.004):
+    g = np.stack(np.meshgrid(*[np.arange(k) * s for k in n], indexing="ij"), -1).reshape(-1, 3)
+    return g, s
+
+
+def test_body_surface_is_half_a_spacing_outside_the_boundary_particles():
+    from empm_gym.identification.offline import body_surface
+
+    x, s = _box_lattice()
+    hi = x.max(0)
+    pts = body_surface(x)
+    assert len(pts) == 10 * 8 * 6 - 8 * 6 * 4  # every particle of the outer layer, no inner one
+    # each lies outside the particle box by half a spacing along some axis (a face's outward normal; edges and
+    # corners diagonally), and none inside it
+    outside = np.maximum(np.maximum(-pts, pts - hi), 0.0)
+    reach = np.linalg.norm(outside, axis=1)
+    assert np.all(reach > 0.25 * s) and np.all(reach < 0.55 * s)
+    faces = (np.abs(outside) > 1e-9).sum(1) == 1
+    np.testing.assert_allclose(reach[faces], 0.5 * s, atol=1e-9)
+    with pytest.raises(ValueError, match="no surface"):
+        body_surface(x[:1])
+
+
+def test_unseen_surface_matches_observed_points_on_a_side_frame_0_did_not_see():
+    """A box seen only from above at frame 0 and lifted: at frame 1 the cameras see its underside. The carried
+    frame-0 points (the top) cannot stand for it; with ``unseen_surface`` the observed-to-simulated half reaches
+    the simulated body's own surface, and the simulated-to-observed half, numpy and torch agree."""
+    import torch
+
+    from empm_gym.identification.offline import Objective
+
+    x, s = _box_lattice()
+    hi = x.max(0)
+    top = x[x[:, 2] == hi[2]] + [0.0, 0.0, 0.5 * s]
+    bottom = x[x[:, 2] == 0.0] - [0.0, 0.0, 0.5 * s]
+    lift = np.array([0.0, 0.0, 0.02])
+    X = np.stack([x, x + lift])
+    obs = Observations(30.0, [top, np.concatenate([top, bottom]) + lift], surface=True)
+    scene = Scene(x, s ** 3, fps=30.0)
+    plain = Objective(scene, obs, 2, l_trk=0.0)
+    full = Objective(scene, obs, 2, l_trk=0.0, unseen_surface=True)
+    P = plain.predicted_points(X)
+    np.testing.assert_allclose(P[1], top + lift, atol=1e-6)
+    # without it, the underside's points are the box's height from the nearest carried point
+    height = hi[2] + s
+    assert plain.chamfer(P, direction="obs_to_pred", first=1)[0] == pytest.approx(0.5 * height, rel=0.02)
+    U = full.unseen_points(X)
+    reach = full.chamfer(P, direction="obs_to_pred", first=1, unseen=U)[0]
+    assert reach < 0.1 * s  # the bottom face's points; along its edges they lie diagonally out of the corners
+    # the other half is the carried points' alone
+    assert full.chamfer(P, direction="pred_to_obs", first=1, unseen=U)[0] == pytest.approx(
+        plain.chamfer(P, direction="pred_to_obs", first=1)[0], abs=1e-12)
+    assert full.numpy(X) == pytest.approx(0.5 * (plain.chamfer(P, direction="pred_to_obs", first=1)[0] + reach),
+                                          abs=1e-12)
+    # (the differentiable distances are sqrt(d^2 + 1e-12): 1e-6 m on points that match exactly)
+    assert full.torch(torch.as_tensor(X)).item() == pytest.approx(full.numpy(X), abs=1.5e-6)
+    assert plain.torch(torch.as_tensor(X)).item() == pytest.approx(plain.numpy(X), abs=1.5e-6)
+    with pytest.raises(ValueError, match="unseen_surface needs"):
+        Objective(scene, obs, 2, l_trk=0.0, observation="particles", unseen_surface=True)
