@@ -361,7 +361,8 @@ def oracles(problems: Path, args):
         # unseen_surface off, surface seen later but not at frame 0); carried points far from the observed ones,
         # surface hidden later
         P, U = objective.predicted_points(X), objective.unseen_points(X)
-        row = {"recording": path.stem, "truth": prob["truth"], "oracle_chamfer_m": float(np.mean(per["chamfer"][F:])),
+        row = {"recording": path.stem, "truth": prob["truth"], "unseen_surface": cfg.unseen_surface,
+               "oracle_chamfer_m": float(np.mean(per["chamfer"][F:])),
                "oracle_loss": float(np.mean(per["loss"][F:])),
                **{f"oracle_{d}_m": float(np.mean(objective.chamfer(P, direction=d, unseen=U)[F:]))
                   for d in ("obs_to_pred", "pred_to_obs")}}
@@ -409,8 +410,9 @@ def _against_the_recordings_own_simulation(rows, floor_rows):
     if not both:
         return
     print("\nagainst the recording's own simulation (the synthesiser's particles: a perfect body and model; what is "
-          "left is the depth noise and the surface frame 0 did not see): the most any model can show, and the share of "
-          "the gap above it the fit closes")
+          "left is the depth noise, the surface hidden later and, in rows scored without the unseen surface (before "
+          "session 39), the surface frame 0 did not see): the most any model can show, and the share of the gap above "
+          "it the fit closes")
     for eff in [*dict.fromkeys(r["truth"] for r in both), None]:
         rs = [r for r in both if eff is None or r["truth"] == eff]
         can = [1.0 - oracle[r["recording"]] / r["base_chamfer_m"] for r in rs]
@@ -429,9 +431,11 @@ def _against_the_recordings_own_simulation(rows, floor_rows):
 
     for obj in dict.fromkeys(obj_of(r["recording"]) for r in both if r["recording"] in halves):
         hs = [halves[r["recording"]] for r in both if r["recording"] in halves and obj_of(r["recording"]) == obj]
-        print(f"  its two halves, {obj} ({len(hs)}): observed points to the carried ones "
-              f"{1e3 * np.median([h['oracle_obs_to_pred_m'] for h in hs]):.2f} mm (noise, and surface seen later "
-              f"but not at frame 0), carried to observed "
+        unseen = sum(bool(h.get("unseen_surface")) for h in hs)
+        to = ("the simulation (noise)" if unseen == len(hs) else "the carried ones (noise, and surface seen later but "
+              f"not at frame 0{f'; {unseen} of them scored with the unseen surface' if unseen else ''})")
+        print(f"  its two halves, {obj} ({len(hs)}): observed points to {to} "
+              f"{1e3 * np.median([h['oracle_obs_to_pred_m'] for h in hs]):.2f} mm, carried to observed "
               f"{1e3 * np.median([h['oracle_pred_to_obs_m'] for h in hs]):.2f} mm "
               f"(noise, and surface hidden later) (medians)")
 

@@ -129,10 +129,11 @@ def body_surface(particles0: np.ndarray, radius: float = 1.8, shift: float = 0.2
     """Points on the surface of a body of particles [N, 3] (m): each boundary particle moved half the median
     particle spacing s outward, where the observed surface of a body lies (:func:`surface_embedding`).
 
-    A particle is on the boundary when the centroid of its neighbours within ``radius`` s lies more than
-    ``shift`` s from it (inside a body the neighbours surround it and their centroid is the particle itself;
-    on a face of a lattice it lies half a spacing inward); outward is away from that centroid. Thin bodies,
-    whose particles are mostly on the boundary, need no count of what a full neighbourhood holds."""
+    A particle is on the boundary when the centroid of its neighbours within ``radius`` s (the nearest 32; a
+    cubic or body-centred lattice holds 26 within 1.8 spacings) lies more than ``shift`` s from it (inside a body
+    the neighbours surround it and their centroid is the particle itself; on a face of a lattice it lies half a
+    spacing inward); outward is away from that centroid. Thin bodies, whose particles are mostly on the
+    boundary, need no count of what a full neighbourhood holds."""
     from scipy.spatial import cKDTree
 
     x = np.asarray(particles0, np.float64).reshape(-1, 3)
@@ -140,7 +141,7 @@ def body_surface(particles0: np.ndarray, radius: float = 1.8, shift: float = 0.2
         raise ValueError(f"body_surface: a body of {len(x)} particles has no surface to find")
     tree = cKDTree(x)
     s = float(np.median(tree.query(x, k=2)[0][:, 1]))
-    dist, idx = tree.query(x, k=min(len(x), 64), distance_upper_bound=radius * s)
+    dist, idx = tree.query(x, k=min(len(x), 32), distance_upper_bound=radius * s)
     near = np.isfinite(dist)
     centre = (x[np.where(near, idx, 0)] * near[..., None]).sum(1) / near.sum(1)[:, None]
     out = x - centre
