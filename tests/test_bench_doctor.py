@@ -163,6 +163,7 @@ def test_the_recordings_own_simulation_reproduces_it_and_only_it(bench, tmp_path
     mine, other = own[0], slow[0]
     assert mine["oracle_chamfer_m"] < 8e-3 and other["oracle_chamfer_m"] > 4 * mine["oracle_chamfer_m"], (own, slow)
     assert mine["oracle_chamfer_m"] == pytest.approx(0.5 * (mine["oracle_obs_to_pred_m"] + mine["oracle_pred_to_obs_m"]))
+    assert mine["unseen_surface"] is True  # scored as the doctor scores by default
     with pytest.raises(SystemExit, match="made on a 0.02 m grid, not --synth-dx 0.01"):
         bench.oracles(tmp_path / "prob", bench.parse_args(["--object", "block", "--synth-dx", "0.01"]))
     with pytest.raises(SystemExit, match="does not say which grid"):
@@ -187,5 +188,11 @@ def test_the_gap_closed_is_measured_above_the_recordings_own_simulation(bench, t
     # possible: 50 % and 80 %, median 65 %; gap closed: 50 % and 100 %, median 75 %
     assert "table_friction           2 recordings: shown   52.5 %, possible   65.0 %" in out
     assert "gap closed   75.0 % (medians)" in out
-    assert "its two halves, dough (1): observed points to the carried ones 3.00 mm" in out
+    assert ("its two halves, dough (1): observed points to the carried ones (noise, and surface seen later but not "
+            "at frame 0) 3.00 mm") in out
     assert "carried to observed 1.00 mm" in out
+    # rows scored as the doctor now scores (observed points may match the simulated body's unseen surface)
+    oracle[0]["unseen_surface"] = True
+    (tmp_path / "oracle.jsonl").write_text("".join(json.dumps(r) + "\n" for r in oracle))
+    assert bench.main(["--summarise", str(tmp_path / "rows.jsonl"), "--floors", str(tmp_path / "oracle.jsonl")]) == 0
+    assert "its two halves, dough (1): observed points to the simulation (noise) 3.00 mm" in capsys.readouterr().out
