@@ -7,6 +7,6 @@ from .test_doctor import HIDDEN_2, doctor_names_the_hidden_effect
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("effect,script", HIDDEN_2, ids=[f"{e}-{s}" for e, s in HIDDEN_2])
-def test_doctor_names_the_hidden_effect_too(tmp_path, effect, script):
-    doctor_names_the_hidden_effect(tmp_path, effect, script)
+@pytest.mark.parametrize("case", HIDDEN_2, ids=["-".join(c[:2]) + ("-" + c[2] if len(c) > 2 else "") for c in HIDDEN_2])
+def test_doctor_names_the_hidden_effect_too(tmp_path, case):
+    doctor_names_the_hidden_effect(tmp_path, *case)
