@@ -132,9 +132,10 @@ class DoctorConfig:
     unseen_surface: bool = True
     """Held-out scores let an observed point match the simulated body's surface that the cameras did not see at
     frame 0 as well as the carried frame-0 points (:class:`~empm_gym.identification.offline.Objective`'s
-    ``unseen_surface``): without it, a dough lifted or pulled apart shows its underside and its inside, which
-    no carried point stands for, and a perfect model's held-out Chamfer stays 5-9 mm observed-to-simulated
-    against 1.5-1.7 mm the other way (benchmarks/RESULTS.md, session 38). The fits keep the carried points."""
+    ``unseen_surface``): without it, a dough lifted, dragged or pulled apart shows surface no carried point
+    stands for (its underside, sides turned towards a camera), and a perfect model's held-out Chamfer stays
+    5.6-9.3 mm observed-to-simulated against 1.5-1.7 mm the other way (benchmarks/RESULTS.md, session 38; with
+    it, 1.45 mm, session 39). The fits keep the carried points."""
     seed: int = 0
 
 
