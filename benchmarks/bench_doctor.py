@@ -320,8 +320,9 @@ def oracles(problems: Path, args):
     """The held-out Chamfer of each effect recording's own simulation: the synthesiser run again (``ground_truth``'s
     material, the script and the seed, on the grid the recording was made on), its particles carrying the doctor's
     frame-0 observed points as the doctor's fits carry them, scored as the doctor scores. A perfect body and a
-    perfect model: what is left is the depth noise of the frames compared and the surface seen later that frame 0
-    did not see (the doctor carries frame 0's observed points), which no model removes. The reduction it
+    perfect model: what is left is the depth noise of the frames compared and surface the cameras no longer see
+    (and, with ``DoctorConfig.unseen_surface`` off, the surface seen later that frame 0 did not see), which no
+    model removes. The reduction it
     gives over the base model bounds what any model, on any body, can show on the recording (:func:`floors` bounds
     what the doctor's own body allows)."""
     import dataclasses
@@ -596,8 +597,7 @@ def _parser():
     p.add_argument("--oracle", action="store_true",
                    help="simulate each effect problem's recording again with the synthesiser (its ground truth, on "
                         "the grid it was made on; --synth-dx for problems that do not record it) and score its own "
-                        "particles: what a perfect body and model reach, the rest depth noise and surface unseen at "
-                        "frame 0 (rows to --jsonl)")
+                        "particles: what a perfect body and model reach, the rest depth noise (rows to --jsonl)")
     p.add_argument("--floors", nargs="*", default=[],
                    help="--floor and --oracle rows to print beside --summarise / --rescore")
     return p
