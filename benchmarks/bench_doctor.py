@@ -129,6 +129,16 @@ def make(args):
                     with open(out / f"{name}.pkl", "rb") as f:
                         prob = pickle.load(f)
                     changed = False
+                    if args.reload and rec.exists():
+                        # the loader changed: the scene and observations rebuilt from the recording as made
+                        scene, obs, _, _, notes = load_for_doctor(rec, dx=args.dx, particles_per_cell=args.ppc,
+                                                                  progress=False, trim_to_surface=args.trim_bodies)
+                        prob.update(scene=scene, obs=_subsample(obs, seed, args.max_points), body_notes=notes,
+                                    trim_to_surface=args.trim_bodies)
+                        if "view_bodies" in prob or args.view_bodies:
+                            prob["view_bodies"] = view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc,
+                                                                        trim_to_surface=args.trim_bodies)
+                        changed = True
                     if "signature_m" not in prob:
                         prob["signature_m"] = effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
                                                                effect_params=eparams or None, base_params=base,
@@ -148,19 +158,18 @@ def make(args):
                 truth = [e["name"] for e in json.loads((rec / "ground_truth.json").read_text())["effects"]]
                 try:
                     scene, obs, _, _, notes = load_for_doctor(rec, dx=args.dx, particles_per_cell=args.ppc,
-                                                              progress=False)
+                                                              progress=False, trim_to_surface=args.trim_bodies)
                 except ValueError as e:  # e.g. squeeze-ring's plate hides a rope from every camera
                     print(f"{name}: skipped, the recording cannot be loaded: {e}", flush=True)
                     continue
-                # observations in float32, at most --max-points per frame: what the doctor's loss uses anyway
-                rng = np.random.default_rng(seed)
-                obs.points = [p if len(p) <= args.max_points else p[rng.choice(len(p), args.max_points, replace=False)]
-                              for p in obs.points]
+                obs = _subsample(obs, seed, args.max_points)
                 with open(out / f"{name}.pkl", "wb") as f:
                     pickle.dump({"scene": scene, "obs": obs, "truth": truth[0] if truth else "none",
                                  "script": script, "seed": seed, "truth_params": eparams, "body_notes": notes,
                                  "base_params": base, "synth_dx": synth_dx,
-                                 **({"view_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc)}
+                                 "trim_to_surface": args.trim_bodies,
+                                 **({"view_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc,
+                                                                          trim_to_surface=args.trim_bodies)}
                                     if args.view_bodies else {}),
                                  "signature_m": effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
                                                                  effect_params=eparams or None, base_params=base,
@@ -168,6 +177,14 @@ def make(args):
                 print(f"{name}: {len(scene.particles)} particles, {obs.num_frames} frames "
                       f"({time.perf_counter() - t0:.1f} s)", flush=True)
     return out
+
+
+def _subsample(obs, seed: int, max_points: int):
+    """``obs`` with at most ``max_points`` observed points per frame (a random choice seeded by ``seed``): what the
+    doctor's loss uses anyway."""
+    rng = np.random.default_rng(seed)
+    obs.points = [p if len(p) <= max_points else p[rng.choice(len(p), max_points, replace=False)] for p in obs.points]
+    return obs
 
 
 def diagnose_all(problems: Path, args):
@@ -583,6 +600,12 @@ def _parser():
                         "as variants too")
     p.add_argument("--dump", default=None, help="write each recording's full doctor result (JSON) into this folder")
     p.add_argument("--only-make", action="store_true", help="stop after --make")
+    p.add_argument("--trim-bodies", action="store_true",
+                   help="with --make: the frame-0 bodies trimmed to the measured surface (load_for_doctor's "
+                        "trim_to_surface; off by default, benchmarks/RESULTS.md session 40)")
+    p.add_argument("--reload", action="store_true",
+                   help="with --make --keep-existing: rebuild each kept problem's scene and observations from its "
+                        "recording (after a change to the loader), keeping its signature")
     p.add_argument("--keep-existing", action="store_true",
                    help="with --make: keep problems already pickled (adding their signature), make the others")
     p.add_argument("--shard", default="0/1", help="K/N: diagnose every N-th recording from the K-th (split runs)")
@@ -620,6 +643,8 @@ def main(argv=None):
                   floor_rows)
         return 0
     problems = Path(args.problems) if args.problems else None
+    if args.reload and not (args.make and args.keep_existing):
+        p.error("--reload rebuilds the problems kept by --make DIR --keep-existing: give both")
     if args.make:
         problems = make(args)
         if args.only_make:

@@ -108,15 +108,17 @@ def attach_grippers(configs, positions, grip, particles, dx: float):
 def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particles_per_cell: float,
                 voxel_m: float = 0.003, complete_hidden: bool = True, single_view: Optional[bool] = None,
                 points: Optional[np.ndarray] = None, symmetry_axis: Optional[Sequence[float]] = None,
-                measure_hidden: bool = True):
+                measure_hidden: bool = True, trim_to_surface: bool = False):
     """The frame-0 body of recording ``rec`` as simulation particles: ``(x0 [N, 3] m, volumes [N] m^3, report)``
     (what :func:`load_recording` builds, see there; ``report`` holds ``view_gap_deg``, ``single_view``,
-    ``body_completion`` and, for views from one side, ``symmetry``). ``plane`` is the table (normal, offset),
+    ``body_completion``, ``trimmed_share`` (the share of the fill's particles removed as lying outside the
+    measured surface with ``trim_to_surface``, :func:`_trim_to_surface`) and, for views from one side, ``symmetry``). ``plane`` is the table (normal, offset),
     ``cfgs``, ``pos`` [T, K, 3], ``grip`` [T, K] and ``orient`` the end-effectors as the controls give them;
     ``points`` the fused frame-0 points when already at hand (else fused from ``rec``'s cameras);
     ``symmetry_axis`` (x, y m) places the half-turn axis of a single-view completion instead of searching it;
     ``measure_hidden`` adds ``hidden_share`` and ``hidden_note`` to ``report`` (:func:`_hidden_share`: one more
-    fill of the body, without what the end-effectors hide)."""
+    fill of the body, without what the end-effectors hide); ``trim_to_surface`` removes the fill's particles that
+    lie outside the measured surface (:func:`_trim_to_surface`; off by default, see there)."""
     from empm_gym.perception.fusion import (carve_with_depth, complete_by_symmetry, complete_occluded,
                                             end_effector_sdf, fuse_frame, initial_particles, inside_end_effectors,
                                             inside_open_end_effectors, view_gap_deg, within_footprint)
@@ -130,6 +132,7 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
     one_side = gap > 180.0 if single_view is None else bool(single_view)
     report = {"view_gap_deg": gap, "single_view": one_side}
     ee0 = dict(ee_configs=cfgs, ee_positions=pos[0], grip=grip[0], ee_orientations=orient0)
+    surface = body  # the surface the cameras measured (and, from one side, its turned copy): the fill stops there
 
     def under_open(points):
         """True for points less than a cell below an open end-effector."""
@@ -158,6 +161,7 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
             touch = near[sd < 0.75 * dx]
         turned, sym = complete_by_symmetry(body, rec, 0, contact=touch, axis=symmetry_axis, **ee0)
         body = np.concatenate([body, turned])
+        surface = body
         report["symmetry"] = {k: v for k, v in sym.items() if k != "kept"}
         report["body_completion"] = (f"single-view ({rec.num_cameras} camera(s), {gap:.0f} deg of azimuth unseen): "
                                      + sym["note"])
@@ -210,9 +214,35 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
         if not keep.any():
             raise ValueError(f"{rec.path}: every frame-0 particle lies inside an open end-effector")
         x0, vol = x0[keep], vol[keep]
+    report["trimmed_share"] = 0.0
+    if trim_to_surface:
+        x0, vol, report["trimmed_share"] = _trim_to_surface(x0, vol, surface)
     if measure_hidden:
-        report.update(_hidden_share(seen, vol, rec, plane, dx, particles_per_cell, one_side))
+        report.update(_hidden_share(seen, vol, rec, plane, dx, particles_per_cell, one_side,
+                                    surface if trim_to_surface else None))
     return x0, vol, report
+
+
+#: Above this share of a body's particles outside the measured surface, :func:`_trim_to_surface` removes none:
+#: a fill is not that far off its own scan, so the surface's normals, not the body, would be wrong.
+MAX_TRIM_SHARE = 0.25
+
+
+def _trim_to_surface(x0: np.ndarray, vol: np.ndarray, surface: np.ndarray):
+    """``(x0, vol, share)``: the particles whose centres lie outside the measured ``surface``
+    (:func:`empm_gym.perception.fusion.outside_surface`) removed, and their share of the body (none removed above
+    :data:`MAX_TRIM_SHARE`). Measured on ``empm synth``'s frame-0 bodies (three cameras, 5 mm grid): 4.4 % of a
+    pressed dough's particles (its volume 123.4 -> 118.0 cm^3, the observed surface enclosing about 122), 2.8 % of
+    a rope's. Off by default: on the doctor's benchmark (seeds 13-14, 5 mm) the trimmed bodies raised the median
+    held-out reduction of the effect recordings (41.7 -> 44.6 % on the same 35) but the doctor named an effect on 3 of
+    26 `none` recordings (0 before; benchmarks/RESULTS.md, session 40)."""
+    from empm_gym.perception.fusion import outside_surface
+
+    out = outside_surface(x0, surface)
+    share = float(out.mean()) if len(out) else 0.0
+    if share == 0.0 or share > MAX_TRIM_SHARE:
+        return x0, vol, 0.0
+    return x0[~out], np.asarray(vol)[~out], share
 
 
 #: Share of the frame-0 body's volume completed where the end-effectors hide it from every camera above which the
@@ -221,13 +251,14 @@ HIDDEN_NOTE_SHARE = 0.25
 
 
 def _hidden_share(seen: Optional[np.ndarray], vol: np.ndarray, rec, plane, dx: float, particles_per_cell: float,
-                  one_side: bool) -> dict:
+                  one_side: bool, surface: Optional[np.ndarray] = None) -> dict:
     """``hidden_share``: the share of the body's volume ``vol`` [m^3 per particle] that the end-effectors' hidden
     completion added, measured as 1 - (volume of the body filled from ``seen``, the points before that
     completion) / (the body's volume); 0 when nothing was completed (``seen`` None). ``hidden_note``: a sentence
     saying so at :data:`HIDDEN_NOTE_SHARE` or more, else None. On ``empm synth``'s dough and block held in two box
     clamps (pull-apart, lift-end, squeeze-lift) 0.68 and 0.77, the bodies 25 % and 28 % above the true volume;
-    pressed or pushed, 0.00-0.10 (benchmarks/RESULTS.md, session 32)."""
+    pressed or pushed, 0.00-0.10 (benchmarks/RESULTS.md, session 32). The fill from ``seen`` is trimmed to
+    ``surface`` as the body was (:func:`_trim_to_surface`)."""
     from empm_gym.perception.fusion import carve_with_depth, initial_particles
 
     total = float(np.sum(vol))
@@ -236,7 +267,10 @@ def _hidden_share(seen: Optional[np.ndarray], vol: np.ndarray, rec, plane, dx: f
     try:
         xs, vs = initial_particles(seen, dx=dx, particles_per_cell=particles_per_cell, table_plane=plane,
                                    fill_layers=one_side, open_thin=one_side, align_lattice=True)
-        seen_vol = float(np.sum(carve_with_depth(xs, vs, rec, 0)[1]))
+        xs, vs = carve_with_depth(xs, vs, rec, 0)
+        if surface is not None:
+            xs, vs, _ = _trim_to_surface(xs, vs, surface)
+        seen_vol = float(np.sum(vs))
     except ValueError:  # the seen points alone enclose no volume: all of it was completed
         seen_vol = 0.0
     share = float(np.clip(1.0 - seen_vol / total, 0.0, 1.0))
@@ -262,13 +296,14 @@ AMBIGUOUS_GAP_DEG = (150.0, 210.0)
 def rebuilt_scene(rec_dir, scene, *, particles_per_cell: float, cameras: Optional[List[int]] = None,
                   points: Optional[np.ndarray] = None, voxel_m: float = 0.003, complete_hidden: bool = True,
                   ee_friction: float = 0.8, single_view: Optional[bool] = None,
-                  symmetry_axis: Optional[Sequence[float]] = None, info: Optional[dict] = None):
+                  symmetry_axis: Optional[Sequence[float]] = None, info: Optional[dict] = None,
+                  trim_to_surface: bool = False):
     """``scene`` (made by :func:`load_recording` from ``rec_dir``, a path or an open Recording) with its frame-0
     body built again: at another fill (``particles_per_cell``), from the cameras ``cameras`` only (default all), from the fused frame-0
     ``points`` when given, with the completion ``single_view`` (None: as :func:`frame0_body` decides) and its
     half-turn axis at ``symmetry_axis`` when given; the closed grippers grown to reach the new body. ValueError
     when the views cannot close a body. ``info`` (a dict) receives :func:`frame0_body`'s report on the new body,
-    its hidden share measured (one more fill)."""
+    its hidden share measured (one more fill); ``trim_to_surface`` as :func:`frame0_body`'s."""
     from dataclasses import replace
 
     from empm_gym.perception.fusion import load_controls
@@ -283,7 +318,8 @@ def rebuilt_scene(rec_dir, scene, *, particles_per_cell: float, cameras: Optiona
     x0, vol, report = frame0_body(rec, plane, cfgs, pos, grip, controls.get("orientations"), dx=scene.dx,
                                   particles_per_cell=particles_per_cell, voxel_m=voxel_m,
                                   complete_hidden=complete_hidden, points=points, single_view=single_view,
-                                  symmetry_axis=symmetry_axis, measure_hidden=info is not None)
+                                  symmetry_axis=symmetry_axis, measure_hidden=info is not None,
+                                  trim_to_surface=trim_to_surface)
     if info is not None:
         info.update(report)
     grown, _ = attach_grippers(cfgs, pos, grip, x0, scene.dx)
@@ -292,7 +328,8 @@ def rebuilt_scene(rec_dir, scene, *, particles_per_cell: float, cameras: Optiona
 
 def view_jackknife_bodies(rec_dir, scene, *, particles_per_cell: float, voxel_m: float = 0.003,
                           complete_hidden: bool = True, ee_friction: float = 0.8,
-                          other_completion: bool = True, symmetry: Optional[dict] = None) -> List[Tuple[str, object]]:
+                          other_completion: bool = True, symmetry: Optional[dict] = None,
+                          trim_to_surface: bool = False) -> List[Tuple[str, object]]:
     """The frame-0 body rebuilt with each camera of the recording left out in turn (:func:`rebuilt_scene`), as
     scenes that differ from ``scene`` (made by :func:`load_recording` from the same recording) only in the body
     and in the closed grippers grown to reach it: ``[(label, Scene), ...]``, one per camera, none for a
@@ -320,7 +357,8 @@ def view_jackknife_bodies(rec_dir, scene, *, particles_per_cell: float, voxel_m:
     def rebuild(label, **kw):
         try:
             sc = rebuilt_scene(rec, scene, particles_per_cell=particles_per_cell, voxel_m=voxel_m,
-                               complete_hidden=complete_hidden, ee_friction=ee_friction, **kw)
+                               complete_hidden=complete_hidden, ee_friction=ee_friction,
+                               trim_to_surface=trim_to_surface, **kw)
         except ValueError as exc:
             out.append((f"{label}: {exc}", None))
             return
@@ -378,7 +416,8 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
                    ee_friction: float = 0.8, use_tracks: bool = True, frames: Optional[int] = None,
                    grow_grippers: bool = True, complete_hidden: bool = True,
                    single_view: Optional[bool] = None, info: Optional[dict] = None,
-                   device: Optional[str] = None, progress: bool = True, warn: bool = True):
+                   device: Optional[str] = None, progress: bool = True, warn: bool = True,
+                   trim_to_surface: bool = False):
     """(Scene, Observations, Views) of the recording in ``rec_dir`` (see the module docstring).
 
     ``dx`` (m) is the simulation grid cell, ``particles_per_cell`` the density of the frame-0 fill (27: a
@@ -406,7 +445,8 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     ``info["single_view"]`` and ``info["symmetry"]`` (the axis, how far the views leave it open, how much of
     the turned surface the depth images contradict, whether the prior was used). ``warn=False`` leaves those
     warnings to the caller (``info`` still holds them): the doctor may fill the body again on a finer grid, and
-    says what it says of the body it simulates.
+    says what it says of the body it simulates. ``trim_to_surface`` removes the fill's particles outside the
+    measured surface (:func:`frame0_body`; off by default).
     """
     from tqdm.auto import tqdm
 
@@ -439,7 +479,7 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     orient = controls.get("orientations")
     x0, vol, report = frame0_body(rec, plane, cfgs, pos, grip, orient, dx=dx, particles_per_cell=particles_per_cell,
                                   voxel_m=voxel_m, complete_hidden=complete_hidden, single_view=single_view,
-                                  points=pts[0])
+                                  points=pts[0], trim_to_surface=trim_to_surface)
     if warn:
         _warn_body(rec.path, report)
     if info is not None:

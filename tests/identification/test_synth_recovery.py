@@ -101,6 +101,34 @@ def test_a_body_the_cameras_see_whole_carries_no_completion_note(tmp_path):
     assert info["hidden_share"] < HIDDEN_NOTE_SHARE and info["hidden_note"] is None
 
 
+def test_trimming_to_the_measured_surface_takes_only_outer_rows_and_brings_the_volume_to_the_truth(tmp_path):
+    """The voxel fill of a noisy scan reaches the noise's outer envelope; ``trim_to_surface`` removes the particles
+    outside the measured surface. Only outer particles go, and the body's volume comes closer to the true one
+    (on this 320 x 180 recording at 5 mm: 126 -> 119 cm^3, the dough 112.5; the synthesiser's splats put the
+    observed faces 0.5-1 mm outside the true ones)."""
+    from scipy.spatial import cKDTree
+
+    from empm_gym.identification.offline import body_surface
+    from empm_gym.perception.synth import synthesize
+
+    rec = synthesize(tmp_path / "rec", "dough", script="press-release", effect="none", frames=4, cameras=3,
+                     width=320, height=180, progress=False)
+    true_vol = np.prod(json.loads((rec / "ground_truth.json").read_text())["scene"]["object_geometry"]["size_m"])
+    info = {}
+    full, _, _ = load_recording(rec, dx=0.005, particles_per_cell=8, progress=False, warn=False)
+    trim, _, _ = load_recording(rec, dx=0.005, particles_per_cell=8, progress=False, warn=False, info=info,
+                                trim_to_surface=True)
+    x, y = full.particles, trim.particles
+    assert cKDTree(x).query(y)[0].max() < 1e-9                 # a subset of the untrimmed body
+    removed = x[cKDTree(y).query(x)[0] > 1e-9]
+    assert len(removed) == len(x) - len(y) and 0.01 < info["trimmed_share"] < 0.25
+    assert info["trimmed_share"] == pytest.approx(len(removed) / len(x))
+    # every removed particle lies on the untrimmed body's boundary (within half a spacing of a surface point)
+    s = np.median(cKDTree(x).query(x, k=2)[0][:, 1])
+    assert cKDTree(body_surface(x)).query(removed)[0].max() < 0.6 * s
+    assert abs(trim.volumes.sum() - true_vol) < abs(full.volumes.sum() - true_vol) - 0.03 * true_vol
+
+
 # -- recovery through the whole pipeline ---------------------------------------------------------------
 #
 # `empm synth` recordings (3 cameras, rendered surface, depth noise, tracks) -> perception -> identify, from

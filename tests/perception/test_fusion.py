@@ -102,6 +102,42 @@ def test_initial_particles_rope(rope_rec):
     assert np.percentile(np.abs(x[:, 1]), 99) < r + 0.004
 
 
+def _box_scan(lo, hi, spacing, sigma, rng, faces=("x-", "x+", "y-", "y+", "z+")):
+    """Points every ``spacing`` on the named faces of the box [lo, hi], moved along the face normal by Gaussian
+    noise of ``sigma`` (m): a depth scan seen from above and around."""
+    pts = []
+    for f in faces:
+        a, side = "xyz".index(f[0]), f[1]
+        o = [i for i in range(3) if i != a]
+        g = [np.arange(lo[i] + spacing / 2, hi[i], spacing) for i in o]
+        A, B = np.meshgrid(*g, indexing="ij")
+        p = np.zeros((A.size, 3))
+        p[:, o[0]], p[:, o[1]] = A.ravel(), B.ravel()
+        p[:, a] = (hi if side == "+" else lo)[a] + (1 if side == "+" else -1) * sigma * rng.standard_normal(A.size)
+        pts.append(p)
+    return np.concatenate(pts)
+
+
+def test_outside_surface_finds_a_row_beyond_a_noisy_scan_and_decides_nothing_where_none_was_seen():
+    rng = np.random.default_rng(3)
+    lo, hi, s = np.array([0.0, 0.0, 0.0]), np.array([0.05, 0.05, 0.04]), 0.0025
+    axes = [np.arange(lo[i] + s / 2, hi[i], s) for i in range(3)]
+    body = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # outer rows half a spacing inside
+    yz = np.stack(np.meshgrid(axes[1], axes[2], indexing="ij"), -1).reshape(-1, 2)
+    extra_x = np.column_stack([np.full(len(yz), hi[0] + s / 2), yz])  # a row half a spacing beyond the +x face
+    xy = np.stack(np.meshgrid(axes[0], axes[1], indexing="ij"), -1).reshape(-1, 2)
+    extra_z = np.column_stack([xy, np.full(len(xy), lo[2] - s / 2)])  # and one under the unseen bottom
+    x = np.concatenate([body, extra_x, extra_z])
+    scan = _box_scan(lo, hi, 0.003, 0.0012, rng)  # 1.2 mm of depth noise, about half a spacing
+    out = F.outside_surface(x, scan)
+    n_b, n_x = len(body), len(extra_x)
+    assert out[n_b:n_b + n_x].mean() > 0.95          # the row beyond the seen face
+    assert out[:n_b].mean() < 0.005                  # the body's own outer rows stay, its edges too
+    # under the bottom no camera saw: the middle of that row lies beyond reach of every scanned point
+    mid = np.all(np.abs(extra_z[:, :2] - 0.025) < 0.015, axis=1)
+    assert not out[n_b + n_x:][mid].any()
+
+
 def test_carving_removes_free_space_and_keeps_the_object(dough_rec):
     rec = Recording(dough_rec)
     plane = F.estimate_table_plane(rec)

@@ -38,21 +38,22 @@ DOCTOR_CELLS_ACROSS = 4.0
 
 
 def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: float = 8, device=None,
-                    progress: bool = True):
+                    progress: bool = True, trim_to_surface: bool = False):
     """``(scene, obs, views, info, notes)`` of a recording as the doctor simulates it: what
     :func:`~empm_gym.identification.data.load_recording` returns (``info`` filled), on the grid cell ``dx`` [m]
     or, without it, on one that resolves the body: :data:`DEFAULT_DX`, halved (at most twice) while the
     frame-0 body, filled again from the views on each finer cell and measured there, is fewer than
     :data:`DOCTOR_CELLS_ACROSS` cells across
     (:func:`~empm_gym.identification.uncertainty.resolving_dx`). ``notes``: what the loader says of the body
-    and, where the cell was refined, why."""
+    and, where the cell was refined, why. ``trim_to_surface``: the body's particles outside the measured surface
+    removed (:func:`~empm_gym.identification.data.frame0_body`; off by default)."""
     from ..data import _warn_body, load_recording, rebuilt_scene
     from ..uncertainty import resolving_dx
 
     info = {}
     scene, obs, views = load_recording(rec_dir, dx=DEFAULT_DX if dx is None else dx,
                                        particles_per_cell=particles_per_cell, device=device, progress=progress,
-                                       info=info, warn=False)  # said below, of the body simulated
+                                       info=info, warn=False, trim_to_surface=trim_to_surface)  # said below
     grid_notes = []
     if dx is None:
         coarse, refused = scene, []
@@ -61,7 +62,7 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
             # the same recording, the frame-0 body filled again at the finer cell (what the cameras saw is the same)
             report = {}
             finer = rebuilt_scene(rec_dir, dataclasses.replace(coarse, dx=fine), particles_per_cell=particles_per_cell,
-                                  info=report)
+                                  info=report, trim_to_surface=trim_to_surface)
             v0, v1 = float(np.sum(coarse.volumes)), float(np.sum(finer.volumes))
             if v1 < (1.0 - REFILL_VOLUME_TOL) * v0:
                 refused.append((fine, v0, v1))
