@@ -106,6 +106,41 @@ def test_make_on_another_grid_than_the_doctors(bench, tmp_path):
         assert prob["scene"].dx == 0.01 and isinstance(prob["body_notes"], list)
 
 
+def test_reload_rebuilds_kept_problems_from_their_recordings_and_keeps_their_signature(bench, tmp_path):
+    """``--reload`` (with ``--make --keep-existing``): after a change to the loader, each kept problem's scene and
+    observations are those a fresh load of its recording gives (here with ``--trim-bodies``), and what the make
+    measured of the synthesiser (the signature) stays; without ``--keep-existing`` it is refused."""
+    import dataclasses
+    import pickle
+
+    import numpy as np
+
+    from empm_gym.identification.doctor import load_for_doctor
+
+    args = ["--object", "block", "--make", str(tmp_path / "rec"), "--problems", str(tmp_path / "prob"),
+            "--effects", "none", "--only-scripts", "squeeze-ring", "--seeds", "1", "--dx", "0.01",
+            "--frames", "4", "--cameras", "2", "--width", "160", "--height", "120", "--only-make"]
+    assert bench.main(args) == 0
+    (pkl,) = (tmp_path / "prob").glob("*.pkl")
+    with open(pkl, "rb") as f:
+        prob = pickle.load(f)
+    n_points = [len(p) for p in prob["obs"].points]
+    prob["signature_m"] = 0.123                           # stands for what the make measured
+    prob["scene"] = dataclasses.replace(prob["scene"], particles=prob["scene"].particles[:10],
+                                        volumes=prob["scene"].volumes[:10])  # not what the loader builds
+    with open(pkl, "wb") as f:
+        pickle.dump(prob, f)
+    with pytest.raises(SystemExit):
+        bench.main(args + ["--reload"])
+    assert bench.main(args + ["--keep-existing", "--reload", "--trim-bodies"]) == 0
+    with open(pkl, "rb") as f:
+        again = pickle.load(f)
+    fresh, _, _, _, _ = load_for_doctor(tmp_path / "rec" / pkl.stem, dx=0.01, progress=False, trim_to_surface=True)
+    np.testing.assert_array_equal(again["scene"].particles, fresh.particles)
+    assert again["signature_m"] == 0.123 and again["trim_to_surface"] is True
+    assert [len(p) for p in again["obs"].points] == n_points
+
+
 @pytest.mark.parametrize("flag, text, said", [("--effect-params", "viscosty=200", "'viscosty' is no parameter"),
                                               ("--effect-params", "viscosity", "NAME=VALUE"),
                                               ("--effect-params", "viscosity=lots", "must be a number"),
