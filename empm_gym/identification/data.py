@@ -112,7 +112,8 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
     """The frame-0 body of recording ``rec`` as simulation particles: ``(x0 [N, 3] m, volumes [N] m^3, report)``
     (what :func:`load_recording` builds, see there; ``report`` holds ``view_gap_deg``, ``single_view``,
     ``body_completion``, ``trimmed_share`` (the share of the fill's particles removed as lying outside the
-    measured surface with ``trim_to_surface``, :func:`_trim_to_surface`) and, for views from one side, ``symmetry``). ``plane`` is the table (normal, offset),
+    measured surface with ``trim_to_surface``, :func:`_trim_to_surface`; ``trim_note``: None, or why none was) and,
+    for views from one side, ``symmetry``). ``plane`` is the table (normal, offset),
     ``cfgs``, ``pos`` [T, K, 3], ``grip`` [T, K] and ``orient`` the end-effectors as the controls give them;
     ``points`` the fused frame-0 points when already at hand (else fused from ``rec``'s cameras);
     ``symmetry_axis`` (x, y m) places the half-turn axis of a single-view completion instead of searching it;
@@ -214,9 +215,11 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
         if not keep.any():
             raise ValueError(f"{rec.path}: every frame-0 particle lies inside an open end-effector")
         x0, vol = x0[keep], vol[keep]
-    report["trimmed_share"] = 0.0
+    report["trimmed_share"], report["trim_note"] = 0.0, None
     if trim_to_surface:
-        x0, vol, report["trimmed_share"] = _trim_to_surface(x0, vol, surface)
+        x0, vol, report["trimmed_share"], report["trim_note"] = _trim_to_surface(x0, vol, surface)
+        if report["trim_note"]:
+            _log.warning("%s: %s", rec.path, report["trim_note"])
     if measure_hidden:
         report.update(_hidden_share(seen, vol, rec, plane, dx, particles_per_cell, one_side,
                                     surface if trim_to_surface else None))
@@ -229,20 +232,24 @@ MAX_TRIM_SHARE = 0.25
 
 
 def _trim_to_surface(x0: np.ndarray, vol: np.ndarray, surface: np.ndarray):
-    """``(x0, vol, share)``: the particles whose centres lie outside the measured ``surface``
-    (:func:`empm_gym.perception.fusion.outside_surface`) removed, and their share of the body (none removed above
-    :data:`MAX_TRIM_SHARE`). Measured on ``empm synth``'s frame-0 bodies (three cameras, 5 mm grid): 4.4 % of a
-    pressed dough's particles (its volume 123.4 -> 118.0 cm^3, the observed surface enclosing about 122), 2.8 % of
-    a rope's. Off by default: on the doctor's benchmark (seeds 13-14, 5 mm) the trimmed bodies raised the median
+    """``(x0, vol, share, note)``: the particles whose centres lie outside the measured ``surface``
+    (:func:`empm_gym.perception.fusion.outside_surface`) removed, and their share of the body; above
+    :data:`MAX_TRIM_SHARE` none are removed (share 0) and ``note`` says why (else None). Measured on ``empm synth``'s
+    frame-0 bodies (three cameras, 5 mm grid, seed 14): 5.7 % of a pressed dough's particles (its volume 123.4 ->
+    116.4 cm^3, the true 112.5, the observed surface enclosing about 122), 5.1 % of a rope's. Off by default: on the doctor's benchmark (seeds 13-14, 5 mm) the trimmed bodies raised the median
     held-out reduction of the effect recordings (41.7 -> 44.6 % on the same 35) but the doctor named an effect on 3 of
     26 `none` recordings (0 before; benchmarks/RESULTS.md, session 40)."""
     from empm_gym.perception.fusion import outside_surface
 
     out = outside_surface(x0, surface)
     share = float(out.mean()) if len(out) else 0.0
-    if share == 0.0 or share > MAX_TRIM_SHARE:
-        return x0, vol, 0.0
-    return x0[~out], np.asarray(vol)[~out], share
+    if share > MAX_TRIM_SHARE:
+        return x0, vol, 0.0, (f"the frame-0 body was not trimmed to the measured surface: {100 * share:.0f} % of its "
+                              f"particles lay outside it, more than a fill lies off its own scan (over "
+                              f"{100 * MAX_TRIM_SHARE:.0f} %: the surface's normals, not the body, are likely wrong)")
+    if share == 0.0:
+        return x0, vol, 0.0, None
+    return x0[~out], np.asarray(vol)[~out], share, None
 
 
 #: Share of the frame-0 body's volume completed where the end-effectors hide it from every camera above which the
@@ -269,7 +276,7 @@ def _hidden_share(seen: Optional[np.ndarray], vol: np.ndarray, rec, plane, dx: f
                                    fill_layers=one_side, open_thin=one_side, align_lattice=True)
         xs, vs = carve_with_depth(xs, vs, rec, 0)
         if surface is not None:
-            xs, vs, _ = _trim_to_surface(xs, vs, surface)
+            xs, vs = _trim_to_surface(xs, vs, surface)[:2]
         seen_vol = float(np.sum(vs))
     except ValueError:  # the seen points alone enclose no volume: all of it was completed
         seen_vol = 0.0

@@ -197,3 +197,27 @@ def test_frame_points_need_masks(tmp_path, phystwin_dir):
     assert len(all_pts) > 3 * len(obj)
     # the fixture's box object is [-0.04, 0.04] x [-0.03, 0.03] x [0, 0.03]; 1 mm depth quantisation
     assert np.all(np.abs(obj[:, 0]) < 0.045) and np.all(obj[:, 2] < 0.035) and np.all(obj[:, 2] > -0.003)
+
+
+def test_a_body_mostly_outside_its_scan_is_not_trimmed_and_says_why():
+    """Over a quarter of the fill outside the measured surface is no fill of that scan (wrong normals, say): the
+    body is left whole and the note says why; a body whose outer row alone lies outside loses that row."""
+    from empm_gym.identification.data import MAX_TRIM_SHARE, _trim_to_surface
+
+    rng = np.random.default_rng(5)
+    s = 0.0025
+    axes = [np.arange(s / 2, 0.05, s)] * 2 + [np.arange(s / 2, 0.04, s)]
+    body = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    vol = np.full(len(body), s ** 3)
+    small = _box_scan(np.array([0.005, 0.005, 0.0]), np.array([0.045, 0.045, 0.035]), 0.003, 0.0005, rng)  # 2 rows in
+    x, v, share, note = _trim_to_surface(body, vol, small)
+    assert len(x) == len(body) and share == 0.0 and "not trimmed" in note
+    assert f"over {100 * MAX_TRIM_SHARE:.0f} %" in note
+    scan = _box_scan(np.array([0.0, 0.0, 0.0]), np.array([0.05, 0.0475, 0.04]), 0.003, 0.0005, rng)  # +y one row in
+    x, v, share, note = _trim_to_surface(body, vol, scan)
+    row = body[:, 1] > 0.0475
+    kept = np.isin(body.view([("", body.dtype)] * 3).ravel(), x.view([("", x.dtype)] * 3).ravel())
+    assert note is None and len(x) == len(v)
+    assert (~kept[row]).mean() > 0.95                  # the +y row goes, and next to nothing else (a corner or edge
+    assert (~kept[~row]).sum() <= 0.001 * len(body)    # particle of the box, where planes meet: 2 of 6,080 here)
+    assert share == pytest.approx((~kept).mean())
