@@ -41,16 +41,8 @@ def _surface_offset(points: np.ndarray, true_x: np.ndarray) -> float:
 
     from empm_gym.identification.offline import body_surface
 
-    S = body_surface(true_x)
-    tree = cKDTree(true_x)
-    s = float(np.median(tree.query(true_x, k=2)[0][:, 1]))
-    # outward normal of each surface point: from its particle's neighbour centroid
-    d, i = cKDTree(S).query(points)
-    _, nb = tree.query(S, k=min(32, len(true_x)), distance_upper_bound=1.8 * s)
-    ok = nb < len(true_x)
-    cen = (true_x[np.where(ok, nb, 0)] * ok[..., None]).sum(1) / ok.sum(1)[:, None]
-    n = S - cen
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    S, n = body_surface(true_x, normals=True)
+    _, i = cKDTree(S).query(points)
     return float(np.median(np.einsum("ij,ij->i", points - S[i], n[i])))
 
 

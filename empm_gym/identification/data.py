@@ -218,8 +218,6 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
     report["trimmed_share"], report["trim_note"] = 0.0, None
     if trim_to_surface:
         x0, vol, report["trimmed_share"], report["trim_note"] = _trim_to_surface(x0, vol, surface)
-        if report["trim_note"]:
-            _log.warning("%s: %s", rec.path, report["trim_note"])
     if measure_hidden:
         report.update(_hidden_share(seen, vol, rec, plane, dx, particles_per_cell, one_side,
                                     surface if trim_to_surface else None))
@@ -236,9 +234,10 @@ def _trim_to_surface(x0: np.ndarray, vol: np.ndarray, surface: np.ndarray):
     (:func:`empm_gym.perception.fusion.outside_surface`) removed, and their share of the body; above
     :data:`MAX_TRIM_SHARE` none are removed (share 0) and ``note`` says why (else None). Measured on ``empm synth``'s
     frame-0 bodies (three cameras, 5 mm grid, seed 14): 5.7 % of a pressed dough's particles (its volume 123.4 ->
-    116.4 cm^3, the true 112.5, the observed surface enclosing about 122), 5.1 % of a rope's. Off by default: on the doctor's benchmark (seeds 13-14, 5 mm) the trimmed bodies raised the median
-    held-out reduction of the effect recordings (41.7 -> 44.6 % on the same 35) but the doctor named an effect on 3 of
-    26 `none` recordings (0 before; benchmarks/RESULTS.md, session 40)."""
+    116.4 cm^3, the true 112.5, the observed surface enclosing about 122), 5.1 % of a rope's. Off by default: on
+    the doctor's benchmark (seeds 13-14, 5 mm) the trimmed bodies raised the median held-out reduction of the
+    effect recordings (41.7 -> 44.6 % on the same 35) but the doctor named an effect on 3 of 26 `none` recordings
+    (0 before; benchmarks/RESULTS.md, session 40)."""
     from empm_gym.perception.fusion import outside_surface
 
     out = outside_surface(x0, surface)
@@ -411,11 +410,12 @@ def _frame_ranges(frames) -> str:
 
 def _warn_body(path, report: dict) -> None:
     """Log what :func:`load_recording` says of the frame-0 body (``report``: its ``info``): the single-view
-    prior and the share the end-effectors hide."""
+    prior, the share the end-effectors hide and a trim to the measured surface that was refused."""
     if report.get("single_view"):
         _log.warning("%s: %s", path, report["body_completion"])
-    if report.get("hidden_note"):
-        _log.warning("%s: %s", path, report["hidden_note"])
+    for key in ("hidden_note", "trim_note"):
+        if report.get(key):
+            _log.warning("%s: %s", path, report[key])
 
 
 def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27, voxel_m: float = 0.003,

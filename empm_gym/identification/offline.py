@@ -125,7 +125,7 @@ def surface_embedding(points0: np.ndarray, particles0: np.ndarray, k: int = 12) 
     return idx.astype(np.int64), a
 
 
-def body_surface(particles0: np.ndarray, radius: float = 1.8, shift: float = 0.25) -> np.ndarray:
+def body_surface(particles0: np.ndarray, radius: float = 1.8, shift: float = 0.25, normals: bool = False):
     """Points on the surface of a body of particles [N, 3] (m): each boundary particle moved half the median
     particle spacing s outward, where the observed surface of a body lies (:func:`surface_embedding`).
 
@@ -133,7 +133,8 @@ def body_surface(particles0: np.ndarray, radius: float = 1.8, shift: float = 0.2
     cubic or body-centred lattice holds 26 within 1.8 spacings) lies more than ``shift`` s from it (inside a body
     the neighbours surround it and their centroid is the particle itself; on a face of a lattice it lies half a
     spacing inward); outward is away from that centroid. Thin bodies, whose particles are mostly on the
-    boundary, need no count of what a full neighbourhood holds."""
+    boundary, need no count of what a full neighbourhood holds. With ``normals``, ``(points, outward unit
+    normals)``."""
     from scipy.spatial import cKDTree
 
     x = np.asarray(particles0, np.float64).reshape(-1, 3)
@@ -147,7 +148,8 @@ def body_surface(particles0: np.ndarray, radius: float = 1.8, shift: float = 0.2
     out = x - centre
     norm = np.linalg.norm(out, axis=1)
     edge = norm > shift * s
-    return x[edge] + 0.5 * s * out[edge] / norm[edge, None]
+    n = out[edge] / norm[edge, None]
+    return (x[edge] + 0.5 * s * n, n) if normals else x[edge] + 0.5 * s * n
 
 
 class Objective:

@@ -67,7 +67,7 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
             if v1 < (1.0 - REFILL_VOLUME_TOL) * v0:
                 refused.append((fine, v0, v1))
                 return None
-            info.update(hidden_share=report["hidden_share"], hidden_note=report["hidden_note"])  # of this body
+            info.update({k: report[k] for k in ("hidden_share", "hidden_note", "trimmed_share", "trim_note")})
             return finer
 
         scene, levels = resolving_dx(scene, refill, cells=DOCTOR_CELLS_ACROSS)
@@ -93,7 +93,7 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
                 f"({len(scene.particles)} particles, and more substeps; a rope at 5 mm took 8x); --dx {DEFAULT_DX:g} "
                 f"gives a quicker, coarser look." if wp.get_device(device).is_cpu else "")
         logging.getLogger("empm_gym.identification").warning("%s: %s.%s", rec_dir, grid_notes[0], slow)
-    notes = ([info["hidden_note"]] if info.get("hidden_note") else []) + grid_notes
+    notes = [info[k] for k in ("hidden_note", "trim_note") if info.get(k)] + grid_notes
     return scene, obs, views, info, notes
 
 
