@@ -72,6 +72,42 @@ def test_depth_noise_drops_edges_grazing_and_out_of_range():
     assert np.mean(edge == 0) > 0.4 and np.mean(interior == 0) < 0.02
 
 
+def _box_sdf(P, lo, hi):
+    c, h = (lo + hi) / 2, (hi - lo) / 2
+    q = np.abs(P - c) - h
+    return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(1), 0)
+
+
+def _rope_sdf(P):
+    L, r = S._ROPE_LENGTH_M, S._ROPE_RADIUS_M
+    radial, ax = np.hypot(P[:, 1], P[:, 2] - r) - r, np.abs(P[:, 0]) - L / 2
+    return np.where(ax < 0, np.maximum(radial, ax), np.hypot(np.maximum(radial, 0), ax))
+
+
+@pytest.mark.parametrize("obj", ["dough", "rope"])
+def test_rendered_depth_lies_on_the_true_surface_from_every_camera(obj):
+    """The noise-free depth of the rendered object, back-projected, lies on the object's true surface: each
+    surface point's disc is drawn in its tangent plane. Discs drawn at their centre's depth over their whole
+    footprint (before session 41) put every face inclined to a camera 0.3-0.8 mm too near (median), a bias no
+    real depth camera has and that every rebuilt body then carried. The silhouette has no holes."""
+    from scipy.ndimage import binary_fill_holes
+
+    if obj == "dough":
+        size = np.array(S._DOUGH_SIZE_M)
+        sp, sn, _ = S._box_surface(size, 0.0015)
+        lo, hi = np.array([-size[0] / 2, -size[1] / 2, 0.0]), np.array([size[0] / 2, size[1] / 2, size[2]])
+        sdf, tol = (lambda P: _box_sdf(P, lo, hi)), 1e-5           # flat faces: exact
+    else:
+        sp, sn, _ = S._rope_surface(0.0015)
+        sdf, tol = _rope_sdf, 1e-4                                 # a tangent plane on a 12 mm radius: 0.05 mm
+    for cam in S.camera_ring(3, target=(0.0, 0.0, 0.03)):
+        depth, _, label, cosv = S.render_view(S._StaticView(cam), sp, sn, np.full((len(sp), 3), 0.5), 0.0015, [])
+        seen = label == 1
+        assert seen.sum() > 1000 and not (binary_fill_holes(seen) & ~seen).any()
+        d = sdf(cam.backproject(np.where(seen & (cosv > 0.25), depth, 0.0)))
+        assert abs(np.median(d)) < tol and np.percentile(np.abs(d), 90) < 2 * tol, (cam.name, np.median(d))
+
+
 def test_rope_recording_physics_and_metadata(rope_rec):
     rec = Recording(rope_rec)
     gt = rec.ground_truth()
