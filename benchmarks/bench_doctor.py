@@ -154,7 +154,8 @@ def make(args):
                     continue
                 synthesize(rec, args.object, script=script, effect=effect, effect_params=eparams or None,
                            **base, frames=args.frames, cameras=args.cameras, dx=synth_dx,
-                           width=args.width, height=args.height, seed=seed, overwrite=True, progress=False)
+                           width=args.width, height=args.height, seed=seed, overwrite=True, progress=False,
+                           tangent_splats=args.tangent_splats)
                 truth = [e["name"] for e in json.loads((rec / "ground_truth.json").read_text())["effects"]]
                 try:
                     scene, obs, _, _, notes = load_for_doctor(rec, dx=args.dx, particles_per_cell=args.ppc,
@@ -600,6 +601,9 @@ def _parser():
                         "as variants too")
     p.add_argument("--dump", default=None, help="write each recording's full doctor result (JSON) into this folder")
     p.add_argument("--only-make", action="store_true", help="stop after --make")
+    p.add_argument("--tangent-splats", action="store_true",
+                   help="with --make: record with the surface drawn in its tangent planes (depth on the true surface; "
+                        "seed 15 of session 41 was made so)")
     p.add_argument("--trim-bodies", action="store_true",
                    help="with --make: the frame-0 bodies trimmed to the measured surface (load_for_doctor's "
                         "trim_to_surface; off by default, benchmarks/RESULTS.md session 40)")
