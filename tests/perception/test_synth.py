@@ -185,6 +185,14 @@ def test_cli_synth(tmp_path, capsys):
     assert main([png_out.as_posix() if a == str(out) else a for a in args] + ["--depth-format", "png"]) == 0
     assert (png_out / "depth" / "0" / "1.png").is_file() and not (png_out / "depth" / "0" / "1.npy").exists()
     np.testing.assert_array_equal(Recording(png_out).depth(0, 1), npy)
+    assert gt["render"]["tangent_splats"] is False
+    # --tangent-splats: the same scene, the object's depth on its true surface, farther than the flat discs'
+    t_out = tmp_path / "t"
+    assert main([t_out.as_posix() if a == str(out) else a for a in args] + ["--tangent-splats"]) == 0
+    assert Recording(t_out).ground_truth()["render"]["tangent_splats"] is True
+    m, tm = Recording(out).mask(0, 1), Recording(t_out).mask(0, 1)
+    both = m & tm
+    assert both.any() and np.median(Recording(t_out).depth(0, 1)[both] - npy[both]) > 0
 
 
 def test_controls_replay_recipe_reaches_recorded_positions(dough_rec):
