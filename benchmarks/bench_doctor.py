@@ -649,6 +649,8 @@ def main(argv=None):
     problems = Path(args.problems) if args.problems else None
     if args.reload and not (args.make and args.keep_existing):
         p.error("--reload rebuilds the problems kept by --make DIR --keep-existing: give both")
+    if args.tangent_splats and not args.make:
+        p.error("--tangent-splats says how --make records its recordings: give --make DIR")
     if args.make:
         problems = make(args)
         if args.only_make:

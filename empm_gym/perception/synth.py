@@ -614,8 +614,9 @@ def render_view(view: _StaticView, surf_p: np.ndarray, surf_n: np.ndarray, surf_
     front = np.einsum("ij,ij->i", surf_n, view_dir) < 0
     ok = front & (z > 0.05)
     rc, z, idx = rc[ok], z[ok], np.nonzero(ok)[0]
-    p_ok, n_ok = surf_p[ok], surf_n[ok]
-    n_dot_po = np.einsum("ij,ij->i", n_ok, p_ok - cam.position)   # < 0: the camera is on the normal's side
+    if tangent:
+        p_ok, n_ok = surf_p[ok], surf_n[ok]
+        n_dot_po = np.einsum("ij,ij->i", n_ok, p_ok - cam.position)   # < 0: the camera is on the normal's side
     rpx = np.maximum(cam.K[0, 0] * splat_radius_m / z, 0.75)
     R = int(np.ceil(rpx.max())) if len(rpx) else 0
     rows_c = np.round(rc[:, 0]).astype(np.int64)
@@ -625,10 +626,8 @@ def render_view(view: _StaticView, surf_p: np.ndarray, surf_n: np.ndarray, surf_
         for dc in range(-R, R + 1):
             rr, cc = rows_c + dr, cols_c + dc
             m = (rr >= 0) & (rr < view.H) & (cc >= 0) & (cc < view.W)
-            if not tangent:
-                m &= (rr - rc[:, 0]) ** 2 + (cc - rc[:, 1]) ** 2 <= rpx**2
-            k = np.nonzero(m)[0]
             if tangent:  # where the pixel's ray meets the disc (camera z = 1: s is the pixel's depth)
+                k = np.nonzero(m)[0]
                 d = view.d[rr[k], cc[k]]
                 den = np.einsum("ij,ij->i", n_ok[k], d)
                 with np.errstate(divide="ignore", invalid="ignore"):
@@ -637,6 +636,7 @@ def render_view(view: _StaticView, surf_p: np.ndarray, surf_n: np.ndarray, surf_
                 hit = (den < 0) & (s > 0.05) & (np.einsum("ij,ij->i", q, q) <= splat_radius_m**2)
                 k, s = k[hit], s[hit]
             else:
+                k = np.nonzero(m & ((rr - rc[:, 0]) ** 2 + (cc - rc[:, 1]) ** 2 <= rpx**2))[0]
                 s = z[k]
             pix.append(rr[k] * view.W + cc[k])
             zz.append(s)
