@@ -247,7 +247,7 @@ def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: flo
             "confidence": res.get("confidence", 0.0), "reduction": red, "base_chamfer_m": c_base,
             "true_effect_chamfer_m": c_true, "base_loss": l_base,
             "before_variants": res.get("effect_before_variants", res["effect"]), "signature_m": signature_m,
-            "signature_doubted": sig.get("doubted"), "wall_s": wall_s}
+            "signature_doubted": sig.get("doubted"), "wall_s": wall_s, "stage_wall_s": res.get("stage_wall_s")}
 
 
 def rescore(paths):

@@ -114,7 +114,8 @@ def test_a_fit_at_the_edge_of_its_window_is_widened_to_the_optimum():
     a recording far from that (a torn rope's elastic fit ends at the softest E of its box while the material is
     25 times stiffer). A fit that ends at an edge of its window inside the box is fitted again with the window
     stretched to the box on that side, and reaches the optimum beyond the old edge; a fit inside its window,
-    or at the box's own bound, stays as it is."""
+    or at the box's own bound, stays as it is. Several fits are widened together (one batched simulation where
+    they share a body): each comes out as it does alone."""
     from empm_gym.identification.doctor.core import _fit_candidate, _widened, _window_edge
     from empm_gym.sim import MaterialConfig
 
@@ -127,11 +128,18 @@ def test_a_fit_at_the_edge_of_its_window_is_widened_to_the_optimum():
     narrow = _fit_candidate("base", scene, obs, start, (300.0, 1000.0), 7, cfg, False)
     assert narrow.params["E"] > 1000.0 / 1.05 and _window_edge(narrow, (100.0, 3e4)) == 1
     assert _window_edge(narrow, (100.0, 1000.0)) == 0  # the window's edge is the box's bound: nothing beyond
-    wide = _widened(narrow, scene, obs, start, (100.0, 3e4), 7, cfg, False)
+    wide, = _widened([(narrow, scene, start)], obs, (100.0, 3e4), 7, cfg, False)
     assert wide.bounds["E"] == (300.0, 3e4)
     assert wide.params["E"] == pytest.approx(3.0e3, rel=0.1) and wide.fit_loss < 0.5 * narrow.fit_loss
     assert _window_edge(wide, (100.0, 3e4)) == 0
-    assert _widened(wide, scene, obs, start, (100.0, 3e4), 7, cfg, False) is wide
+    # widened beside a fit that stays and another that widens: the same refit as alone, to the bit (CPU)
+    stiff = truth.replace(E=1e4)
+    low = _fit_candidate("base", scene, obs, stiff, (5e3, 2e4), 7, cfg, False)
+    assert _window_edge(low, (100.0, 3e4)) == -1
+    kept, wide2, low2 = _widened([(wide, scene, start), (narrow, scene, start), (low, scene, stiff)], obs,
+                                 (100.0, 3e4), 7, cfg, False)
+    assert kept is wide and wide2.params == wide.params and wide2.fit_loss == wide.fit_loss
+    assert low2.bounds["E"] == (100.0, 2e4) and low2.params["E"] == pytest.approx(3.0e3, rel=0.1)
 
 
 def test_a_fit_near_the_edge_of_its_window_is_widened_with_fresh_effect_starts(monkeypatch):
@@ -158,20 +166,28 @@ def test_a_fit_near_the_edge_of_its_window_is_widened_with_fresh_effect_starts(m
 
     seen = {}
 
-    def fake(name, scene, obs, base_material, window, F, cfg, progress, starts=()):
+    def spec(name, scene, base_material, window, F, cfg, starts=()):
         seen.update(window=window, starts=list(starts))
-        return dataclasses.replace(fit(5.0e4, window=window, strain=0.2), fit_loss=0.2)
+        return window
 
-    monkeypatch.setattr(core, "_fit_candidate", fake)
-    g = core._widened(fit(5.4e3), None, None, MaterialConfig(E=2e3), box, 7, DoctorConfig(popsize=8), False, True)
+    def fake(specs, obs, progress, desc):
+        return [dataclasses.replace(fit(5.0e4, window=window, strain=0.2), fit_loss=0.2) for window in specs]
+
+    monkeypatch.setattr(core, "_candidate_spec", spec)
+    monkeypatch.setattr(core, "_fit_candidates", fake)
+
+    def widened(f, loose=False, cfg=DoctorConfig(popsize=8)):
+        return core._widened([(f, None, MaterialConfig(E=2e3))], None, box, 7, cfg, False, loose)[0]
+
+    g = widened(fit(5.4e3), loose=True)
     assert seen["window"] == (2e3, 5e5) and g.params["E"] == 5.0e4
     starts = seen["starts"]
     assert len(starts) == 6 and starts[0] == {"E": 5.4e3, "fracture_strain": 0.58}
     assert {st["fracture_strain"] for st in starts[1:]} == {0.58, core.PARAMETERS["fracture_strain"].start}
     assert all(6.4e3 < st["E"] <= 5e5 for st in starts[1:])
-    core._widened(fit(6.2e3), None, None, MaterialConfig(E=2e3), box, 7, DoctorConfig(popsize=8), False)
+    widened(fit(6.2e3))
     assert len(seen["starts"]) == 4 and {st["fracture_strain"] for st in seen["starts"]} == {0.58}
-    assert core._widened(fit(5.4e3), None, None, MaterialConfig(E=2e3), box, 7, DoctorConfig(), False).params["E"] == 5.4e3
+    assert widened(fit(5.4e3), cfg=DoctorConfig()).params["E"] == 5.4e3
 
 
 def _pushed_block(truth):

@@ -584,23 +584,13 @@ def _window_edge(f: "_Fit", box: Tuple[float, float], loose: bool = False) -> in
     return 0
 
 
-def _widened(f: "_Fit", scene: Scene, obs: Observations, base_material: MaterialConfig, box: Tuple[float, float],
-             F: int, cfg: DoctorConfig, progress: bool, loose: bool = False) -> "_Fit":
-    """``f`` itself, or, when its E ended at an edge of its refit window (:func:`_window_edge`), ``f`` fitted
-    again with the window stretched on that side to the edge of the base model's box ``box``.
-
-    The window (``E_refit_factor`` around the base fit's E) keeps candidates cheap, but an effect can move the
-    stiffness that explains a recording far from the elastic model's: a torn body looks softer than it is
-    (the elastic fit ends at the box's soft end while the material is 25 times stiffer), a body sliding on a
-    slippery table looks stiffer. Such a candidate, held at the window's edge, predicts the held-out frames
-    worse than its effect can. The refit's first generation holds ``f``'s optimum and E spread in log
-    space from the old edge to the new one, with the effect's parameters at ``f``'s values and, ``loose``
-    (:func:`_window_edge`), in turn at their registry starts: there an effect parameter fitted together with
-    a wrong E is no better start at another E (a fracture strain of 0.58 at 5 kPa, where the rope tears at
-    0.2 and 50 kPa)."""
+def _widen_spec(f: "_Fit", scene: Scene, base_material: MaterialConfig, box: Tuple[float, float], F: int,
+                cfg: DoctorConfig, loose: bool = False) -> Optional[tuple]:
+    """The refit (:func:`_candidate_spec`) that :func:`_widened` runs for ``f``, or None when its E did not end
+    at an edge of its refit window (:func:`_window_edge`)."""
     side = _window_edge(f, box, loose)
     if side == 0:
-        return f
+        return None
     lo, hi = f.bounds["E"]
     window = (lo, box[1]) if side > 0 else (box[0], hi)
     edge, far = (hi, box[1]) if side > 0 else (lo, box[0])
@@ -613,12 +603,41 @@ def _widened(f: "_Fit", scene: Scene, obs: Observations, base_material: Material
         if st not in starts:
             starts.append(st)
     starts = starts[:max(0, cfg.popsize - 2)]
-    g = _fit_candidate(f.name, scene, obs, base_material, window, F, cfg, progress, starts=starts)
-    if not g.fit_loss < f.fit_loss:  # nothing better beyond the edge: keep the fit (and its substeps)
-        f.wall_s += g.wall_s
-        return f
-    g.wall_s += f.wall_s
-    return g
+    return _candidate_spec(f.name, scene, base_material, window, F, cfg, starts=starts)
+
+
+def _widened(items: Sequence[Tuple["_Fit", Scene, MaterialConfig]], obs: Observations, box: Tuple[float, float],
+             F: int, cfg: DoctorConfig, progress: bool, loose: bool = False) -> List["_Fit"]:
+    """For each ``(f, scene, base_material)`` of ``items``: ``f`` itself, or, when its E ended at an edge of
+    its refit window (:func:`_window_edge`), ``f`` fitted again on ``scene`` with the window stretched on that
+    side to the edge of the base model's box ``box``. The refits run together (:func:`_fit_candidates`: the
+    same fits as one by one, side by side on a GPU).
+
+    The window (``E_refit_factor`` around the base fit's E) keeps candidates cheap, but an effect can move the
+    stiffness that explains a recording far from the elastic model's: a torn body looks softer than it is
+    (the elastic fit ends at the box's soft end while the material is 25 times stiffer), a body sliding on a
+    slippery table looks stiffer. Such a candidate, held at the window's edge, predicts the held-out frames
+    worse than its effect can. The refit's first generation holds ``f``'s optimum and E spread in log
+    space from the old edge to the new one, with the effect's parameters at ``f``'s values and, ``loose``
+    (:func:`_window_edge`), in turn at their registry starts: there an effect parameter fitted together with
+    a wrong E is no better start at another E (a fracture strain of 0.58 at 5 kPa, where the rope tears at
+    0.2 and 50 kPa)."""
+    specs = [_widen_spec(f, sc, bm, box, F, cfg, loose) for f, sc, bm in items]
+    todo = [s for s in specs if s is not None]
+    refits = iter(_fit_candidates(todo, obs, progress, "doctor: widened windows") if todo else [])
+    out = []
+    for (f, _, _), spec in zip(items, specs):
+        if spec is None:
+            out.append(f)
+            continue
+        g = next(refits)
+        if not g.fit_loss < f.fit_loss:  # nothing better beyond the edge: keep the fit (and its substeps)
+            f.wall_s += g.wall_s
+            out.append(f)
+        else:
+            g.wall_s += f.wall_s
+            out.append(g)
+    return out
 
 
 #: The search the doctor's accuracy was measured with (benchmarks/bench_doctor.py: CMA-ES generations of every
@@ -795,6 +814,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                     cfg.base_iters, starts=[{"E": E} for E in _scan_starts((lo, hi), cfg.popsize - 2)])
     E_base = base_fit.params["E"]
     warnings = []
+    clock = {"base fit": time.perf_counter() - t_start}
 
     # -- 2. candidates ----------------------------------------------------------------------------------------
     # Every candidate is fitted from the base fit's E, with E free within E_refit_factor of it; so is the null
@@ -827,9 +847,10 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                                        obs, progress, "doctor: candidates")
     # a window centred on an E that the base model's refit leaves at the box's bound is widened more readily
     loose = _at_bound(fits[0].params["E"], (lo, hi))
-    fits = [_widened(f, scene, obs, base_fit.material, (lo, hi), F, cfg, progress, loose) for f in fits]
+    fits = _widened([(f, scene, base_fit.material) for f in fits], obs, (lo, hi), F, cfg, progress, loose)
     fits[0].wall_s += base_fit.wall_s
     base_fit = fits[0]
+    clock["candidates"] = time.perf_counter() - t_start - sum(clock.values())
     # the base model reported is the null candidate's refit: its E at the search box's edge is no measurement
     if _at_bound(base_fit.params["E"], (lo, hi)):
         warnings.append(f"the base model's E = {base_fit.params['E']:.4g} Pa lies at its search bound ({lo:g}, "
@@ -867,8 +888,10 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                  "equivalent_to_base": f.equivalent}
                 for f in cands]
     to_check = [by_name[n] for n in select_verdict(as_dicts, None)[2][:cfg.variant_top]]
+    clock["held-out scores"] = time.perf_counter() - t_start - sum(clock.values())
     robustness = _check_variants(to_check, scene, obs, base_fit, F, T, heldout, cfg, progress, other_bodies,
                                  box=(lo, hi), loose=loose)
+    clock["variants"] = time.perf_counter() - t_start - sum(clock.values())
     win, unchecked, passing = select_verdict(as_dicts, robustness if cfg.robust_verdict else None)
     winner, unchecked = by_name.get(win), by_name.get(unchecked)
     significant = [by_name[n] for n in passing]
@@ -978,7 +1001,9 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
             f"(assumed density {base_mat.density:g} kg/m^3)"],
         "wall_time_s": None,
     })
+    clock["verdict and localisation"] = time.perf_counter() - t_start - sum(clock.values())
     result["wall_time_s"] = round(time.perf_counter() - t_start, 2)
+    result["stage_wall_s"] = {k: round(v, 2) for k, v in clock.items()}  # the report's files not included
     _write_outputs(result, winner or base_fit, (X, fits, per, loc, F), scene, obs, out_dir, views=views)
     return result
 
@@ -1020,26 +1045,34 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
                    "base model's E over the discretisations"}
     if not checked or not variants:
         return out
-    from tqdm.auto import tqdm
-
-    # the base model refitted on every variant at once (their simulations side by side on a GPU); each
-    # candidate's refits then one variant after the other: a refit starts from the candidate's optima on the
-    # variants before it as well
+    # the base model refitted on every variant at once (their simulations side by side on a GPU); then each
+    # candidate's refits on the first variant, and on all the others together, where a refit starts from the
+    # candidate's optimum on the first variant as well (session 29: another discretisation's optimum is a start
+    # where scaling E with the base model's lands in the wrong basin). Refitted one variant after the other, each
+    # from the optima of all before it, the five variants of a recording took most of its wall time (session 41:
+    # 126 s for a rope dragged on a slippery table on an H200).
     vbases = _fit_candidates([_candidate_spec("base", vs, base_fit.start_material, None, F, cfg, like=base_fit)
                               for _, _, vs in variants], obs, progress, "doctor: variants' base models")
     found: Dict[str, List[Dict[str, float]]] = {f.name: [] for f in checked}  # each candidate's optima so far
-    refits = []
-    for (label, kind, vs), vbase in tqdm(list(zip(variants, vbases)), desc="doctor: variants", disable=not progress,
-                                         leave=False):
-        vfits = [vbase] + _fit_candidates([_candidate_spec(f.name, vs, base_fit.start_material, None, F, cfg, like=f,
-                                                           starts=_variant_starts(f, base_fit, vbase, found[f.name])
-                                                           [:max(0, cfg.popsize - 2)])
-                                           for f in checked], obs, progress, "doctor: variant refits")
+    refits: List[Optional[List[_Fit]]] = [None] * len(variants)
+    for wave in [[0], list(range(1, len(variants)))]:
+        if not wave:
+            continue
+        specs = [_candidate_spec(f.name, variants[j][2], base_fit.start_material, None, F, cfg, like=f,
+                                 starts=_variant_starts(f, base_fit, vbases[j], found[f.name])[:max(0, cfg.popsize - 2)])
+                 for j in wave for f in checked]
+        fitted = _fit_candidates(specs, obs, progress, f"doctor: variant refits ({len(wave)} variant(s))")
+        items = []
+        for k, j in enumerate(wave):
+            vfits = [vbases[j]] + fitted[k * len(checked):(k + 1) * len(checked)]
+            items += [(vf, variants[j][2], base_fit.start_material) for vf in vfits]
         if box is not None:
-            vfits = [_widened(vf, vs, obs, base_fit.start_material, box, F, cfg, progress, loose) for vf in vfits]
-        for f, vf in zip(checked, vfits[1:]):
-            found[f.name].append(dict(vf.params))
-        refits.append(vfits)
+            items = [(vf, None, None) for vf in _widened(items, obs, box, F, cfg, progress, loose)]
+        n = len(checked) + 1
+        for k, j in enumerate(wave):
+            refits[j] = [vf for vf, _, _ in items[k * n:(k + 1) * n]]
+            for f, vf in zip(checked, refits[j][1:]):
+                found[f.name].append(dict(vf.params))
     for (label, kind, _), vfits, X in zip(variants, refits, _simulate_fit_sets(refits, T)):
         objective = heldout_objective(vfits[0].scene, obs, T, cfg)
         losses = [_per_frame_losses(objective, X[:, w])["loss"][heldout] for w in range(len(vfits))]
