@@ -397,7 +397,7 @@ AXIS_SHIFT_PIXELS = 1.0
 AXIS_VARIANT = "half-turn axis moved"
 
 
-def _frame_ranges(frames) -> str:
+def frame_ranges(frames) -> str:
     """"3-5, 9" for [3, 4, 5, 9]."""
     out, start = [], None
     for i, t in enumerate(frames):
@@ -450,7 +450,9 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     (logger ``empm_gym.identification``) and, when ``info`` (a dict) is given, in
     ``info["body_completion"]`` (one line, for the material file's fit section), with ``info["view_gap_deg"]``,
     ``info["single_view"]`` and ``info["symmetry"]`` (the axis, how far the views leave it open, how much of
-    the turned surface the depth images contradict, whether the prior was used). ``warn=False`` leaves those
+    the turned surface the depth images contradict, whether the prior was used), and ``info["hidden_frames"]``
+    (the frames where no camera sees the object, a hand or a plate over it: they are simulated but not scored,
+    :attr:`~.problem.Observations.seen`, and logged). ``warn=False`` leaves those
     warnings to the caller (``info`` still holds them): the doctor may fill the body again on a finer grid, and
     says what it says of the body it simulates. ``trim_to_surface`` removes the fill's particles outside the
     measured surface (:func:`frame0_body`; off by default).
@@ -473,14 +475,15 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     pts = [fuse_frame(rec, t, voxel_m=voxel_m, table_plane=plane, min_height_m=0.5 * voxel_m)
            for t in tqdm(range(T), desc="fuse point clouds", disable=not progress, leave=False)]
     empty = [t for t, p in enumerate(pts) if len(p) == 0]
+    if len(empty) == T - 1 and 0 not in empty:
+        raise ValueError(f"{rec.path}: only frame 0 of {T} holds object points: nothing to compare a simulation with "
+                         f"(check the masks and depth)")
     if empty:
-        k = empty[0]
-        hint = f"; the first {k} frames all see it: load only those (`empm identify --frames {k}`, frames={k})" \
-            if k >= 2 else ""
-        raise ValueError(f"{rec.path}: {len(empty)} of {T} frames have no object points (frames "
-                         f"{_frame_ranges(empty)}): the object is hidden there (an end-effector over it, or no "
-                         f"mask or depth on it). Every loaded frame is compared with the simulation, so each must "
-                         f"see part of the object{hint}")
+        # a hand or a plate over the object: those frames are simulated but not scored (Observations.seen)
+        _log.warning("%s: the object is wholly hidden in %d of %d frames (%s): they are not scored", rec.path,
+                     len(empty), T, frame_ranges(empty))
+    if info is not None:
+        info["hidden_frames"] = empty
     controls = load_controls(rec)
     cfgs, pos, grip = controls_to_end_effectors(controls, friction=ee_friction)
     orient = controls.get("orientations")
@@ -503,7 +506,8 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
                   ee_orientations=None if orient is None else orient[:T],
                   material=material or MaterialConfig(E=1e5, nu=0.3, density=1000.0),
                   table=TableConfig(height=float(height), friction=table_friction), dx=dx, device=device,
-                  motion_bounds=(np.min([p.min(0) for p in pts], 0), np.max([p.max(0) for p in pts], 0)))
+                  motion_bounds=(np.min([p.min(0) for p in pts if len(p)], 0),
+                                 np.max([p.max(0) for p in pts if len(p)], 0)))
     return scene, obs, _views(rec, T)
 
 

@@ -173,7 +173,7 @@ def evaluate(scene: Scene, material, friction: Optional[float], obs: Observation
     per = {k: [] for k in ("chamfer", "chamfer_obs", "track", "iou", "psnr", "ssim")}
     for t in tqdm(frames, desc="evaluate", disable=not progress, leave=False):
         x = X[t]
-        if not np.all(np.isfinite(x)):
+        if not np.all(np.isfinite(x)) or len(obs.points[t]) == 0:  # diverged, or the object wholly hidden: unscored
             for k in per:
                 per[k].append(float("nan"))
             continue

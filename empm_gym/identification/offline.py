@@ -167,6 +167,10 @@ class Objective:
     to the nearer of the carried points and the simulated body's own surface (:func:`body_surface` at frame 0,
     carried the same way); the simulated-to-observed half stays with the carried points, as the rest of the
     body's surface may be hidden from the cameras.
+
+    A frame that holds no observed points (:attr:`~.problem.Observations.seen`: the object wholly hidden) is not
+    scored: its Chamfer term is left out of the loss's mean (NaN in :meth:`per_frame` and :meth:`chamfer`) and
+    its tracks count as occluded.
     """
 
     def __init__(self, scene: Scene, obs: Observations, frames: int, *, l_dist: float = 1.0, l_trk: float = 100.0,
@@ -186,7 +190,12 @@ class Objective:
             if len(p) > max_points:
                 p = p[rng.choice(len(p), max_points, replace=False)]
             self.points.append(np.ascontiguousarray(p))
-        self._padded = pad_frames(self.points, scene.device)  # the observed points on the GPU (None on a CPU)
+        self.seen = np.array([len(p) > 0 for p in self.points], bool)  # frames with observed points
+        if not self.seen[1:].any():
+            raise ValueError(f"none of frames 1..{frames - 1} holds an observed point: nothing to score")
+        # the observed points on the GPU (None on a CPU); of the frames that hold points only
+        self._padded = pad_frames([p for p in self.points if len(p)], scene.device)
+        self._rank = np.cumsum(self.seen) - 1  # frame t's place among those frames
         if unseen_surface and observation != "surface":
             raise ValueError("unseen_surface needs observation='surface' (the particles themselves are the body)")
         self.surf = self.unseen = None
@@ -210,7 +219,7 @@ class Objective:
                     self.track_index = np.asarray(idx, np.int64)
                 self.track_keep = keep
                 self.tracks = obs.tracks[:frames, keep]
-                self.visible = obs.visibility[:frames, keep]
+                self.visible = obs.visibility[:frames, keep] & self.seen[:, None]
 
     @staticmethod
     def _carry(X, emb):
@@ -236,13 +245,16 @@ class Objective:
     def torch(self, X: torch.Tensor) -> torch.Tensor:
         """Loss of simulated positions X [frames, N, 3] (torch), differentiable."""
         P, U = self.predicted_points(X), self.unseen_points(X)
+        idx = self._scored(1)
         if self._padded is not None:  # all pairs on the GPU
-            terms = self._halves(P[1:self.frames], None if U is None else U[1:self.frames], self.direction,
-                                 lambda p, d: chamfer_frames_torch(p, self._padded, direction=d, first=1))
+            at = torch.as_tensor(idx, device=P.device)
+            terms = self._halves(P[at], None if U is None else U[at], self.direction,
+                                 lambda p, d: chamfer_frames_torch(p, self._padded, direction=d,
+                                                                   first=int(self._rank[idx[0]])))
         else:
             terms = torch.stack([self._halves(P[t], None if U is None else U[t], self.direction,
                                               lambda p, d: chamfer_distance(p, self.points[t], direction=d))
-                                 for t in range(1, self.frames)])
+                                 for t in idx])
         loss = self.l_dist * terms.mean()
         if self.track_index is not None:
             pred = self._predicted_tracks(X)
@@ -263,31 +275,40 @@ class Objective:
             return chamfer(P, direction)
         return 0.5 * (chamfer(P, "pred_to_obs") + chamfer(cat([P, U], axis), "obs_to_pred"))
 
+    def _scored(self, first: int) -> np.ndarray:
+        """The frames ``first`` .. frames - 1 that hold observed points."""
+        return np.nonzero(self.seen[first:self.frames])[0] + first
+
     def chamfer(self, P: np.ndarray, direction: Optional[str] = None, first: int = 0,
                 unseen: Optional[np.ndarray] = None) -> np.ndarray:
         """Chamfer distance (m) of predicted points P [frames, S, 3] (:meth:`predicted_points`) against the
         observed points of frames ``first`` .. frames - 1 (:func:`~.losses.chamfer_frames`: on the GPU for a
-        CUDA scene). ``unseen`` [frames, K, 3] (:meth:`unseen_points`) joins P in the observed-to-simulated
-        half."""
-        obs = self._padded if self._padded is not None else self.points
-        U = None if unseen is None else unseen[first: self.frames]
-        return self._halves(P[first: self.frames], U, direction or self.direction,
-                            lambda p, d: chamfer_frames(p, obs, direction=d, first=first))
+        CUDA scene); NaN on a frame without observed points. ``unseen`` [frames, K, 3] (:meth:`unseen_points`)
+        joins P in the observed-to-simulated half."""
+        idx = self._scored(first)
+        out = np.full(self.frames - first, np.nan)
+        if len(idx):
+            obs = self._padded if self._padded is not None else [self.points[t] for t in idx]
+            at = int(self._rank[idx[0]]) if self._padded is not None else 0
+            out[idx - first] = self._halves(P[idx], None if unseen is None else unseen[idx], direction or self.direction,
+                                            lambda p, d: chamfer_frames(p, obs, direction=d, first=at))
+        return out
 
     def numpy(self, X: np.ndarray) -> float:
         """Loss of simulated positions X [frames, N, 3] (numpy); non-finite input gives a large finite value."""
-        return float(np.mean(self.per_frame(X)))
+        return float(np.nanmean(self.per_frame(X)))
 
     def per_frame(self, X: np.ndarray) -> np.ndarray:
         """Per-frame terms [frames - 1] of the loss (frames 1 .. F-1) whose mean is :meth:`numpy`.
 
         Frame t's term is l_dist * Chamfer_t + l_trk * (squared tracking error summed over the tracks
         visible at t) / (mean number of visible tracks per frame), so that the mean over frames weighs every
-        visible track entry equally, as :meth:`torch` does. Non-finite input gives large finite terms.
+        visible track entry equally, as :meth:`torch` does (the mean over the frames that hold observed points:
+        a frame without them is NaN). Non-finite input gives large finite terms.
         """
-        n = self.frames - 1
+        n = int(self.seen[1:self.frames].sum())
         if not np.all(np.isfinite(X[: self.frames])):
-            return np.full(n, _DIVERGED_LOSS)
+            return np.where(self.seen[1:self.frames], _DIVERGED_LOSS, np.nan)
         Xf = np.asarray(X[: self.frames], np.float64)
         out = self.l_dist * self.chamfer(self.predicted_points(Xf), first=1, unseen=self.unseen_points(Xf))
         if self.track_index is not None:

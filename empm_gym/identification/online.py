@@ -91,6 +91,7 @@ class OnlineIdentifier:
         self._grad = None  # (model, solver, {substeps: (rollout, controls)}) built on the first update
         self.t = -1
         self.prev: Optional[OnlineFrame] = None
+        self.seen_last: Optional[OnlineFrame] = None  # the last frame with observed points
         self.since_update = 10**9
         self.history: List[dict] = []
         self.update_time_s = 0.0
@@ -112,8 +113,9 @@ class OnlineIdentifier:
     def _check_frame(self, f: OnlineFrame) -> OnlineFrame:
         K = self.model.ee_count
         pts = np.asarray(f.points, np.float64)
-        if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
-            raise ValueError(f"OnlineFrame.points must be a non-empty [n, 3] array, got shape {pts.shape}")
+        if pts.ndim != 2 or pts.shape[1] != 3 or (len(pts) == 0 and self.prev is None):
+            raise ValueError(f"OnlineFrame.points must be an [n, 3] array, non-empty on the first frame (it places "
+                             f"the twin), got shape {pts.shape}")
         pos = np.zeros((0, 3)) if f.ee_positions is None else np.asarray(f.ee_positions, np.float64).reshape(-1, 3)
         if len(pos) != K:
             raise ValueError(f"OnlineFrame.ee_positions must have shape [{K}, 3] (the scene's end-effectors), "
@@ -140,8 +142,18 @@ class OnlineIdentifier:
             vel = (f.ee_positions - self.prev.ee_positions) * self.scene.fps
             speed = float(np.max(np.linalg.norm(vel, axis=1))) if K else 0.0
             self._advance(vel, self.prev.ee_grip)
-        motion = chamfer_numpy(f.points, self.prev.points) if self.prev is not None else float("inf")
         x = self.state.particle_x.numpy()
+        if not len(f.points):  # the object wholly hidden (a hand over it): the twin moves on, nothing is scored
+            rec = {"frame": self.t, "ee_speed": speed, "obs_motion": float("nan"), "chamfer": float("nan"),
+                   "hidden": True, "quasi_static": False, "updated": False}
+            self.since_update += 1
+            rec.update(self.values)
+            self.history.append(rec)
+            self.prev = f
+            return rec
+        # against the last frame that saw the object
+        motion = chamfer_numpy(f.points, self.seen_last.points) if self.seen_last is not None else float("inf")
+        self.seen_last = f
         rec = {"frame": self.t, "ee_speed": speed, "obs_motion": motion,
                "chamfer": chamfer_numpy(x, f.points, direction=self.direction)}
         if f.masks is not None:

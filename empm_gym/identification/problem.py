@@ -234,6 +234,10 @@ class Observations:
     colours [n_t, 3] in [0, 1] of ``points``. ``surface``: the points sample the object's measured surface
     (depth cameras), not simulation particles; identification then compares them with the frame-0 surface
     carried by the simulated body instead of with particle centres.
+
+    A frame after the first may hold no points: the object wholly hidden there (a hand or a plate over it). Such a
+    frame is not scored (:attr:`seen`; the losses and the doctor leave it out, its tracks count as occluded);
+    frame 0, which places the body, must see it, and so must one later frame at least.
     """
 
     fps: float
@@ -251,8 +255,8 @@ class Observations:
             a = np.asarray(p, np.float64)
             if a.ndim != 2 or a.shape[1] != 3:
                 raise ValueError(f"Observations.points[{t}] must have shape [n, 3], got {a.shape}")
-            if len(a) == 0:
-                raise ValueError(f"Observations.points[{t}] is empty: every frame needs observed points")
+            if len(a) == 0 and t == 0:
+                raise ValueError("Observations.points[0] is empty: frame 0 places the body and must see the object")
             if not np.all(np.isfinite(a)):
                 raise ValueError(f"Observations.points[{t}] holds non-finite values")
             pts.append(a)
@@ -260,6 +264,9 @@ class Observations:
             raise ValueError(f"Observations need at least 2 frames, got {len(pts)}")
         self.points = pts
         T = len(pts)
+        if sum(len(a) > 0 for a in pts[1:]) == 0:
+            raise ValueError(f"Observations: none of frames 1..{T - 1} holds an observed point (the object is hidden "
+                             f"after frame 0): nothing to compare a simulation with")
         if (self.tracks is None) != (self.visibility is None):
             raise ValueError("Observations.tracks and Observations.visibility must be given together")
         if self.tracks is not None:
@@ -281,6 +288,11 @@ class Observations:
     @property
     def num_frames(self) -> int:
         return len(self.points)
+
+    @property
+    def seen(self) -> np.ndarray:
+        """[T] bool: the frames that hold observed points (the others show the object wholly hidden)."""
+        return np.array([len(p) > 0 for p in self.points], bool)
 
 
 @dataclass

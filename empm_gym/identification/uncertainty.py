@@ -395,6 +395,7 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
         X, div, _ = sim.run(F)
         diverged += div
         L = np.stack([obj.per_frame(X[:, w]) for w in range(len(cand))])
+        L = L[:, obj.seen[1:F]]  # a frame without observed points is not scored
         nb = newton_bootstrap(L, dz, n_boot=n_boot, seed=seed + b)
         nbs.append(nb)
         labels.append(label)

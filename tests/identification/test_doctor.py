@@ -229,8 +229,9 @@ def test_a_refit_on_a_variant_at_the_edge_of_its_window_is_widened():
 
 
 def test_a_refit_on_a_later_variant_starts_from_the_optima_found_on_earlier_ones(monkeypatch):
-    """Each candidate's refit on a variant gets, among its starts, that candidate's optima on the variants refitted
-    before it, in order (dough pulled apart: the fracture found on one shifted grid is a start on the next)."""
+    """Each candidate's refit on a variant after the first gets, among its starts, that candidate's optimum on the
+    first variant (dough pulled apart: the fracture found on one shifted grid is a start on the next); the first
+    variant is refitted before the others, which are refitted together."""
     from empm_gym.identification.doctor import core
     from empm_gym.sim import MaterialConfig
 
@@ -1034,3 +1035,25 @@ def test_a_model_that_leaves_several_times_the_noise_held_out_says_the_verdict_i
     for chamfer, noise in ((0.0018, 0.0014), (0.0042, 0.0014), (UNEXPLAINED_NOISE_MULTIPLE * 0.0014, 0.0014),
                            (float("nan"), 0.0014), (0.01, float("nan")), (0.01, 0.0)):
         assert unexplained_note(chamfer, noise, "m") is None
+
+
+def test_frames_where_the_object_is_wholly_hidden_are_neither_fitted_nor_scored(tmp_path):
+    """A recording whose object is wholly hidden in some frames (a hand over it) is diagnosed on the others: the
+    hidden frames are named in the notes and in ``hidden_frames``, and are not among the held-out frames scored;
+    too few held-out frames that see the object is refused by name."""
+    from empm_gym.sim import MaterialConfig
+
+    scene, obs = _pushed_block(MaterialConfig(E=3.0e3, nu=0.3, density=1000.0))
+    cfg = DoctorConfig(base_iters=2, candidate_iters=1, popsize=4, variants=0, base_E=3e3, E_bounds=(1e3, 9e3))
+
+    def hide(frames):
+        return Observations(obs.fps, [np.zeros((0, 3)) if t in frames else p for t, p in enumerate(obs.points)],
+                            tracks=obs.tracks, visibility=obs.visibility)
+
+    res = diagnose(scene, hide({5}), effects=["viscosity"], config=cfg, progress=False, out_dir=tmp_path)
+    assert (tmp_path / "report.md").exists() and json.loads((tmp_path / "doctor.json").read_text())["hidden_frames"] == [5]
+    assert res["hidden_frames"] == [5] and any("wholly hidden in frames 5 " in n for n in res["notes"])
+    assert res["heldout_per_frame"]["frames"] == [9, 10, 11, 12] and res["gap"]["frames"] == [9, 10, 11, 12]
+    assert np.isfinite(res["base"]["heldout"]["chamfer_m"])
+    with pytest.raises(DoctorError, match=r"wholly hidden in frames 10.*3 of the held-out frames 9-12 see it"):
+        diagnose(scene, hide({10}), effects=["viscosity"], config=cfg, progress=False)

@@ -123,7 +123,7 @@ def test_identify_rejects_bad_arguments(rope):
 
 
 def test_observations_and_scene_validation():
-    with pytest.raises(ValueError, match=r"points\[1\] is empty"):
+    with pytest.raises(ValueError, match=r"none of frames 1..1 holds an observed point"):
         Observations(30.0, [np.zeros((3, 3)), np.zeros((0, 3))])
     with pytest.raises(ValueError, match="tracks must have shape"):
         Observations(30.0, [np.zeros((3, 3))] * 2, tracks=np.zeros((3, 4, 3)), visibility=np.zeros((3, 4), bool))
@@ -337,3 +337,49 @@ def test_unseen_surface_matches_observed_points_on_a_side_frame_0_did_not_see():
     assert plain.torch(torch.as_tensor(X)).item() == pytest.approx(plain.numpy(X), abs=1.5e-6)
     with pytest.raises(ValueError, match="unseen_surface needs"):
         Objective(scene, obs, 2, l_trk=0.0, observation="particles", unseen_surface=True)
+
+
+def test_a_frame_where_the_object_is_wholly_hidden_is_left_out_of_the_loss():
+    """A frame with no observed points (a hand over the object) is not scored: the loss, its per-frame terms and
+    its gradient are those of the recording with that frame cut out, tracks included (a track marked visible on
+    the hidden frame counts as occluded there), on the CPU's KD-trees and on the GPU's padded all-pairs path
+    (run here on torch's CPU device)."""
+    import torch
+
+    from empm_gym.identification.losses import PaddedFrames
+    from empm_gym.identification.offline import Objective
+
+    rng = np.random.default_rng(3)
+    x = rng.uniform(0.0, 0.05, (300, 3))
+    T, hidden = 6, 3
+    X = np.stack([x + [0.004 * t, 0.0, 0.001 * t * t] for t in range(T)])
+    pts = [X[t, :150] + rng.normal(0.0, 5e-4, (150, 3)) + [0.0, 0.002 * t, 0.0] for t in range(T)]
+    tracks = np.stack([X[t, 200:210] + [0.0, 0.0, 0.003 * t] for t in range(T)])
+    vis = np.ones((T, 10), bool)
+    scene = Scene(x, np.full(300, 1e-7), fps=30.0)
+    shown = [p if t != hidden else np.zeros((0, 3)) for t, p in enumerate(pts)]
+    obs = Observations(30.0, shown, tracks=tracks, visibility=vis, surface=True)
+    keep = [t for t in range(T) if t != hidden]
+    cut = Observations(30.0, [pts[t] for t in keep], tracks=tracks[keep], visibility=vis[keep], surface=True)
+    assert obs.seen.tolist() == [t != hidden for t in range(T)]
+    a, b = Objective(scene, obs, T, l_trk=50.0), Objective(scene, cut, T - 1, l_trk=50.0)
+    per = a.per_frame(X)
+    assert np.isnan(per[hidden - 1]) and np.isfinite(np.delete(per, hidden - 1)).all()
+    np.testing.assert_allclose(np.delete(per, hidden - 1), b.per_frame(X[keep]), rtol=1e-12)
+    assert a.numpy(X) == pytest.approx(b.numpy(X[keep]), rel=1e-12)
+    for objective in (a, b):  # the GPU's path: the seen frames padded, indexed by their rank
+        objective._padded = PaddedFrames([p for p in objective.points if len(p)], torch.device("cpu"))
+    assert a.numpy(X) == pytest.approx(b.numpy(X[keep]), rel=1e-12)
+    ta, tb = torch.tensor(X, requires_grad=True), torch.tensor(X[keep], requires_grad=True)
+    la, lb = a.torch(ta), b.torch(tb)
+    la.backward()
+    lb.backward()
+    assert la.item() == pytest.approx(lb.item(), rel=1e-12) and la.item() == pytest.approx(a.numpy(X), abs=1e-5)
+    assert torch.all(ta.grad[hidden] == 0) and torch.allclose(ta.grad[keep], tb.grad, rtol=1e-10, atol=0)
+    diverged = X.copy()
+    diverged[4, 0, 0] = np.nan
+    assert np.isnan(a.per_frame(diverged)[hidden - 1]) and a.numpy(diverged) > 100.0
+    with pytest.raises(ValueError, match=r"points\[0\] is empty"):
+        Observations(30.0, [np.zeros((0, 3)), pts[1]])
+    with pytest.raises(ValueError, match="none of frames 1..2 holds"):
+        Observations(30.0, [pts[0], np.zeros((0, 3)), np.zeros((0, 3))])

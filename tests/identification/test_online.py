@@ -47,3 +47,22 @@ def test_online_rejects_bad_frames(rope):
         ident.step(OnlineFrame(rope.obs.points[0], np.zeros((1, 3)), masks=[np.zeros((120, 160), bool)]))
     with pytest.raises(ValueError, match="H and k"):
         OnlineIdentifier(rope.scene, H=0)
+
+
+def test_a_frame_where_the_object_is_wholly_hidden_moves_the_twin_and_scores_nothing(rope):
+    """A streamed frame with no observed points (a hand over the object) still moves the twin with its controls;
+    its record says hidden, scores nothing (NaN) and updates nothing, and the frames after it are scored as if it
+    had been seen. The first frame, which places the twin, must see the object."""
+    frames = _frames(rope)[:8]
+    seen = OnlineIdentifier(rope.scene, cameras=rope.views.cameras, update=False)
+    blind = OnlineIdentifier(rope.scene, cameras=rope.views.cameras, update=False)
+    for t, f in enumerate(frames):
+        a = seen.step(f)
+        b = blind.step(OnlineFrame(np.zeros((0, 3)), f.ee_positions, f.ee_grip, None) if t in (3, 4) else f)
+        if t in (3, 4):
+            assert b["hidden"] and np.isnan(b["chamfer"]) and not b["updated"] and not b["quasi_static"]
+        else:
+            assert b["chamfer"] == a["chamfer"] and b["mask_iou"] == a["mask_iou"]
+    np.testing.assert_array_equal(blind.state.particle_x.numpy(), seen.state.particle_x.numpy())
+    with pytest.raises(ValueError, match="non-empty on the first frame"):
+        OnlineIdentifier(rope.scene).step(OnlineFrame(np.zeros((0, 3)), frames[0].ee_positions))

@@ -144,14 +144,28 @@ def test_a_view_that_shows_too_little_says_so(tmp_path):
         load_recording(rec, frames=2, progress=False)
 
 
-def test_frames_that_do_not_see_the_object_are_named(tmp_path):
-    """A recording whose object is hidden in its last frames (a plate over it, say) is refused with the hidden
-    frames listed and the frames that do see it offered; loaded up to there, it loads."""
-    rec = _one_camera_recording(tmp_path / "hidden", CONSTRUCTED["box"][0], frames=6, hidden=(3, 4, 5))
-    with pytest.raises(ValueError, match=r"3 of 6 frames have no object points \(frames 3-5\).*--frames 3"):
-        load_recording(rec, progress=False)
-    _, obs, _ = load_recording(rec, frames=3, progress=False)
-    assert obs.num_frames == 3
+def test_frames_that_do_not_see_the_object_load_and_are_not_scored(tmp_path, caplog):
+    """A recording whose object is wholly hidden in some frames (a hand or a plate over it) loads: the hidden
+    frames are listed (logged, ``info``) and marked unseen, and the loss leaves them out (the Chamfer of a frame
+    with no observed point is undefined, not zero). Only frame 0 seeing the object leaves nothing to compare."""
+    import logging
+
+    from empm_gym.identification.offline import Objective
+
+    box = CONSTRUCTED["box"][0]
+    rec = _one_camera_recording(tmp_path / "hidden", box, frames=6, hidden=(3, 4))
+    info = {}
+    with caplog.at_level(logging.WARNING, logger="empm_gym.identification"):
+        scene, obs, _ = load_recording(rec, progress=False, info=info)
+    assert info["hidden_frames"] == [3, 4] and "wholly hidden in 2 of 6 frames (3-4)" in caplog.text
+    assert obs.seen.tolist() == [True, True, True, False, False, True]
+    obj = Objective(scene, obs, 6)
+    X = np.repeat(scene.particles[None], 6, 0)  # the body at rest: its loss is finite on every seen frame
+    per = obj.per_frame(X)
+    assert np.isnan(per[[2, 3]]).all() and np.isfinite(per[[0, 1, 4]]).all()
+    assert obj.numpy(X) == pytest.approx(np.mean(per[[0, 1, 4]]), rel=1e-12)
+    with pytest.raises(ValueError, match="only frame 0 of 6 holds object points"):
+        load_recording(_one_camera_recording(tmp_path / "late", box, frames=6, hidden=(1, 2, 3, 4, 5)), progress=False)
 
 
 def test_view_gap_and_the_occluder_test():

@@ -65,6 +65,7 @@ import numpy as np
 from empm_gym.sim import MaterialConfig, stable_dt
 from empm_gym.sim.effects import BASE_TABLE_FRICTION, EFFECTS, PARAMETERS
 
+from ..data import frame_ranges
 from ..offline import Objective, identify
 from ..problem import Observations, Scene, Views, _ForwardSim, run_together
 from ..uncertainty import block_bootstrap_indices, gain_is_significant, measurement_noise, paired_gain_test
@@ -309,12 +310,19 @@ def _check_inputs(scene: Scene, obs: Observations, cfg: DoctorConfig) -> Tuple[i
     if F < 3 or T - F < cfg.min_heldout_frames:
         raise DoctorError(f"the recording has {T} frames: fitting on {F} and holding out {T - F} leaves too few "
                           f"(need >= 3 to fit and >= {cfg.min_heldout_frames} held out); record longer")
+    seen = obs.seen[:T]
+    if seen[1:F].sum() < 2 or seen[F:].sum() < cfg.min_heldout_frames:
+        raise DoctorError(f"the object is wholly hidden in frames {frame_ranges(np.nonzero(~seen)[0])} of {T}: "
+                          f"{int(seen[1:F].sum())} of the fitting frames 1-{F - 1} and {int(seen[F:].sum())} of the "
+                          f"held-out frames {F}-{T - 1} see it (need >= 2 and >= {cfg.min_heldout_frames}); "
+                          f"record with the object in view")
     return T, F
+
 
 
 def _motion_m(obs: Observations) -> float:
     """Largest displacement [m] of the observed centroid from its frame-0 position."""
-    c = np.array([p.mean(0) for p in obs.points])
+    c = np.array([p.mean(0) for p in obs.points if len(p)])
     return float(np.max(np.linalg.norm(c - c[0], axis=1)))
 
 
@@ -777,7 +785,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     cfg = config or DoctorConfig()
     t_start = time.perf_counter()
     T, F = _check_inputs(scene, obs, cfg)
-    heldout = list(range(F, T))
+    hidden = [int(t) for t in np.nonzero(~obs.seen[:T])[0]]
+    heldout = [t for t in range(F, T) if t not in hidden]  # a frame where the object is wholly hidden is not scored
     noise = measurement_noise(obs.points[:T:max(1, T // 10)])
     motion = _motion_m(obs)
     driven = _driven_m(scene, obs, T)
@@ -795,7 +804,11 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         raise DoctorError(f"unknown effects {unknown}; known: {', '.join(EFFECTS)}")
     grid, grid_notes = _grid_notes(scene)
     grid_notes = grid_notes + list(body_notes)
-    result = {"schema": 1, "frames": T, "fit_frames": [0, F - 1], "heldout_frames": [F, T - 1], "fps": obs.fps,
+    if hidden:
+        grid_notes.append(f"the object is wholly hidden in frames {frame_ranges(hidden)} (no observed point): they are "
+                          f"simulated but neither fitted nor scored")
+    result = {"schema": 1, "frames": T, "fit_frames": [0, F - 1], "heldout_frames": [F, T - 1],
+              "hidden_frames": hidden, "fps": obs.fps,
               "noise_sigma_m": noise, "observed_motion_m": motion, "driven_motion_m": driven, "grid": grid,
               "notes": grid_notes}
     still = max(3.0 * noise, 2e-3)

@@ -353,10 +353,12 @@ def summary_features(
     f["residual_asymmetry"] = _nanratio(mp - mn, mp + mn) if np.isfinite(mp) and np.isfinite(mn) else float("nan")
 
     # pieces
-    if T:
-        f["pieces_observed"] = float(count_pieces(obs_list[T - 1], link_m, min_piece_frac))
-        f["pieces_simulated"] = float(count_pieces(sim[T - 1], link_m, min_piece_frac))
-        idx = list(range(0, T, max(1, piece_stride)))
+    shown = [t for t in range(T) if len(_pts(obs_list[t]))]  # a frame where the object is wholly hidden shows none
+    if shown:
+        last = shown[-1]  # the last frame that sees the object, for both
+        f["pieces_observed"] = float(count_pieces(obs_list[last], link_m, min_piece_frac))
+        f["pieces_simulated"] = float(count_pieces(sim[last], link_m, min_piece_frac))
+        idx = shown[::max(1, piece_stride)]
         f["pieces_observed_max"] = float(max(count_pieces(obs_list[t], link_m, min_piece_frac) for t in idx))
         f["pieces_simulated_max"] = float(max(count_pieces(sim[t], link_m, min_piece_frac) for t in idx))
     else:
