@@ -97,7 +97,7 @@ def _identify(args) -> int:
         return _identify_spring_mass(args)
     from empm_gym.sim import MaterialConfig  # noqa: F401  (import errors surface early)
 
-    from .data import load_recording
+    from .data import frame_ranges, load_recording
     from .interrupt import stop_on_signals
     from .offline import ResumeError, identify, read_resume_state
     from .report import plot_fit, plot_online, save_rrd
@@ -174,8 +174,10 @@ def _identify(args) -> int:
     what = f"iterations {done0 + 1}-{iters} of {iters}, resuming {out}" if resume else f"{iters} iterations"
     if not resume:
         _note_interrupted_fit(out)
-    print(f"empm identify: fitting {','.join(params)} ({args.method}) on frames 0-{F - 1} of {T} ({what}); "
-          f"Ctrl-C stops after the current iteration and saves", file=sys.stderr)
+    hidden = [t for t in body_info.get("hidden_frames", []) if t < F]
+    print(f"empm identify: fitting {','.join(params)} ({args.method}) on frames 0-{F - 1} of {T} ({what}"
+          + (f"; frames {frame_ranges(hidden)} not scored: no camera sees the object there" if hidden else "")
+          + "); Ctrl-C stops after the current iteration and saves", file=sys.stderr)
     with stop_on_signals() as stop:
         try:
             res = identify(obs, scene, stop=stop, resume=resume, **kw)
@@ -193,6 +195,8 @@ def _identify(args) -> int:
         if plan is not None:
             res.extra["plan"] = plan.to_dict()
         res.extra["recording"] = str(Path(args.rec_dir).resolve())
+        if hidden:
+            res.extra["hidden_frames"] = hidden  # simulated but not scored (Observations.seen)
         if stop.is_set():  # save what there is, skip the plots
             return _save_interrupted(res, out, stop, done0)
     undetermined = []

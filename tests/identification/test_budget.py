@@ -94,3 +94,21 @@ def test_cli_refuses_a_negative_budget(rec, tmp_path, capsys):
     assert main(["identify", str(rec), "--out", str(out), "--budget-min", "-1"]) == 2
     assert "--budget-min must be 0 (no budget) or a positive number of minutes, got -1.0" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_cli_fits_past_frames_where_no_camera_sees_the_object(rec, tmp_path, capsys):
+    """A recording whose object masks are empty in one frame (a hand over the object) is identified on the other
+    frames: the command says which frame is not scored and the material file's fit section records it."""
+    import shutil
+
+    import imageio.v3 as iio
+
+    hidden = tmp_path / "hidden"
+    shutil.copytree(rec, hidden)
+    for path in sorted(hidden.glob("mask/*/0/3.png")):
+        iio.imwrite(path, np.zeros_like(iio.imread(path)))
+    out = tmp_path / "m.json"
+    assert main(["identify", str(hidden), "--out", str(out), "--dx", "0.02", "--iters", "2", "--no-rrd", "--quiet",
+                 "--no-uncertainty"]) == 0
+    assert "frames 3 not scored: no camera sees the object there" in capsys.readouterr().err
+    assert json.loads(out.read_text())["fit"]["hidden_frames"] == [3]

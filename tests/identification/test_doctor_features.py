@@ -74,6 +74,10 @@ def test_known_phases_found():
         assert abs(got[name][0] - s) <= 1 and abs(got[name][1] - e) <= 1, (name, got[name])
     lab = phase_of_frames(phases, 60)
     assert lab[15] == "holding" and lab[25] == "moving" and lab[55] == "at_rest"
+    # the object wholly hidden while it is held and lifted (a hand over it): the contact it was last seen in holds
+    hidden = [p if not 14 <= t < 30 else np.zeros((0, 3)) for t, p in enumerate(obs)]
+    assert [(p.name, p.start, p.stop) for p in segment_phases(ee, grip, FPS, hidden, r)] == \
+        [(p.name, p.start, p.stop) for p in phases]
 
 
 def test_no_contact_is_rest():
@@ -202,7 +206,9 @@ def test_figures_and_report_written(tmp_path):
     phases = segment_phases(ee, grip, FPS, obs, r)
     sim = np.stack([block + c[t] * 0.9 for t in range(T)])
     fr = frame_residuals(obs, sim)
-    f1 = plot_residual_timeline(fr, fr * 0.5, phases, 40, tmp_path / "fig" / "timeline.png", "rope", fps=FPS)
+    fr[20:22] = np.nan  # the object wholly hidden there: no residual, the frames hatched
+    f1 = plot_residual_timeline(fr, fr * 0.5, phases, 40, tmp_path / "fig" / "timeline.png", "rope", fps=FPS,
+                                hidden=[20, 21])
     res = point_residuals(obs[30], sim[30])
     f2 = plot_residual_heatmap({"frame 30, base": (obs[30], res), "frame 30, refit": (obs[30], res * 0.3)},
                                tmp_path / "fig" / "heat.png", "worst frame")

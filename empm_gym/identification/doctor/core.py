@@ -1417,7 +1417,8 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
     figs["residual over time"] = plot_residual_timeline(
         per[0]["loss"], per[best_w]["loss"] if best_w else None, loc["phases"], F, d / "residual_timeline.png",
         title=f"Chamfer + median tracking error per frame: base model vs {effect}",
-        labels=("base model", f"with {effect}" if best_w else "best candidate")).name
+        labels=("base model", f"with {effect}" if best_w else "best candidate"),
+        hidden=result.get("hidden_frames", ())).name
     # heat maps at the worst held-out frames of the base model
     held = np.arange(F, T)
     worst = held[np.argsort(-np.nan_to_num(per[0]["chamfer"][F:], nan=-1.0))[:2]]

@@ -205,7 +205,8 @@ def segment_phases(
         ee_positions: ``[T, K, 3]`` end-effector centres from the controls (m).
         ee_grip: ``[T, K]`` gripper state, 1 = closed, 0 = open (pushers: always 0).
         fps: frames per second of the recording.
-        obj_points: per frame, the observed object points ``[n_t, 3]`` (m).
+        obj_points: per frame, the observed object points ``[n_t, 3]`` (m); a frame without any (the object
+            wholly hidden, a hand over it) keeps the contact of the frame before it.
         ee_radius: ``[K]`` (or scalar) end-effector radius (m).
         contact_dist_m: an end-effector touches when its surface gap to the nearest observed point
             is at most this (m). Default 1 cm (depth noise plus finger thickness).
@@ -227,6 +228,9 @@ def segment_phases(
         return []
     grip = np.asarray(ee_grip, dtype=float).reshape(T, -1) > 0.5
     gap = contact_distances(ee, ee_radius, obj_points)
+    for t in range(1, T):  # a frame where the object is wholly hidden keeps the contact it was last seen in
+        if t < len(obj_points) and not len(np.asarray(obj_points[t]).reshape(-1, 3)):
+            gap[t] = gap[t - 1]
     touch = gap <= contact_dist_m  # [T, K]
     v_back = backward_speed(ee, fps)  # [T, K]
     v_fwd = np.concatenate([v_back[1:], v_back[-1:]], axis=0)

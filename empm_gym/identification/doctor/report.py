@@ -34,7 +34,8 @@ PHASE_COLOURS = {
 
 def plot_residual_timeline(frames_residual_base, frames_residual_best, phases, fit_frames: Optional[int], path,
                            title: str = "", fps: Optional[float] = None, labels: Tuple[str, str] = ("base model",
-                                                                                                  "best candidate")):
+                                                                                                  "best candidate"),
+                           hidden: Sequence[int] = ()):
     """Residual (mm) per frame with the phases shaded and named, and the held-out frames marked.
 
     Args:
@@ -43,6 +44,7 @@ def plot_residual_timeline(frames_residual_base, frames_residual_best, phases, f
         phases: :class:`~.phases.Phase` runs (anything with ``name``, ``start``, ``stop``).
         fit_frames: first held-out frame (frames ``>= fit_frames`` were not fitted); None: no marker.
         path: PNG to write; title: figure title; fps: adds a time axis (s) on top when given.
+        hidden: frames where no camera sees the object (hatched: not scored, so no residual there).
     """
     plt = _plt()
     base = np.asarray(frames_residual_base, dtype=float) * 1e3
@@ -64,6 +66,9 @@ def plot_residual_timeline(frames_residual_base, frames_residual_best, phases, f
             wide = p.stop - p.start > T / 10  # a narrow phase's name stands upright, hanging from the top
             ax.text(0.5 * (p.start + p.stop - 1), top * (1.12 if wide else 1.47), p.name.replace("_", " "),
                     ha="center", va="bottom" if wide else "top", fontsize=7, rotation=0 if wide else 90)
+    for i, f in enumerate(sorted(int(f) for f in hidden if 0 <= f < T)):
+        ax.axvspan(f - 0.5, f + 0.5, facecolor="none", edgecolor="0.4", hatch="///", lw=0,
+                   label="object hidden (not scored)" if i == 0 else None)
     t = np.arange(T)
     ax.plot(t, base, "-", color="k", lw=1.5, label=labels[0])
     if frames_residual_best is not None:
