@@ -1053,6 +1053,11 @@ def test_frames_where_the_object_is_wholly_hidden_are_neither_fitted_nor_scored(
     res = diagnose(scene, hide({5}), effects=["viscosity"], config=cfg, progress=False, out_dir=tmp_path)
     assert (tmp_path / "report.md").exists() and json.loads((tmp_path / "doctor.json").read_text())["hidden_frames"] == [5]
     assert res["hidden_frames"] == [5] and any("wholly hidden in frames 5 " in n for n in res["notes"])
+    # where the time went: the stages add up to the diagnosis's wall time, and the report says it
+    assert list(res["stage_wall_s"]) == ["base fit", "candidates", "held-out scores", "variants",
+                                         "verdict and localisation"]
+    assert sum(res["stage_wall_s"].values()) == pytest.approx(res["wall_time_s"], abs=0.06)
+    assert f"wall time [s]: {res['wall_time_s']:.1f} (base fit" in (tmp_path / "report.md").read_text()
     assert res["heldout_per_frame"]["frames"] == [9, 10, 11, 12] and res["gap"]["frames"] == [9, 10, 11, 12]
     assert np.isfinite(res["base"]["heldout"]["chamfer_m"])
     with pytest.raises(DoctorError, match=r"wholly hidden in frames 10.*3 of the held-out frames 9-12 see it"):

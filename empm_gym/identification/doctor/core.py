@@ -1473,7 +1473,9 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
         + (" -- the verdict is doubted, its confidence halved" if sig["doubted"] else ""))}
     write_report_md(d / "report.md", {k: result[k] for k in ("effect", "confidence", "reason", "decidable")} |
                     {"base E [Pa]": result["base"]["params"]["E"], "noise sigma [mm]": 1e3 * result["noise_sigma_m"],
-                     "worst phase and region (base model)": where.get("worst_cell")} | sig_text,
+                     "worst phase and region (base model)": where.get("worst_cell"),
+                     "wall time [s]": f"{result['wall_time_s']:.1f} ("
+                     + ", ".join(f"{k} {v:.1f}" for k, v in result.get("stage_wall_s", {}).items()) + ")"} | sig_text,
                     figs, tables,
                     features=result["evidence"]["features"], feature_info=FEATURE_INFO, notes=result.get("notes"))
     return {"report": str(d / "report.md"), "rrd": str(d / "doctor.rrd"),
