@@ -329,7 +329,7 @@ def _material_from(scene, values):
 
 
 def _evaluate(args) -> int:
-    from .data import load_recording
+    from .data import frame_ranges, load_recording
     from .evaluate import evaluate, held_out_frames
     from empm_gym.sim import read_material
 
@@ -361,7 +361,9 @@ def _evaluate(args) -> int:
     else:
         res = evaluate(scene, mat, mu, obs, views, eval_frames=frames, downsample=args.downsample, out_dir=out_dir,
                        progress=not args.quiet)
-    print(f"held-out frames {frames[0]}-{frames[-1]} of {obs.num_frames}:")
+    hidden = res.get("unscored_frames") or []
+    print(f"held-out frames {frames[0]}-{frames[-1]} of {obs.num_frames}"
+          + (f" (frames {frame_ranges(hidden)} not scored: no camera sees the object there)" if hidden else "") + ":")
     units = {"chamfer": "m", "chamfer_obs": "m", "track": "m", "iou": "", "psnr": "dB", "ssim": ""}
     for k, v in res["summary"].items():
         print(f"  {k:12s} {v:.5g} {units.get(k, '')}")

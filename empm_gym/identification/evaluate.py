@@ -141,7 +141,8 @@ def evaluate(scene: Scene, material, friction: Optional[float], obs: Observation
     model, :func:`.springmass.evaluate_spring_mass`); the MPM simulation is then skipped and ``material`` may be
     a dict of that model's parameters (reported as given).
 
-    Returns {"frames": [...], "per_frame": {metric: [...]}, "summary": {metric: mean}}; with ``out_dir``
+    Returns {"frames": [...], "per_frame": {metric: [...]}, "summary": {metric: mean}, "unscored_frames": [...]}
+    (frames where the object is wholly hidden: NaN in every metric, left out of the means); with ``out_dir``
     also writes ``<name>.json``, ``<name>_metrics.png`` and ``<name>.rrd`` there.
     """
     import json
@@ -207,7 +208,8 @@ def evaluate(scene: Scene, material, friction: Optional[float], obs: Observation
     else:
         mat_out = {"E": material.E, "nu": material.nu, "density": material.density,
                    "yield_stress": material.yield_stress, "friction": mu}
-    out = {"frames": frames, "per_frame": per, "summary": summary, "material": mat_out}
+    out = {"frames": frames, "per_frame": per, "summary": summary, "material": mat_out,
+           "unscored_frames": [t for t in frames if len(obs.points[t]) == 0]}
     if out_dir is not None:
         from .report import plot_metrics, save_rrd
 

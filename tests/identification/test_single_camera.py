@@ -150,6 +150,7 @@ def test_frames_that_do_not_see_the_object_load_and_are_not_scored(tmp_path, cap
     with no observed point is undefined, not zero). Only frame 0 seeing the object leaves nothing to compare."""
     import logging
 
+    from empm_gym.identification.evaluate import evaluate
     from empm_gym.identification.offline import Objective
 
     box = CONSTRUCTED["box"][0]
@@ -164,6 +165,9 @@ def test_frames_that_do_not_see_the_object_load_and_are_not_scored(tmp_path, cap
     per = obj.per_frame(X)
     assert np.isnan(per[[2, 3]]).all() and np.isfinite(per[[0, 1, 4]]).all()
     assert obj.numpy(X) == pytest.approx(np.mean(per[[0, 1, 4]]), rel=1e-12)
+    ev = evaluate(scene, scene.material, None, obs, eval_frames=[1, 2, 3, 4, 5], positions=X, progress=False)
+    assert ev["unscored_frames"] == [3, 4] and np.isnan(ev["per_frame"]["chamfer"][2:4]).all()
+    assert ev["summary"]["chamfer"] == pytest.approx(np.mean(np.array(ev["per_frame"]["chamfer"])[[0, 1, 4]]))
     with pytest.raises(ValueError, match="only frame 0 of 6 holds object points"):
         load_recording(_one_camera_recording(tmp_path / "late", box, frames=6, hidden=(1, 2, 3, 4, 5)), progress=False)
 
