@@ -580,6 +580,12 @@ def _quat_to_matrix(q) -> np.ndarray:
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
+#: How far from its disc's centre (in pixel widths at the centre's depth) the ray through the pixel under the
+#: centre may meet the disc's tangent plane and still be drawn (:func:`render_view` with ``tangent``): the ray
+#: passes within 0.71 pixel of the centre, farther along a plane inclined to it (2 allows 69 degrees).
+_CENTRE_REACH_PX = 2.0
+
+
 def render_view(view: _StaticView, surf_p: np.ndarray, surf_n: np.ndarray, surf_albedo: np.ndarray,
                 splat_radius_m: float, ees: List[dict], tangent: bool = False):
     """Noise-free render of one camera: depth [H, W] m (inf = nothing), colour [H, W, 3] in [0, 1],
@@ -590,7 +596,10 @@ def render_view(view: _StaticView, surf_p: np.ndarray, surf_n: np.ndarray, surf_
     wins, so every face inclined to the camera comes out 0.3-0.8 mm too near and the silhouette a fraction of a
     pixel too wide. ``tangent`` draws each disc in the point's tangent plane instead: a pixel's depth is where
     its ray meets the disc, and a pixel whose ray misses every disc is not the object's (faces on their true
-    depth; benchmarks/RESULTS.md, session 41)."""
+    depth; benchmarks/RESULTS.md, session 41). Where a disc is narrower than a pixel (a small object seen from
+    afar) the ray through the pixel under its centre may pass beside it: that pixel is drawn where the ray meets
+    the disc's plane, within :data:`_CENTRE_REACH_PX` pixels' width of the centre, so that, as with flat
+    discs, every disc covers at least that pixel (a 4 cm block at 64 x 48 px vanished without it)."""
     cam = view.cam
     depth = view.table_depth.copy()
     color = view.table_color.copy()
@@ -633,7 +642,10 @@ def render_view(view: _StaticView, surf_p: np.ndarray, surf_n: np.ndarray, surf_
                 with np.errstate(divide="ignore", invalid="ignore"):
                     s = n_dot_po[k] / den
                 q = cam.position + s[:, None] * d - p_ok[k]
-                hit = (den < 0) & (s > 0.05) & (np.einsum("ij,ij->i", q, q) <= splat_radius_m**2)
+                reach2 = splat_radius_m**2
+                if dr == 0 and dc == 0:  # the pixel under the centre: its ray may pass beside a disc narrower
+                    reach2 = np.maximum(reach2, (_CENTRE_REACH_PX * z[k] / cam.K[0, 0]) ** 2)  # than a pixel
+                hit = (den < 0) & (s > 0.05) & (np.einsum("ij,ij->i", q, q) <= reach2)
                 k, s = k[hit], s[hit]
             else:
                 k = np.nonzero(m & ((rr - rc[:, 0]) ** 2 + (cc - rc[:, 1]) ** 2 <= rpx**2))[0]
@@ -701,7 +713,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
                noise_sigma_m: float = 1.5e-3, n_tracks: int = 128, depth_format: str = "npy",
                overwrite: bool = False, progress: bool = True, device: str = "cpu", script: str = "default",
                effect: Optional[str] = None, effect_params: Optional[Dict[str, float]] = None,
-               material=None, debug_particles: Optional[bool] = None, tangent_splats: bool = False) -> Path:
+               material=None, debug_particles: Optional[bool] = None, tangent_splats: bool = True) -> Path:
     """Simulate a scripted manipulation and write a synthetic recording with known parameters to ``out_dir``.
 
     ``object`` is "rope", "dough" or "block"; ``script`` "default" (rope lift-and-stretch, dough squeeze,
@@ -720,8 +732,10 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
 
     The scene is rendered from ``cameras`` cameras (``width`` x ``height`` pixels, focal ``fx``, ``fy``
     pixels) at ``fps`` for ``frames`` frames (focal lengths default to 420 px scaled by width / 848);
-    ``tangent_splats`` draws the surface's discs in their tangent planes, so that the depth lies on the true
-    surface (:func:`render_view`; off by default: the suite's recordings were measured with the flat discs).
+    ``tangent_splats`` (the default) draws the surface's discs in their tangent planes, so that the depth lies on
+    the true surface as a depth camera measures it (:func:`render_view`); False draws flat discs at their
+    centres' depth, which put inclined faces 0.3-0.8 mm too near and widen the silhouette (the recordings of
+    benchmark seeds up to 14 were made so).
     Returns the recording path. See the module docstring for the scene, the noise model and how
     ``controls.npz`` replays.
     """
@@ -968,9 +982,11 @@ def register(subparsers) -> None:
                    help="depth files: PhysTwin's .npy (default) or 16-bit PNG in millimetres (PGND-style, "
                         "about 8x smaller)")
     p.add_argument("--device", default="cpu", help="Warp device for the simulation (cpu, cuda:0)")
-    p.add_argument("--tangent-splats", dest="tangent_splats", action="store_true",
-                   help="draw the surface in its tangent planes: depth on the true surface (the default flat discs "
-                        "put inclined faces 0.3-0.8 mm too near)")
+    p.add_argument("--tangent-splats", dest="tangent_splats", action="store_true", default=True,
+                   help="draw the surface in its tangent planes: depth on the true surface (the default)")
+    p.add_argument("--flat-splats", dest="tangent_splats", action="store_false",
+                   help="draw the surface as flat discs at their centres' depth, as recordings made before "
+                        "2026-11-28 were: inclined faces 0.3-0.8 mm too near, the silhouette a little wide")
     p.add_argument("--overwrite", action="store_true", help="replace an existing recording in out_dir")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cli)

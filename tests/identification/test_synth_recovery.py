@@ -103,16 +103,18 @@ def test_a_body_the_cameras_see_whole_carries_no_completion_note(tmp_path):
 
 def test_trimming_to_the_measured_surface_takes_only_outer_rows_and_brings_the_volume_to_the_truth(tmp_path):
     """The voxel fill of a noisy scan reaches the noise's outer envelope; ``trim_to_surface`` removes the particles
-    outside the measured surface. Only outer particles go, and the body's volume comes closer to the true one
-    (on this 320 x 180 recording at 5 mm: 126 -> 119 cm^3, the dough 112.5; the synthesiser's splats put the
-    observed faces 0.5-1 mm outside the true ones)."""
+    outside the measured surface. Only outer particles go, and the body's volume comes closer to the true one on
+    a scan biased outward: this 320 x 180 recording at 5 mm drawn with flat discs, which put the observed faces
+    0.5-1 mm outside the true ones (126 -> 119 cm^3, the dough 112.5). On depth measured on the true surface (the
+    synthesiser's default since session 43) the untrimmed body is 109.9 cm^3 and the trim takes it to 104.1,
+    farther from the truth: one more reason the trim is off by default (benchmarks/RESULTS.md, sessions 40-41)."""
     from scipy.spatial import cKDTree
 
     from empm_gym.identification.offline import body_surface
     from empm_gym.perception.synth import synthesize
 
     rec = synthesize(tmp_path / "rec", "dough", script="press-release", effect="none", frames=4, cameras=3,
-                     width=320, height=180, progress=False)
+                     width=320, height=180, progress=False, tangent_splats=False)
     true_vol = np.prod(json.loads((rec / "ground_truth.json").read_text())["scene"]["object_geometry"]["size_m"])
     info = {}
     full, _, _ = load_recording(rec, dx=0.005, particles_per_cell=8, progress=False, warn=False)
@@ -189,8 +191,9 @@ def test_cmaes_recovers_the_rope_E_and_agrees_with_adam(rope_problem, rope_adam)
 def test_the_online_twin_loses_no_mask_iou_to_what_the_grippers_hide(rope_problem):
     """The recorded masks show what each camera sees of the rope, without what the closed grippers hide. The
     twin at the true E (no updates) must be scored the same way: while the grippers hold the rope its mask IoU
-    stays within 7 % of its IoU after they open. Measured (45 frames, 424 x 240): 0.750 held, 0.783 after
-    release; splatting every particle, as before, gave 0.668 held (0.87x)."""
+    stays within 9 % of its IoU after they open. Measured (45 frames, 424 x 240): 0.746 held, 0.803 after
+    release (0.93x; with the flat discs that drew the recordings before session 43, 0.750 and 0.783);
+    splatting every particle, as before, gave 0.668 held (0.87x)."""
     from empm_gym.identification.online import OnlineFrame, OnlineIdentifier
 
     gt, scene, obs, _, views = rope_problem
@@ -199,7 +202,7 @@ def test_the_online_twin_loses_no_mask_iou_to_what_the_grippers_hide(rope_proble
                     ["mask_iou"] for t in range(obs.num_frames)])
     held = scene.ee_grip[: obs.num_frames].all(axis=1)
     assert held[:5].all() and not held[-5:].any()
-    assert iou[held].mean() > 0.93 * iou[-5:].mean(), (iou[held].mean(), iou[-5:].mean())
+    assert iou[held].mean() > 0.91 * iou[-5:].mean(), (iou[held].mean(), iou[-5:].mean())
 
 
 @pytest.mark.slow
