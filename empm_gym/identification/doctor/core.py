@@ -924,9 +924,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         first_share, first_elsewhere, n_disc = _first_on(
             winner.name, contenders, {n: by_name[n].test["gain"] for n in contenders}, robustness)
         first_on = f"{round(first_share * n_disc)} of {n_disc}" if n_disc else ""
-    # a candidate whose gain the variants refuted is out of the verdict on every resample of the held-out frames
-    refuted = [i for i, f in enumerate(cands) if f.equivalent or (cfg.robust_verdict
-               and not robustness["candidates"].get(f.name, {}).get("robust", True))]
+    out = no_rivals(as_dicts, robustness if cfg.robust_verdict else None)
+    refuted = [i for i, f in enumerate(cands) if f.name in out]
     confidence = _confidence(base_loss, [per[i + 1]["loss"][heldout] for i in range(len(cands))],
                              [f.added for f in cands], cfg, None if winner is None else cands.index(winner),
                              refuted=refuted, variant_gains=[
@@ -1313,6 +1312,16 @@ def _fit_dict(f: _Fit) -> dict:
             "E_window": list(f.bounds["E"]) if "E" in f.bounds else None, "at_search_bound": _params_at_bound(f)}
 
 
+def no_rivals(candidates: Sequence[dict], variants: Optional[dict]) -> List[str]:
+    """Names of the candidates (``doctor.json``'s ``candidates``) that are out of the verdict on every resample of
+    the held-out frames (:func:`_confidence`'s ``refuted``): the base model's table (``equivalent_to_base``) and
+    those the variants refuted (``variants``: :func:`_check_variants`' result, None without that check). A
+    candidate the variants did not check stays a rival: it was not refuted."""
+    checked = (variants or {}).get("candidates", {}) if (variants or {}).get("variants") else {}
+    return [c["effect"] for c in candidates if c.get("equivalent_to_base", False)
+            or not checked.get(c["effect"], {}).get("robust", True)]
+
+
 def _confidence(base, cands: List[np.ndarray], added: List[int], cfg: DoctorConfig, winner: Optional[int],
                 n_boot: int = 1000, refuted: Sequence[int] = (), variant_gains: Optional[List[List[float]]] = None
                 ) -> float:
@@ -1323,7 +1332,12 @@ def _confidence(base, cands: List[np.ndarray], added: List[int], cfg: DoctorConf
     on all 5 variants) was named with confidence 0.01 because plasticity, refuted on both grid variants, gained
     9.5 % on most resamples. With ``variant_gains`` (per candidate, its gains on the variants; empty where it
     was not refitted on them) "best" compares, as :func:`select_verdict` does, each candidate's median gain over
-    the resampled frames and its variants."""
+    the resampled frames and its variants, where both were refitted on them; a candidate that was not (beyond
+    ``DoctorConfig.variant_top``) and the winner compare their gains on the resampled frames alone: on them it
+    would have come before the winner and been checked. (Its gain on the doctor's body alone against the winner's
+    median over the variants took every resample: a block pulled apart with a hidden fracture at the CPU tests'
+    scale, one candidate checked, fracture named at 45.1 % held out and 16-26 % on its variants with confidence
+    0.00 against gripper slip's unchecked 29.8 %.)"""
     n = len(base)
     idx = block_bootstrap_indices(n, max(2, round(n ** (1 / 3) * 1.5)), n_boot, np.random.default_rng(cfg.seed + 7))
     mb = base[idx].mean(1)
@@ -1333,10 +1347,16 @@ def _confidence(base, cands: List[np.ndarray], added: List[int], cfg: DoctorConf
     if winner is None:
         return float(np.mean(~ok.any(1)))
     ranks = gains.copy()
+    checked = [bool(len(vg)) for vg in variant_gains] if variant_gains else [False] * len(cands)
     for i, vg in enumerate(variant_gains or []):
-        ranks[:, i] = _discretisation_gain(gains[:, i], vg)
-    score = np.where(ok, ranks, -np.inf)
-    return float(np.mean(ok[:, winner] & (np.argmax(score, 1) == winner)))
+        if checked[i]:
+            ranks[:, i] = _discretisation_gain(gains[:, i], vg)
+    stays = ok[:, winner].copy()
+    for j in range(len(cands)):
+        if j != winner:
+            v = ranks if checked[j] and checked[winner] else gains
+            stays &= ~(ok[:, j] & (v[:, j] > v[:, winner]))
+    return float(np.mean(stays))
 
 
 def _localise(scene: Scene, obs: Observations, objective: Objective, X_base: np.ndarray, X_best, T: int) -> dict:
