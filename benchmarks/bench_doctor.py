@@ -148,8 +148,7 @@ def make(args):
                         prob["view_bodies"] = view_jackknife_bodies(rec, prob["scene"], particles_per_cell=args.ppc)
                         changed = True
                     if changed:
-                        with open(out / f"{name}.pkl", "wb") as f:
-                            pickle.dump(prob, f)
+                        _write_problem(out / f"{name}.pkl", prob)
                     print(f"{name}: kept, held-out signature {1e3 * prob['signature_m']:.2f} mm", flush=True)
                     continue
                 synthesize(rec, args.object, script=script, effect=effect, effect_params=eparams or None,
@@ -164,17 +163,16 @@ def make(args):
                     print(f"{name}: skipped, the recording cannot be loaded: {e}", flush=True)
                     continue
                 obs = _subsample(obs, seed, args.max_points)
-                with open(out / f"{name}.pkl", "wb") as f:
-                    pickle.dump({"scene": scene, "obs": obs, "truth": truth[0] if truth else "none",
-                                 "script": script, "seed": seed, "truth_params": eparams, "body_notes": notes,
-                                 "base_params": base, "synth_dx": synth_dx,
-                                 "trim_to_surface": args.trim_bodies,
-                                 **({"view_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc,
-                                                                          trim_to_surface=args.trim_bodies)}
-                                    if args.view_bodies else {}),
-                                 "signature_m": effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
-                                                                 effect_params=eparams or None, base_params=base,
-                                                                 dx=synth_dx)}, f)
+                prob = {"scene": scene, "obs": obs, "truth": truth[0] if truth else "none", "script": script,
+                        "seed": seed, "truth_params": eparams, "body_notes": notes, "base_params": base,
+                        "synth_dx": synth_dx, "trim_to_surface": args.trim_bodies,
+                        **({"view_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc,
+                                                                 trim_to_surface=args.trim_bodies)}
+                           if args.view_bodies else {}),
+                        "signature_m": effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
+                                                        effect_params=eparams or None, base_params=base,
+                                                        dx=synth_dx)}
+                _write_problem(out / f"{name}.pkl", prob)
                 print(f"{name}: {len(scene.particles)} particles, {obs.num_frames} frames "
                       f"({time.perf_counter() - t0:.1f} s)", flush=True)
     return out
@@ -250,6 +248,15 @@ def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: flo
             "signature_doubted": sig.get("doubted"), "wall_s": wall_s, "stage_wall_s": res.get("stage_wall_s")}
 
 
+def _write_problem(path: Path, prob: dict) -> None:
+    """Pickle ``prob`` to ``path`` whole or not at all (a run stopped while writing leaves no truncated problem
+    that ``--keep-existing`` would then fail to read)."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        pickle.dump(prob, f)
+    tmp.replace(path)
+
+
 def rescore(paths):
     """Rows of ``--dump`` files with the verdict taken again by the doctor's rule
     (:func:`empm_gym.identification.doctor.core.select_verdict`) from the fits and variant tests they hold: a
@@ -257,7 +264,7 @@ def rescore(paths):
     on the same fits. A recording found in several files is scored from the last of them (a run of a few
     recordings again, given after the run it completes)."""
     from empm_gym.identification.doctor import DoctorConfig
-    from empm_gym.identification.doctor.core import _friction_equivalent, select_verdict
+    from empm_gym.identification.doctor.core import SIGNATURE_FEATURES, _friction_equivalent, select_verdict
 
     factor = DoctorConfig().friction_equivalence
     rows = {}
@@ -272,6 +279,18 @@ def rescore(paths):
                 cands = [c if "equivalent_to_base" in c else
                          {**c, "equivalent_to_base": _friction_equivalent(c.get("params", {}).get("friction"), base_mu,
                                                                          factor)} for c in res["candidates"]]
+                # dumps older than the signature veto (session 44) hold the check for their verdict alone: that
+                # candidate is marked as the doctor now marks every significant one (older than session 40, the
+                # check's "unsupported", a discrepancy under the depth noise, is taken from the values it holds)
+                sc = (res.get("evidence") or {}).get("signature_check", res.get("signature_check")) or {}
+                if sc and not any("contradicted_by_signature" in c for c in cands):
+                    d0, noise = sc.get("discrepancy_base"), res.get("noise_sigma_m")
+                    unsupported = sc.get("unsupported", sc.get("unit") == "m" and d0 is not None
+                                         and noise is not None and d0 < noise)
+                    trusted = sc.get("trusted", SIGNATURE_FEATURES.get(res.get("effect"), (0, 0, False))[2])
+                    contra = bool(trusted and sc.get("explained") is False and not unsupported)
+                    cands = [{**c, "contradicted_by_signature": contra and c["effect"] == res.get("effect")}
+                             for c in cands]
                 variants = res.get("variants")
                 if variants and "base_E" not in variants:  # dumps older than session 28: the base fit's E
                     variants = {**variants, "base_E": res["base"]["params"]["E"]}

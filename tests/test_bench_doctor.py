@@ -63,6 +63,32 @@ def test_the_signature_checks_doubts_are_tallied_right_and_wrong(bench, tmp_path
     assert "not doubted and wrong: 1" in out
 
 
+def test_rescore_applies_the_signature_veto_to_dumps_that_hold_the_check_for_their_verdict_alone(bench, tmp_path):
+    """A dump written before the doctor checked every candidate's signature (session 44) holds the check of its
+    verdict alone: rescored, a verdict its own trusted signature contradicted beyond the depth noise goes to the
+    next candidate; one whose discrepancy lay under the noise (older dumps lack ``unsupported``: it is taken from
+    the discrepancy and ``noise_sigma_m``) stays."""
+    def test(gain):
+        return {"gain": gain, "lower": gain - 0.01, "upper": gain + 0.01, "threshold": 0.04, "significant": True}
+
+    def res(name, d0, d1, **extra):
+        sc = {"feature": "track_slip_m", "unit": "m", "discrepancy_base": d0, "discrepancy_with_effect": d1,
+              "explained": d1 < d0, "trusted": True, **extra}
+        return {"recording": name, "script": "pull-apart", "truth": "fracture", "effect": "gripper_slip",
+                "confidence": 0.4, "wall_s": 1.0, "noise_sigma_m": 1.4e-3, "signature_check": sc,
+                "base": {"heldout": {"chamfer_m": 2e-3, "loss": 5e-3}, "params": {"E": 1e4}},
+                "candidates": [{"effect": "gripper_slip", "heldout": {"chamfer_m": 1.7e-3, "loss": 4.1e-3},
+                                "gain": test(0.18)},
+                               {"effect": "fracture", "heldout": {"chamfer_m": 1.8e-3, "loss": 4.2e-3},
+                                "gain": test(0.16)}]}
+
+    rows = [res("torn", 5.81e-3, 6.99e-3, unsupported=False), res("torn-old", 3.96e-3, 5.89e-3),
+            res("quiet-old", 1.2e-4, 2.2e-4), res("explained", 5.8e-3, 1.0e-3, unsupported=False)]
+    (tmp_path / "dump.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    got = {r["recording"]: r["verdict"] for r in bench.rescore([tmp_path / "dump.jsonl"])}
+    assert got == {"torn": "fracture", "torn-old": "fracture", "quiet-old": "gripper_slip", "explained": "gripper_slip"}
+
+
 def test_make_with_effect_params_synthesises_them_and_keeps_them_for_scoring(bench, tmp_path):
     """``--make --effect-params viscosity=80 --base-params E=3e4,density=900``: the recording is made with that
     viscosity on that base material (its ground truth says so), its problem's name ends with them, and the pickle
