@@ -1216,11 +1216,17 @@ def select_verdict(candidates: Sequence[dict], variants: Optional[dict]) -> Tupl
     (:func:`_robust`) and, a stiffness field, its contrast exceeds what the discretisation alone does to the
     stiffness (:func:`_within_discretisation`); a significant candidate the variants did not check does not pass.
 
-    Without variants the candidates rank by held-out loss; with them, those that pass rank by their median gain
-    over every discretisation (:func:`_discretisation_gain`). Two effects can explain a recording almost equally
-    well, and which of them a short CMA-ES search puts ahead on one discretisation is then a matter of its
-    random path: on rope lift-end-0 fracture, fracture gained 81.2 % held out and plasticity 78.1 % in one run,
-    76.4 % and 77.9 % in another (session 26), while fracture gained more on all five variants in both."""
+    Without variants the candidates rank by held-out loss; with them, those that pass rank by how many of the
+    others each beats on most discretisations (the doctor's body and every variant both were refitted on,
+    compared pairwise: :func:`_beats`), then by their median gain over every discretisation
+    (:func:`_discretisation_gain`). Two effects can explain a recording almost equally well, and which of them a
+    short CMA-ES search puts ahead on one discretisation is then a matter of its random path: on rope lift-end-0
+    fracture, fracture gained 81.2 % held out and plasticity 78.1 % in one run, 76.4 % and 77.9 % in another
+    (session 26), while fracture gained more on all five variants in both. The gains of two candidates on one
+    discretisation are paired (one body, one grid, one base model): compared medians threw that away. Seed 16's
+    dough lifted by one end with a hidden fracture (session 44): fracture gained more than gripper slip on 4 of
+    the 5 discretisations, by 0.2-3.8 points, and slip's median was 0.3 points higher; its dough pulled apart with
+    a stiffness field: the field first on 3 of 5, fracture's median 0.2 points higher."""
     sig = _significant(candidates)
     passing = sig
     if variants and variants.get("variants"):
@@ -1232,7 +1238,33 @@ def select_verdict(candidates: Sequence[dict], variants: Optional[dict]) -> Tupl
             c["gain"]["gain"], [_gain(t) for t in checked.get(c["effect"], {}).get("tests", [])]))
             for c in candidates if c["effect"] in passing}
         passing = sorted(passing, key=lambda n: -gains[n])
+        cols = _discretisation_columns(passing, {c["effect"]: c["gain"]["gain"] for c in candidates}, variants)
+        wins = {a: sum(_beats(a, b, cols, gains) for b in passing if b != a) for a in passing}
+        passing = sorted(passing, key=lambda n: -wins[n])  # stable: equal wins keep the order of the medians
     return (passing[0] if passing else None), (sig[0] if sig else None), passing
+
+
+def _discretisation_columns(names: Sequence[str], body_gains: Dict[str, float], variants: dict
+                            ) -> List[Dict[str, float]]:
+    """The held-out gains of candidates ``names``, one dict per discretisation: the doctor's body
+    (``body_gains``), then each variant (``variants``: :func:`_check_variants`' result) with the gains of those
+    of ``names`` refitted on it; gains that are not finite are left out."""
+    cols = [{n: float(body_gains[n]) for n in names}]
+    by_label: Dict[str, Dict[str, float]] = {}
+    for n in names:
+        for t in (variants or {}).get("candidates", {}).get(n, {}).get("tests", []):
+            by_label.setdefault(t["variant"], {})[n] = _gain(t)
+    cols += list(by_label.values())
+    return [{n: g for n, g in c.items() if np.isfinite(g)} for c in cols]
+
+
+def _beats(a: str, b: str, cols: Sequence[Dict[str, float]], medians: Dict[str, float]) -> bool:
+    """Whether candidate ``a`` gains more than ``b`` on more of the discretisations ``cols``
+    (:func:`_discretisation_columns`) where both were scored than ``b`` does over ``a``; on a tie, whether its
+    median gain ``medians`` is higher."""
+    both = [c for c in cols if a in c and b in c]
+    wa, wb = sum(c[a] > c[b] for c in both), sum(c[b] > c[a] for c in both)
+    return wa > wb or (wa == wb and medians[a] > medians[b])
 
 
 def _first_on(winner: str, passing: Sequence[str], body_gains: Dict[str, float], variants: dict
@@ -1249,15 +1281,8 @@ def _first_on(winner: str, passing: Sequence[str], body_gains: Dict[str, float],
     grids: 25.0 and 28.9 % against 20.1 and 21.3 %). Such a verdict is no confident one: the reason names the
     others that come first somewhere (``doctor.json``: ``first_on``, ``first_elsewhere``) and the confidence
     scales with this share."""
-    gains = [{n: float(g) for n, g in body_gains.items() if n in passing}]
-    by_label: Dict[str, Dict[str, float]] = {}
-    for n in passing:
-        for t in variants.get("candidates", {}).get(n, {}).get("tests", []):
-            by_label.setdefault(t["variant"], {})[n] = _gain(t)
-    gains += list(by_label.values())
     firsts = []
-    for col in gains:
-        col = {n: g for n, g in col.items() if np.isfinite(g)}
+    for col in _discretisation_columns([n for n in passing if n in body_gains], body_gains, variants):
         if winner in col and len(col) > 1:
             firsts.append(max(col, key=col.get))
     if not firsts:
@@ -1367,8 +1392,9 @@ def _confidence(base, cands: List[np.ndarray], added: List[int], cfg: DoctorConf
     of the verdict whatever the resample, so they are no rivals: on dough push-slide-0, viscosity (8.1 %, held
     on all 5 variants) was named with confidence 0.01 because plasticity, refuted on both grid variants, gained
     9.5 % on most resamples. With ``variant_gains`` (per candidate, its gains on the variants; empty where it
-    was not refitted on them) "best" compares, as :func:`select_verdict` does, each candidate's median gain over
-    the resampled frames and its variants, where both were refitted on them; a candidate that was not (beyond
+    was not refitted on them, in the order of the variants) "best" compares, as :func:`select_verdict` does, on
+    how many discretisations (the resampled frames and each variant) each comes before the other, then their
+    median gains over them, where both were refitted on the variants; a candidate that was not (beyond
     ``DoctorConfig.variant_top``) and the winner compare their gains on the resampled frames alone: on them it
     would have come before the winner and been checked. (Its gain on the doctor's body alone against the winner's
     median over the variants took every resample: a block pulled apart with a hidden fracture at the CPU tests'
@@ -1389,9 +1415,20 @@ def _confidence(base, cands: List[np.ndarray], added: List[int], cfg: DoctorConf
             ranks[:, i] = _discretisation_gain(gains[:, i], vg)
     stays = ok[:, winner].copy()
     for j in range(len(cands)):
-        if j != winner:
-            v = ranks if checked[j] and checked[winner] else gains
-            stays &= ~(ok[:, j] & (v[:, j] > v[:, winner]))
+        if j == winner:
+            continue
+        if checked[j] and checked[winner]:
+            # as select_verdict: more first places over the discretisations (the resampled frames' and each
+            # variant's, paired by variant), then the median
+            m = min(len(variant_gains[winner]), len(variant_gains[j]))  # both refitted on the same variants
+            vw, vj = (np.asarray(variant_gains[i][:m], np.float64) for i in (winner, j))
+            both = np.isfinite(vw) & np.isfinite(vj)
+            ww = int(np.sum(vw[both] > vj[both])) + (gains[:, winner] > gains[:, j])
+            wj = int(np.sum(vj[both] > vw[both])) + (gains[:, j] > gains[:, winner])
+            ahead = (wj > ww) | ((wj == ww) & (ranks[:, j] > ranks[:, winner]))
+        else:
+            ahead = gains[:, j] > gains[:, winner]
+        stays &= ~(ok[:, j] & ahead)
     return float(np.mean(stays))
 
 
