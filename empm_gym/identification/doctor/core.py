@@ -913,11 +913,12 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     # each significant candidate's own signature feature, against the base model's: one whose fit moves it away
     # from the measurement is not named (DoctorConfig.signature_veto)
     feats = _Features(scene, obs, objective, T)
-    base_features = feats(X[:, 0])
+    features = {0: feats(X[:, 0])}  # by fit index: the base model's and each checked candidate's
     noise_m = noise if np.isfinite(noise) else None
     for w, f in enumerate(fits):
         if f is not base_fit and f.name in SIGNATURE_FEATURES and gain_is_significant(f.test) and not f.equivalent:
-            f.signature = signature_check(f.name, base_features, feats(X[:, w]), noise_m=noise_m)
+            features[w] = feats(X[:, w])
+            f.signature = signature_check(f.name, features[0], features[w], noise_m=noise_m)
             f.contradicted = bool(cfg.signature_veto and f.signature["trusted"] and f.signature["explained"] is False)
     for f in cands:
         if f.contradicted:
@@ -970,11 +971,11 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                       1.0 - max(share(n) for n in robustness["candidates"]))
 
     # -- 5. localisation and features ------------------------------------------------------------------------
-    loc = _localise(feats, X[:, 0], X[:, fits.index(winner)] if winner else None, base_features)
+    w_best = fits.index(winner) if winner else None
+    loc = _localise(feats, X[:, 0], None if winner is None else X[:, w_best], features[0], features.get(w_best))
     checks = {}
     if winner is not None and winner.name in SIGNATURE_FEATURES:
-        checks = winner.signature or signature_check(winner.name, loc["features"], loc["features_best"],
-                                                     noise_m=noise_m)
+        checks = winner.signature  # a winner is significant: its check was taken before the verdict
         if checks["doubted"]:
             confidence *= 0.5
             why = (f"the base model's {checks['feature']} is within {1e3 * noise:.2f} mm (the depth noise) of the "
@@ -1476,7 +1477,10 @@ def _signature_word(c: dict) -> str:
     return {True: "closer", False: "farther", None: "undefined"}[sc.get("explained")] + f" ({sc['feature']})"
 
 
-def _localise(feats: _Features, X_base: np.ndarray, X_best, base_features: Optional[dict] = None) -> dict:
+def _localise(feats: _Features, X_base: np.ndarray, X_best, features: dict, features_best: Optional[dict] = None
+              ) -> dict:
+    """Where the base model disagrees, and the summary features of the base model (``features``, computed for the
+    verdict) and of the best fit (``features_best`` where the verdict computed them, else here)."""
     from .features import localise
 
     sc, T = feats.scene, feats.T
@@ -1484,9 +1488,10 @@ def _localise(feats: _Features, X_base: np.ndarray, X_best, base_features: Optio
     P_best = None if X_best is None else feats.points(X_best)
     where = localise(feats.phases, feats.objective.points[:T], P_base, sc.ee_positions[:T], feats.radius,
                      table_z=feats.table_z)
-    return {"phases": feats.phases, "features": base_features if base_features is not None else feats(X_base, P_base),
-            "where": _jsonable(where), "P_base": P_base,
-            "P_best": P_best, "features_best": None if X_best is None else feats(X_best, P_best)}
+    if X_best is not None and features_best is None:
+        features_best = feats(X_best, P_best)
+    return {"phases": feats.phases, "features": features, "where": _jsonable(where), "P_base": P_base,
+            "P_best": P_best, "features_best": features_best}
 
 
 def _jsonable(o):
