@@ -615,8 +615,9 @@ def test_each_fit_is_scored_with_its_own_substeps():
 
 def test_variant_refits_also_start_from_the_base_model_inside_each_candidate():
     """A candidate's refit on a variant also starts where its effect vanishes (at the variant's base E), from
-    its own optimum with E moved as the base model's E moved, and from its optima on the variants refitted
-    before (each once, clipped to its box); every start lies in the candidate's box."""
+    its own optimum with E moved as the base model's E moved, from its optima on the variants refitted before
+    (each once, clipped to its box) and from its own optimum as it is (an effect that stands in for part of the
+    stiffness: session 45's viscosity); every start lies in the candidate's box."""
     from empm_gym.identification.doctor.core import _ABSENT, _Fit, _search_box, _variant_starts
     from empm_gym.sim import MaterialConfig
 
@@ -630,13 +631,15 @@ def test_variant_refits_also_start_from_the_base_model_inside_each_candidate():
         bounds = {"E": (1e4, 6e4), **{p: _search_box(p, stiff, 0.01) for p in ps}}
         params = {"E": 1.5e4, **{p: float(np.mean(bounds[p])) for p in ps}}
         like = _Fit(effect, params, stiff, 0.5, 1.0, 0.0, bounds=bounds)
-        absent, moved = _variant_starts(like, base, vbase)
-        assert absent["E"] == 5e4 and moved["E"] == pytest.approx(1.5e4 * 2.5)
+        absent, moved, unscaled = _variant_starts(like, base, vbase)
+        assert absent["E"] == 5e4 and moved["E"] == pytest.approx(1.5e4 * 2.5) and unscaled == params
         elsewhere = {"E": 5.5e4, **{p: float(bounds[p][0]) for p in ps}}  # found on a variant before
         beyond = {"E": 9e4, **{p: float(bounds[p][1]) for p in ps}}  # E outside this fit's window
         starts = _variant_starts(like, base, vbase, [elsewhere, beyond, dict(elsewhere)])
-        assert starts[:2] == [absent, moved] and starts[2] == elsewhere
-        assert starts[3] == {**beyond, "E": 6e4} and len(starts) == 4  # clipped; the repeat left out
+        assert starts[:3] == [absent, moved, elsewhere] and starts[4] == unscaled
+        assert starts[3] == {**beyond, "E": 6e4} and len(starts) == 5  # clipped; the repeat left out
+        # the optimum unscaled where the base model's E did not move is the moved start, not a second one
+        assert _variant_starts(like, base, base) == [{**absent, "E": 2e4}, params]
         assert all(bounds[k][0] <= v <= bounds[k][1] for st in starts for k, v in st.items())
         for p in ps:
             lo, hi = bounds[p]
