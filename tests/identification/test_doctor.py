@@ -228,6 +228,42 @@ def test_a_refit_on_a_variant_at_the_edge_of_its_window_is_widened():
     assert widened["heldout_loss"] < clamped["heldout_loss"]
 
 
+def test_a_candidate_gains_nothing_on_a_variant_by_an_E_the_base_models_refit_missed(monkeypatch):
+    """On a variant the base model's refit and each candidate's are short searches; a candidate that ends there
+    with its effect absent but a better E must not gain by that E (dough lifted by one end, no effect, session
+    45: a stiffness field of contrast 1.03 gained 13 % on a rebuilt body by the E alone). The variant's base
+    model is the better, on the fitting frames, of its refit and the base model at the candidate's E. The
+    refits are replaced here by fixed results (a base refit at 3x the truth's E, a viscosity refit at the
+    truth's E with no viscosity); their losses are simulated."""
+    from empm_gym.identification.doctor import core
+    from empm_gym.sim import MaterialConfig
+
+    truth = MaterialConfig(E=3.0e3, nu=0.3, density=1000.0)
+    scene, obs = _pushed_block(truth)
+    # the diagnosis's one clock (as diagnose sets it): the base model and the candidate step alike
+    scene = dataclasses.replace(scene, dt_materials=core._clock(["viscosity"], truth, (1.0e3, 9.0e3), scene.dx))
+    T, F = 13, 9
+    cfg = DoctorConfig(candidate_iters=1, variant_iters=1, popsize=4, seed=1, variants=1)
+    base, visc = (core._fit_candidate(name, scene, obs, truth, (1.0e3, 9.0e3), F, cfg, False)
+                  for name in ("base", "viscosity"))
+
+    def fixed(specs, obs, progress, desc):
+        out = []
+        for name, _, kw, (ps, bounds, start_mat, sc) in specs:
+            params = {"E": 9.0e3} if name == "base" else {"E": 3.0e3, "viscosity": 0.0}
+            out.append(core._Fit(name, params, start_mat.replace(**params), 0.5, 0.0, 0.0, added=len(ps), scene=sc,
+                                 bounds=bounds, start_material=start_mat))
+        return out
+
+    monkeypatch.setattr(core, "_fit_candidates", fixed)
+    out = core._check_variants([visc], scene, obs, base, F, T, list(range(F, T)), cfg, False)
+    (vbase,), (test,) = out["base"], out["candidates"]["viscosity"]["tests"]
+    assert vbase["params"]["E"] == 3.0e3 and vbase["refit_params"]["E"] == 9.0e3 and vbase["E_from"] == "viscosity"
+    assert test["gain"] == pytest.approx(0.0, abs=1e-6) and not test["holds"]
+    # the base model's refit at the better E is kept as it is
+    assert core._base_alternatives([base, dataclasses.replace(visc, params={**visc.params, "E": base.params["E"]})]) == []
+
+
 def test_a_refit_on_a_later_variant_starts_from_the_optima_found_on_earlier_ones(monkeypatch):
     """Each candidate's refit on a variant after the first gets, among its starts, that candidate's optimum on the
     first variant (dough pulled apart: the fracture found on one shifted grid is a start on the next); the first
