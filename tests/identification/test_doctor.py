@@ -230,9 +230,9 @@ def test_a_refit_on_a_variant_at_the_edge_of_its_window_is_widened():
 
 def test_a_candidate_gains_nothing_on_a_variant_by_an_E_the_base_models_refit_missed(monkeypatch):
     """On a variant the base model's refit and each candidate's are short searches; a candidate that ends there
-    with its effect absent but a better E must not gain by that E (dough lifted by one end, no effect, session
-    45: a stiffness field of contrast 1.03 gained 13 % on a rebuilt body by the E alone). The variant's base
-    model is the better, on the fitting frames, of its refit and the base model at the candidate's E. The
+    with its effect absent but a better E must not gain by that E (session 45: on rope pulled apart the base
+    model's refits on the variants stayed at the box's floor, 2 kPa, where 9-12 kPa fits better). The variant's
+    base model is the better, on the fitting frames, of its refit and the base model at the candidate's E. The
     refits are replaced here by fixed results (a base refit at 3x the truth's E, a viscosity refit at the
     truth's E with no viscosity); their losses are simulated."""
     from empm_gym.identification.doctor import core
