@@ -1137,7 +1137,7 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
         objective = heldout_objective(vfits[0].scene, obs, T, cfg)
         per = [_per_frame_losses(objective, X[:, w])["loss"] for w in range(len(vfits) + len(alt))]
         fit_loss = {w: float(np.mean(per[w][fitting])) for w in [0, *range(len(vfits), len(per))]}
-        b = min(fit_loss, key=lambda w: (fit_loss[w], w))
+        b = min(fit_loss, key=fit_loss.get)  # the refit (0) first: it keeps a tie
         losses = [per[b][heldout]] + [per[w][heldout] for w in range(1, len(vfits))]
         base = {"variant": label, "kind": kind, "params": vfits[0].params, "heldout_loss": float(np.mean(losses[0]))}
         if b:  # a candidate's E without its effect fits this variant better than the base model's refit
