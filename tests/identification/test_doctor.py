@@ -264,6 +264,52 @@ def test_a_candidate_gains_nothing_on_a_variant_by_an_E_the_base_models_refit_mi
     assert core._base_alternatives([base, dataclasses.replace(visc, params={**visc.params, "E": base.params["E"]})]) == []
 
 
+def test_a_refit_that_parts_a_body_its_model_cannot_tear_is_scored_at_the_doctors_optimum(monkeypatch):
+    """A candidate whose model has no tear of its own (a stiffness field) but whose refit on a variant parts the
+    simulated body into more pieces than the variant's base model does has torn numerically (session 46: rope
+    pulled apart, the field's refit at the slope's cap parted the rope on one rebuilt body and lost 20 % held
+    out, where the field's optimum on the doctor's body kept it whole and gained 62 %). Its test on that variant
+    scores the candidate at its optimum on the doctor's body and says so. The refits are replaced by fixed
+    results (the field's at E = 300 Pa and slope -4, which parts the block the gripper lifts: real simulations)."""
+    from empm_gym.identification.doctor import core
+    from empm_gym.sim import MaterialConfig
+
+    truth = MaterialConfig(E=3.0e3, nu=0.3, density=1000.0)
+    scene, obs = _pushed_block(truth)
+    field_name = "heterogeneous_stiffness"
+    scene = dataclasses.replace(scene, dt_materials=core._clock([field_name], truth, (1.0e3, 9.0e3), scene.dx))
+    T, F = 13, 9
+    heldout = list(range(F, T))
+    cfg = DoctorConfig(candidate_iters=1, variant_iters=1, popsize=4, seed=1, variants=1)
+    base, field = (core._fit_candidate(name, scene, obs, truth, (1.0e3, 9.0e3), F, cfg, False)
+                   for name in ("base", field_name))
+    torn = {"E": 300.0, "stiffness_slope_1": -4.0}
+    seen = []  # (candidate, the variant's scene it was refitted on)
+
+    def fixed(specs, obs, progress, desc):
+        out = []
+        for name, _, kw, (ps, bounds, start_mat, sc) in specs:
+            seen.append((name, sc))
+            params = {"E": 3.0e3} if name == "base" else torn
+            out.append(core._Fit(name, params, start_mat.replace(**params), 0.5, 0.0, 0.0, added=len(ps), scene=sc,
+                                 bounds=bounds, start_material=start_mat))
+        return out
+
+    monkeypatch.setattr(core, "_fit_candidates", fixed)
+    out = core._check_variants([field], scene, obs, base, F, T, heldout, cfg, False)
+    (test,) = out["candidates"][field_name]["tests"]
+    assert test["refit_params"] == torn and test["params"] == field.params
+    assert test["refit_pieces"] == 2 and test["base_pieces"] == 1 and test["params_from"] == "the doctor's body"
+    # scored as the doctor's optimum simulated on that variant (the scene its refit ran on), not as the torn refit
+    (vscene,) = [sc for name, sc in seen if name == field_name]
+    as_doctor = dataclasses.replace(field, scene=vscene)
+    as_refit = dataclasses.replace(as_doctor, params=torn, material=field.material.replace(**torn))
+    X = core._simulate_fits([as_doctor, as_refit], T)
+    obj = core.heldout_objective(as_doctor.scene, obs, T, cfg)
+    kept, parted = (float(np.mean(core._per_frame_losses(obj, X[:, w])["loss"][heldout])) for w in (0, 1))
+    assert test["heldout_loss"] == pytest.approx(kept, rel=1e-5) and parted > kept
+
+
 def test_a_refit_on_a_later_variant_starts_from_the_optima_found_on_earlier_ones(monkeypatch):
     """Each candidate's refit on a variant after the first gets, among its starts, that candidate's optimum on the
     first variant (dough pulled apart: the fracture found on one shifted grid is a start on the next); the first
