@@ -350,8 +350,9 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     ratio to the density enters the motion), or when the grid has fewer than :data:`MIN_CELLS_ACROSS` cells
     across the body's thinnest part.
 
-    Returns ``{"uncertainty": {param: {"interval", "level", "determined"}}, "identifiability": {...}}``,
-    both for the material file's ``fit`` section.
+    Returns ``{"uncertainty": {param: {"interval", "level", "determined", "bounded_only"}}, "identifiability":
+    {...}}``, both for the material file's ``fit`` section; ``bounded_only`` is "upper" or "lower" where the
+    interval runs out of the search box on one side only (:func:`one_sided_bound`), else None.
     """
     from .data import AXIS_VARIANT
     from .offline import Objective, default_bounds
@@ -431,7 +432,8 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
             lo_z = z0[i]
         interval = [_from_z(space, k, lo_z), _from_z(space, k, hi_z)]
         reasons[k] += box_reasons(space, k, z0[i], z0[i] + nb["step"][i], lo_z, hi_z, level=level)
-        unc[k] = {"interval": interval, "level": level, "determined": True}
+        unc[k] = {"interval": interval, "level": level, "determined": True,
+                  "bounded_only": one_sided_bound(space, k, lo_z, hi_z)}
     # correlations between fitted parameters (finite draws only)
     corr = {}
     fin = np.all(np.isfinite(pooled), 1)
@@ -532,6 +534,15 @@ def box_reasons(space, name: str, z_fit: float, z_min: float, lo_z: float, hi_z:
         near = f" (near {_from_z(space, name, z_min):.4g})" if np.isfinite(z_min) else ""
         return [f"the loss's minimum lies {side} the search box [{box[0]:.4g}, {box[1]:.4g}]{near}: the data ask "
                 f"for a value outside the box searched"]
+    side = one_sided_bound(space, name, lo_z, hi_z)
+    if side == "upper":
+        return [f"the loss is flat within the frame-to-frame noise below the fit: its {100 * level:.0f} % interval "
+                f"reaches below the search box [{box[0]:.4g}, {box[1]:.4g}]; the data bound it from above only "
+                f"(at most {_from_z(space, name, hi_z):.4g})"]
+    if side == "lower":
+        return [f"the loss is flat within the frame-to-frame noise above the fit: its {100 * level:.0f} % interval "
+                f"reaches above the search box [{box[0]:.4g}, {box[1]:.4g}]; the data bound it from below only "
+                f"(at least {_from_z(space, name, lo_z):.4g})"]
     if lo_z < zl - tol or hi_z > zh + tol:
         return [f"the loss is flat within the frame-to-frame noise along it: its {100 * level:.0f} % interval "
                 f"reaches past the search box [{box[0]:.4g}, {box[1]:.4g}]"]
@@ -540,6 +551,21 @@ def box_reasons(space, name: str, z_fit: float, z_min: float, lo_z: float, hi_z:
                 f"interval [{_from_z(space, name, lo_z):.4g}, {_from_z(space, name, hi_z):.4g}] spans "
                 f"{(hi_z - lo_z) / (zh - zl):.0%} of the search box [{box[0]:.4g}, {box[1]:.4g}] (optimiser scale)"]
     return []
+
+
+def one_sided_bound(space, name: str, lo_z: float, hi_z: float) -> Optional[str]:
+    """"upper" where the interval [``lo_z``, ``hi_z``] of parameter ``name`` (optimiser coordinates of ``space``)
+    reaches below its search box and ends inside it (the data bound the value from above only: a yield stress
+    that a recording never reaches, say), "lower" for the reverse, else None."""
+    i = list(space.names).index(name)
+    zl, zh = space.z_lo[i], space.z_hi[i]
+    tol = 0.02 * (zh - zl)
+    below, above = lo_z < zl - tol, hi_z > zh + tol
+    if below and not above and np.isfinite(hi_z):
+        return "upper"
+    if above and not below and np.isfinite(lo_z):
+        return "lower"
+    return None
 
 
 def _finer_grid_scene(scene):

@@ -10,7 +10,7 @@ import pytest
 from empm_gym.identification.offline import identify
 from empm_gym.identification.problem import Observations, Scene, simulate_frames
 from empm_gym.identification.uncertainty import (WIDE_INTERVAL, assess_fit, body_thickness, box_reasons, grid_resolution,
-                                                newton_bootstrap)
+                                                newton_bootstrap, one_sided_bound)
 from empm_gym.sim import MaterialConfig, sample_box, sample_cylinder
 
 from . import scenes
@@ -54,8 +54,17 @@ def test_box_rules_for_an_undetermined_parameter():
     mid = 0.5 * (zl + zh)
     r = box_reasons(space, "E", mid, zl - 1.0, mid - 0.1, mid + 0.1)
     assert len(r) == 1 and "below the search box" in r[0], r
-    r = box_reasons(space, "E", mid, mid, zl - 0.5, mid + 0.1)
+    r = box_reasons(space, "E", mid, mid, zl - 0.5, zh + 0.5)
     assert len(r) == 1 and "reaches past the search box" in r[0], r
+    # past one side only, the interval still bounds the value from the other (the demo's yield stress, which
+    # the pressed dough never reaches far below the fit: at most 2576 Pa)
+    r = box_reasons(space, "E", mid, mid, zl - 0.5, mid + 0.1)
+    assert len(r) == 1 and "from above only" in r[0] and f"at most {ParamSpace.from_z1('E', mid + 0.1):.4g}" in r[0], r
+    assert one_sided_bound(space, "E", zl - 0.5, mid + 0.1) == "upper"
+    r = box_reasons(space, "E", mid, mid, mid - 0.1, zh + 0.5)
+    assert len(r) == 1 and "from below only" in r[0] and f"at least {ParamSpace.from_z1('E', mid - 0.1):.4g}" in r[0], r
+    assert one_sided_bound(space, "E", mid - 0.1, zh + 0.5) == "lower"
+    assert one_sided_bound(space, "E", mid - 0.1, mid + 0.1) is None
 
 
 def test_body_thickness_of_cylinders_and_slabs():
