@@ -276,14 +276,14 @@ def _plan(args, scene, obs, resume, F: int, iters: int, ppc: float, shape_bodies
 
 def _print_uncertainty(extra: dict) -> None:
     """Intervals, combinations and identifiability warnings of a fit (see :func:`.uncertainty.assess_fit`)."""
+    from .uncertainty import uncertainty_bound
+
     idf = extra["identifiability"]
     for k, u in extra["uncertainty"].items():
         lo, hi = u["interval"]
-        state = "" if u["determined"] else "   NOT DETERMINED (see warnings)"
-        if not u["determined"] and u.get("bounded_only"):
-            state = (f"   NOT DETERMINED: bounded from {'above' if u['bounded_only'] == 'upper' else 'below'} only, "
-                     f"{'at most' if u['bounded_only'] == 'upper' else 'at least'} "
-                     f"{hi if u['bounded_only'] == 'upper' else lo:.4g} (see warnings)")
+        bound = uncertainty_bound(u)
+        state = "" if u["determined"] else (f"   NOT DETERMINED: bounded {bound} (see warnings)" if bound
+                                            else "   NOT DETERMINED (see warnings)")
         print(f"  {k:14s} {100 * u['level']:.0f} % interval [{lo:.4g}, {hi:.4g}]{state}")
     for name, c in idf["combinations"].items():
         iv = c.get("interval")

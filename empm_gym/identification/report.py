@@ -31,6 +31,8 @@ def _save(plt, fig, path) -> Path:
 
 def plot_fit(result, path) -> Path:
     """Loss curve and parameter trajectories of a :class:`~.offline.FitResult` (one panel per parameter)."""
+    from .uncertainty import uncertainty_bound
+
     plt = _plt()
     names = list(result.params)
     fig, axes = plt.subplots(1, 1 + len(names), figsize=(4.2 * (1 + len(names)), 3.4), squeeze=False)
@@ -56,11 +58,9 @@ def plot_fit(result, path) -> Path:
             a.axhspan(max(lo, min(ylo, result.params[n]) * 0.5 if n != "nu" else -1.0),
                       min(hi, max(yhi, result.params[n]) * 2.0 if n != "nu" else 0.5), color="tab:green",
                       alpha=0.2, label=f"{100 * u['level']:.0f} % interval [{lo:.3g}, {hi:.3g}]")
-            if not u["determined"] and u.get("bounded_only"):
-                title += (f" (NOT DETERMINED: {'at most' if u['bounded_only'] == 'upper' else 'at least'} "
-                          f"{hi if u['bounded_only'] == 'upper' else lo:.3g})")
-            elif not u["determined"]:
-                title += " (NOT DETERMINED: see fit.identifiability)"
+            if not u["determined"]:
+                bound = uncertainty_bound(u, ".3g")
+                title += f" (NOT DETERMINED: {bound})" if bound else " (NOT DETERMINED: see fit.identifiability)"
         if n in ("E", "yield_stress", "density"):
             a.set_yscale("log")
         a.set_title(title, fontsize=9)

@@ -535,14 +535,11 @@ def box_reasons(space, name: str, z_fit: float, z_min: float, lo_z: float, hi_z:
         return [f"the loss's minimum lies {side} the search box [{box[0]:.4g}, {box[1]:.4g}]{near}: the data ask "
                 f"for a value outside the box searched"]
     side = one_sided_bound(space, name, lo_z, hi_z)
-    if side == "upper":
-        return [f"the loss is flat within the frame-to-frame noise below the fit: its {100 * level:.0f} % interval "
-                f"reaches below the search box [{box[0]:.4g}, {box[1]:.4g}]; the data bound it from above only "
-                f"(at most {_from_z(space, name, hi_z):.4g})"]
-    if side == "lower":
-        return [f"the loss is flat within the frame-to-frame noise above the fit: its {100 * level:.0f} % interval "
-                f"reaches above the search box [{box[0]:.4g}, {box[1]:.4g}]; the data bound it from below only "
-                f"(at least {_from_z(space, name, lo_z):.4g})"]
+    if side:
+        past = "below" if side == "upper" else "above"
+        bound = bound_text(side, _from_z(space, name, hi_z if side == "upper" else lo_z))
+        return [f"the loss is flat within the frame-to-frame noise {past} the fit: its {100 * level:.0f} % interval "
+                f"reaches {past} the search box [{box[0]:.4g}, {box[1]:.4g}]; the data bound it {bound}"]
     if lo_z < zl - tol or hi_z > zh + tol:
         return [f"the loss is flat within the frame-to-frame noise along it: its {100 * level:.0f} % interval "
                 f"reaches past the search box [{box[0]:.4g}, {box[1]:.4g}]"]
@@ -566,6 +563,24 @@ def one_sided_bound(space, name: str, lo_z: float, hi_z: float) -> Optional[str]
     if above and not below and np.isfinite(lo_z):
         return "lower"
     return None
+
+
+def bound_text(side: str, value: float, fmt: str = ".4g") -> str:
+    """"from above only (at most 2576)" for ``side`` "upper" (:func:`one_sided_bound`), "from below only (at
+    least ...)" for "lower"."""
+    if side == "upper":
+        return f"from above only (at most {value:{fmt}})"
+    return f"from below only (at least {value:{fmt}})"
+
+
+def uncertainty_bound(u: dict, fmt: str = ".4g") -> Optional[str]:
+    """:func:`bound_text` of one parameter's entry of :func:`assess_fit`'s ``uncertainty`` (None where its
+    interval is not one-sided)."""
+    side = u.get("bounded_only")
+    if not side:
+        return None
+    lo, hi = u["interval"]
+    return bound_text(side, hi if side == "upper" else lo, fmt)
 
 
 def _finer_grid_scene(scene):

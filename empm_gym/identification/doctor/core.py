@@ -1133,12 +1133,13 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
     alts = [_base_alternatives(vfits) for vfits in refits]
     fitting = [t for t in range(1, F) if obs.seen[t]]
     scored = []  # per variant: (index of its base model's simulation, per-frame losses, last frame's pieces)
+    untearing = [i + 1 for i, f in enumerate(checked) if f.name not in _TEARING_EFFECTS]  # their refits' indices
     for vfits, alt, X in zip(refits, alts, _simulate_fit_sets([v + a for v, a in zip(refits, alts)], T)):
         objective = heldout_objective(vfits[0].scene, obs, T, cfg)
         per = [_per_frame_losses(objective, X[:, w])["loss"] for w in range(len(vfits) + len(alt))]
         fit_loss = {w: float(np.mean(per[w][fitting])) for w in [0, *range(len(vfits), len(per))]}
         b = min(fit_loss, key=fit_loss.get)  # the refit (0) first: it keeps a tie
-        scored.append((b, per, _last_pieces(X, heldout, [b, *range(1, len(vfits))])))
+        scored.append((b, per, _last_pieces(X, heldout, [b, *untearing] if untearing else [])))
     parted = _parted_refits(checked, refits, [(s[0], s[2]) for s in scored], obs, T, heldout, cfg)
     for j, ((label, kind, _), vfits, alt, (b, per, _)) in enumerate(zip(variants, refits, alts, scored)):
         losses = [per[b][heldout]] + [per[w][heldout] for w in range(1, len(vfits))]
@@ -1186,7 +1187,7 @@ def _parted_refits(checked: List["_Fit"], refits: List[List["_Fit"]], scored: Li
     last held-out frame, of candidates whose model cannot tear (not :data:`_TEARING_EFFECTS`), scored instead at
     the candidate's optimum on the doctor's body: ``{(variant index, candidate index): (held-out losses per
     frame, the test's extra fields)}``; ``scored`` holds, per variant, the index of its base model's simulation
-    and :func:`_last_pieces` of it and of each refit. Where that optimum parts the body as well, the refit's test
+    and :func:`_last_pieces` of it and of each refit of those candidates. Where that optimum parts the body as well, the refit's test
     stands.
 
     A model without a tear of its own that parts the body has torn numerically: the short refit on a variant
