@@ -29,6 +29,16 @@ def _save(plt, fig, path) -> Path:
     return p
 
 
+def _with_unit(name: str) -> str:
+    """``name [unit]`` of a base or effect parameter (the registry's SI unit), ``name`` for any other."""
+    from empm_gym.sim.effects import parameter
+
+    try:
+        return f"{name} [{parameter(name).unit}]"
+    except ValueError:
+        return name
+
+
 def plot_fit(result, path) -> Path:
     """Loss curve and parameter trajectories of a :class:`~.offline.FitResult` (one panel per parameter)."""
     from .uncertainty import uncertainty_bound
@@ -60,10 +70,11 @@ def plot_fit(result, path) -> Path:
                       alpha=0.2, label=f"{100 * u['level']:.0f} % interval [{lo:.3g}, {hi:.3g}]")
             if not u["determined"]:
                 bound = uncertainty_bound(u, ".3g")
-                title += f" (NOT DETERMINED: {bound})" if bound else " (NOT DETERMINED: see fit.identifiability)"
+                title += f"\n(NOT DETERMINED: {bound})" if bound else " (NOT DETERMINED: see fit.identifiability)"
         if n in ("E", "yield_stress", "density"):
             a.set_yscale("log")
-        a.set_title(title, fontsize=9)
+        a.set_title(title, fontsize=8 if "\n" in title else 9)
+        a.set_ylabel(_with_unit(n))
         a.set_xlabel("iteration")
         a.grid(alpha=0.3)
         a.legend(fontsize=7)
