@@ -1075,8 +1075,9 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
     on some scripts that gain is larger than the penalty and steady over the held-out frames, so the bootstrap
     over frames cannot see it. Such a gain does not survive another, equally valid discretisation or a body
     rebuilt from other views; a gain the effect earns does. ``robust``: the candidate's held-out gain exceeds
-    its penalty on every discretisation variant and on more than half of the rebuilt bodies (each of those
-    misses a camera, and a body completed from fewer views may fail on its own).
+    its penalty on all variants but at most one in five (:data:`VARIANT_MISSES_PER_FIVE`) and on more than half
+    of the rebuilt bodies (each of those misses a camera, and a body completed from fewer views may fail on its
+    own); see :func:`_robust`.
 
     Each refit on a variant searches E in its own fit's window on the doctor's body. Another discretisation or
     a body rebuilt from fewer views can move the elastic optimum by more than that window (dough held at both
@@ -1095,9 +1096,9 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
                  for label, sc in other_bodies if sc is not None]
     out = {"variants": [label for label, _, _ in variants] if checked else [], "base": [], "candidates": {},
            "base_E": base_fit.params["E"],
-           "rule": "the held-out gain exceeds the penalty on every discretisation variant and on more than half of "
-                   "the bodies rebuilt without one camera; a stiffness field's contrast exceeds the spread of the "
-                   "base model's E over the discretisations"}
+           "rule": "the held-out gain exceeds the penalty on all variants but at most one in five and on more "
+                   "than half of the bodies rebuilt without one camera; a stiffness field's contrast exceeds the "
+                   "spread of the base model's E over the discretisations"}
     if not checked or not variants:
         return out
     # the base model refitted on every variant at once (their simulations side by side on a GPU); then each
@@ -1257,15 +1258,34 @@ def _variant_kind(t: dict) -> str:
     return t.get("kind") or ("discretisation" if t["variant"].startswith("grid") else "body")
 
 
+#: How many variants in five a candidate's gain may fail on and still hold (:func:`_robust`).
+VARIANT_MISSES_PER_FIVE = 1
+
+
 def _robust(tests: List[dict]) -> dict:
-    """The variants' verdict on one candidate (see :func:`_check_variants`): ``robust``, ``holds_on``, ``why``."""
+    """The variants' verdict on one candidate (see :func:`_check_variants`): ``robust``, ``holds_on``, ``why``.
+
+    ``robust``: the gain holds on all ``tests`` but at most :data:`VARIANT_MISSES_PER_FIVE` in five (one of the
+    usual two shifted grids and three bodies rebuilt without a camera; with four variants or fewer, on all of
+    them) and on more than half of the rebuilt bodies.
+
+    Each variant's test is a test of its own, at the doctor's level, with a short refit (``variant_iters``
+    generations); five of them all passing is much harder for a true effect than any one. Until session 47 every
+    discretisation variant had to pass: over the doctor's stored runs since session 36 (449 rows, 163 of them
+    `none`, benchmarks/RESULTS.md) a gain that failed on one shifted grid alone belonged to the recording's true
+    effect every time it was ranked first (dough pushed across the table with a viscosity, seeds 0, 2, 9 and
+    16; a stiffness field squeezed by a ring), and allowing one miss in five named 2 more effects there and gave
+    no `none` an effect; over every stored run (1406 rows, older code included) it named 13 more effects right
+    and gave 6 more of the 497 `none` rows an effect, all of sessions 35 and before (two on the coarser grid of
+    dough pressed and released, or squeezed by a ring; four pushed across the table with session 14's code)."""
     kind = [_variant_kind(t) for t in tests]
-    disc = [t for t, k in zip(tests, kind) if k == "discretisation"]
     body = [t for t, k in zip(tests, kind) if k == "body"]
-    failed_disc = [t for t in disc if not _holds(t)]
-    robust = not failed_disc and (not body or sum(map(_holds, body)) > len(body) / 2)
+    failed = [t for t in tests if not _holds(t)]
+    robust = (len(failed) <= VARIANT_MISSES_PER_FIVE * len(tests) // 5
+              and (not body or sum(map(_holds, body)) > len(body) / 2))
     holds_on = f"{sum(map(_holds, tests))} of {len(tests)} variants"
-    worst = failed_disc[0] if failed_disc else min(body, key=lambda t: np.nan_to_num(_gain(t), nan=-1e9), default=None)
+    worst = min(failed, key=lambda t: (_variant_kind(t) != "discretisation", np.nan_to_num(_gain(t), nan=-1e9)),
+                default=None)
     why = "" if robust or worst is None else (
         f"it holds on {holds_on}; on '{worst['variant']}' it gains {100 * _gain(worst):.1f} % against a threshold "
         f"of {100 * worst['threshold']:.0f} %")
