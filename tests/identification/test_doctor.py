@@ -900,8 +900,12 @@ def test_two_effects_that_both_hold_are_ranked_over_every_discretisation():
                 "candidates": {"plasticity": tests(plast), "fracture": tests(frac)}}
     assert select_verdict(cands, variants) == ("fracture", "plasticity", ["fracture", "plasticity"])
     assert select_verdict(cands, None) == ("plasticity", "plasticity", ["plasticity", "fracture"])
-    # one variant where fracture fails to gain: it no longer passes, plasticity is named
+    # one variant in five where fracture fails to gain: it still passes, and its median gain over the doctor's
+    # discretisation and the variants (0.818) still beats plasticity's (0.800)
     variants["candidates"]["fracture"] = tests([0.876, 0.01, 0.816, 0.819, 0.834])
+    assert select_verdict(cands, variants) == ("fracture", "plasticity", ["fracture", "plasticity"])
+    # two (a shifted grid and a rebuilt body): it no longer passes, plasticity is named
+    variants["candidates"]["fracture"] = tests([0.876, 0.01, 0.816, 0.01, 0.834])
     assert select_verdict(cands, variants) == ("plasticity", "plasticity", ["plasticity"])
 
     rng = np.random.default_rng(0)
