@@ -476,9 +476,11 @@ def test_a_gain_holds_on_the_variants_with_at_most_one_miss_in_five_and_most_reb
 
     seed16 = _robust(tests([0.048, 0.004], [0.113, 0.093, 0.132]))
     assert seed16["robust"] and seed16["holds_on"] == "4 of 5 variants" and seed16["why"] == ""
+    assert "resampled (2)' it gains 0.4 % against a threshold of 4 %" in seed16["missed"]  # the verdict says so
     assert _robust(tests([0.048, 0.05], [0.113, 0.01, 0.132]))["robust"]          # one body misses
     two = _robust(tests([0.048, 0.004], [0.113, 0.01, 0.132]))                    # a grid and a body miss
     assert not two["robust"] and "grid shifted and particles resampled (2)" in two["why"] and "0.4 %" in two["why"]
+    assert two["missed"] == "" and _robust(tests([0.048, 0.05], [0.113, 0.09, 0.132]))["missed"] == ""
     assert not _robust(tests([0.01, 0.004], [0.113, 0.09, 0.132]))["robust"]       # both grids miss
     assert not _robust(tests([0.048, 0.004], []))["robust"]                       # 2 variants: both must hold
     assert not _robust(tests([0.048, 0.05, 0.06], [0.113, float("nan")]))["robust"]  # 5, but half the bodies fail

@@ -1021,6 +1021,9 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                    + (f"; {winner.name} comes first on {first_on} discretisations of the body, "
                       + " and ".join(n if n in passing else f"{n} (which fails on some variant)"
                                      for n in first_elsewhere) + " on the others" if first_share < 1.0 else "")
+                   + (f"; it holds on {robustness['candidates'][winner.name]['holds_on']}, not everywhere: "
+                      f"{robustness['candidates'][winner.name]['missed']}"
+                      if robustness["candidates"].get(winner.name, {}).get("missed") else "")
                    if winner else
                    (f"{unchecked.name} lowers the held-out loss beyond noise and its penalty, but "
                     + (f"{robustness['candidates'][unchecked.name]['why']}"
@@ -1164,7 +1167,7 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
         rec.update(_robust(rec["tests"]))
         small = _within_discretisation(name, params[name], out)
         if small and rec["robust"]:  # it holds on the variants, but its size is the grid's
-            rec.update(robust=False, why=small, within_discretisation=True)
+            rec.update(robust=False, why=small, within_discretisation=True, missed="")
     return out
 
 
@@ -1286,10 +1289,11 @@ def _robust(tests: List[dict]) -> dict:
     holds_on = f"{sum(map(_holds, tests))} of {len(tests)} variants"
     worst = min(failed, key=lambda t: (_variant_kind(t) != "discretisation", np.nan_to_num(_gain(t), nan=-1e9)),
                 default=None)
-    why = "" if robust or worst is None else (
-        f"it holds on {holds_on}; on '{worst['variant']}' it gains {100 * _gain(worst):.1f} % against a threshold "
-        f"of {100 * worst['threshold']:.0f} %")
-    return {"robust": robust, "holds_on": holds_on, "why": why}
+    miss = "" if worst is None else (f"on '{worst['variant']}' it gains {100 * _gain(worst):.1f} % against a "
+                                      f"threshold of {100 * worst['threshold']:.0f} %")
+    why = "" if robust or not miss else f"it holds on {holds_on}; {miss}"
+    # a robust candidate that still missed a variant says so: its verdict rests on the others
+    return {"robust": robust, "holds_on": holds_on, "why": why, "missed": miss if robust else ""}
 
 
 def _within_discretisation(name: str, params: Dict[str, float], variants: dict) -> str:
