@@ -241,11 +241,14 @@ def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: flo
     # the named effect's check against its own signature (doctor.json's evidence; a slim --dump line keeps it at
     # the top level); None where the verdict is none or the result predates the check (session 31)
     sig = (res.get("evidence") or {}).get("signature_check", res.get("signature_check")) or {}
+    from empm_gym.identification.doctor.core import not_ruled_out
+
     return {"recording": name, "script": script, "truth": truth, "verdict": res["effect"],
             "confidence": res.get("confidence", 0.0), "reduction": red, "base_chamfer_m": c_base,
             "true_effect_chamfer_m": c_true, "base_loss": l_base,
             "before_variants": res.get("effect_before_variants", res["effect"]), "signature_m": signature_m,
-            "signature_doubted": sig.get("doubted"), "wall_s": wall_s, "stage_wall_s": res.get("stage_wall_s")}
+            "signature_doubted": sig.get("doubted"), "wall_s": wall_s, "stage_wall_s": res.get("stage_wall_s"),
+            "not_ruled_out": [e["effect"] for e in not_ruled_out(res.get("candidates") or [], res["effect"])]}
 
 
 def _write_problem(path: Path, prob: dict) -> None:
@@ -295,7 +298,7 @@ def rescore(paths):
                 if variants and "base_E" not in variants:  # dumps older than session 28: the base fit's E
                     variants = {**variants, "base_E": res["base"]["params"]["E"]}
                 win, first, _ = select_verdict(cands, variants)
-                res = {**res, "effect": win or "none", "effect_before_variants": first or "none"}
+                res = {**res, "candidates": cands, "effect": win or "none", "effect_before_variants": first or "none"}
             rows.pop(res["recording"], None)
             rows[res["recording"]] = _row(res, res["truth"], res["recording"], res["script"], res.get("signature_m"),
                                           res["wall_s"])
@@ -565,6 +568,15 @@ def _table(rows):
               f"not bring its trusted feature closer): {len(doubted)}, of them right "
               f"{sum(r['verdict'] == r['truth'] for r in doubted)}; not doubted and wrong: "
               f"{sum(r['verdict'] != r['truth'] for r in checked if not r['signature_doubted'])}")
+    # what a none could not exclude (doctor.json's not_ruled_out): on a missed effect, is the truth among them?
+    nones = [r for r in full if r["verdict"] == "none" and r.get("not_ruled_out") is not None]
+    if nones:
+        missed = [r for r in nones if r["truth"] != "none"]
+        right = [r for r in nones if r["truth"] == "none"]
+        print(f"none verdicts and what they could not exclude: on {len(missed)} effect recordings called none, the "
+              f"true effect is not ruled out on {sum(r['truth'] in r['not_ruled_out'] for r in missed)}; on "
+              f"{len(right)} none recordings called none, some candidate is not ruled out on "
+              f"{sum(bool(r['not_ruled_out']) for r in right)}")
     # against what each recording shows: an effect whose held-out signature is below EXPRESSED_M is not in the
     # data, and `none` is then a right verdict as well
     known = [r for r in full if r.get("signature_m") is not None]

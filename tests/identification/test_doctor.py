@@ -411,6 +411,43 @@ def test_candidates_search_the_whole_box_when_the_base_fit_ends_at_its_bound():
             assert window[0] > box[0] and window[1] < box[1] and window[0] < 3.0e3 < window[1]
 
 
+def test_a_none_names_the_candidates_its_frames_can_neither_show_nor_exclude():
+    """A candidate whose gain is not significant but whose interval reaches above its penalty is not ruled out: a
+    ``none`` names it (seed 17's rope squeezed with a hidden viscosity: 5.0 %, interval -2.3 to 9.0 %, penalty
+    4 %, ``none`` at confidence 0.38). A gain wholly under the penalty, a significant one, the verdict itself, the
+    base model's table and a fit contradicted by its own signature are not listed; these are exactly what keeps
+    a ``none``'s confidence under 1."""
+    from empm_gym.identification.doctor.core import _confidence, not_ruled_out, not_ruled_out_text
+
+    rng = np.random.default_rng(1)
+    base = 1.0 + 0.1 * rng.standard_normal(30)
+    same = base + 0.02 * rng.standard_normal(30)  # gains nothing: interval about 0
+    wobbly = base * (0.95 + 0.06 * np.random.default_rng(0).standard_normal(30))  # 5 %, interval across 4 %
+    better = 0.6 * base  # 40 %: significant
+    tests = {name: paired_gain_test(base, x, added_params=1, penalty_per_param=0.04)
+             for name, x in [("plasticity", same), ("viscosity", wobbly), ("fracture", better)]}
+    assert tests["viscosity"]["upper"] > 0.04 > tests["viscosity"]["lower"] and tests["plasticity"]["upper"] < 0.04
+    cands = [{"effect": n, "gain": t, "equivalent_to_base": False, "contradicted_by_signature": False}
+             for n, t in tests.items()]
+    cands += [{"effect": "table_friction", "gain": tests["viscosity"], "equivalent_to_base": True},
+              {"effect": "gripper_slip", "gain": tests["viscosity"], "contradicted_by_signature": True},
+              {"effect": "heterogeneous_stiffness", "gain": None}]
+    got = not_ruled_out(cands)
+    assert [e["effect"] for e in got] == ["viscosity"], got
+    e = got[0]
+    assert (e["gain"], e["lower"], e["upper"], e["threshold"]) == tuple(
+        tests["viscosity"][k] for k in ("gain", "lower", "upper", "threshold"))
+    assert e["signature"].startswith("motion decays")
+    assert not_ruled_out(cands, verdict="viscosity") == []  # the verdict is no rival of itself
+    text = not_ruled_out_text(got)
+    assert "not ruled out: viscosity" in text and f"{100 * e['upper']:.1f} %" in text and "neither show nor exclude it" in text
+    assert not_ruled_out_text([]) == ""
+    # what keeps a none from full confidence: the candidate not ruled out clears its penalty on some resamples
+    cfg = DoctorConfig(penalty_per_param=0.04)
+    assert _confidence(base, [same], [1], cfg, None) == 1.0
+    assert 0.0 < _confidence(base, [same, wobbly], [1, 1], cfg, None) < 0.9
+
+
 def test_a_candidate_refuted_by_the_variants_is_no_rival_in_the_confidence():
     """The confidence is the share of resampled held-out frames on which the verdict stays: a candidate whose
     gain failed on the variants is out of the verdict on every resample, so its larger gain does not count
@@ -614,6 +651,17 @@ def doctor_names_the_hidden_effect(tmp_path, effect, script, obj="dough"):
                                                       and c["signature_check"]["explained"] is False), c
         if c["effect"] == res["effect"]:
             assert c["signature_check"] == res["evidence"]["signature_check"] and not c["contradicted_by_signature"]
+    # what a none could not exclude: every candidate whose interval reaches above its penalty without being
+    # significant, each named in a none's reason
+    from empm_gym.identification.doctor.core import not_ruled_out
+
+    assert res["not_ruled_out"] == not_ruled_out(res["candidates"], res["effect"]), res["not_ruled_out"]
+    for c in res["candidates"]:
+        listed = c["effect"] in [e["effect"] for e in res["not_ruled_out"]]
+        assert listed == (c["effect"] != res["effect"] and not c["gain"]["significant"] and not c["equivalent_to_base"]
+                          and not c["contradicted_by_signature"] and c["gain"]["upper"] > c["gain"]["threshold"]), c
+        assert (f"not ruled out: {c['effect']}" in res["reason"] or f"; {c['effect']} (held-out gain" in res["reason"]) \
+            == (listed and res["effect"] == "none"), res["reason"]
     # the held-out gap before and after, as the candidates' table and the verdict score it, with the mask IoU
     gap = res["gap"]
     assert gap["frames"] == list(range(res["heldout_frames"][0], res["heldout_frames"][1] + 1))

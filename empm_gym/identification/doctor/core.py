@@ -70,7 +70,8 @@ from ..offline import Objective, identify
 from ..problem import Observations, Scene, Views, _ForwardSim, run_together
 from ..uncertainty import block_bootstrap_indices, gain_is_significant, measurement_noise, paired_gain_test
 
-__all__ = ["DoctorConfig", "DoctorError", "diagnose", "candidate_params", "select_verdict", "SIGNATURE_FEATURES"]
+__all__ = ["DoctorConfig", "DoctorError", "diagnose", "candidate_params", "select_verdict", "not_ruled_out",
+           "SIGNATURE_FEATURES"]
 
 
 class DoctorError(ValueError):
@@ -258,6 +259,12 @@ def signature_check(effect: str, base: Dict[str, Optional[float]], with_effect: 
             "discrepancy_with_effect": _finite_or_none(d1), "noise_m": noise_m if unit == "m" else None,
             "explained": explained, "unsupported": unsupported, "trusted": trusted,
             "doubted": bool(trusted and (explained is False or unsupported))}
+
+
+def _interval_text(test: Optional[dict]) -> str:
+    """A gain test's interval (:func:`~..uncertainty.paired_gain_test`) in percent, '' where it has none."""
+    lo, up = ((test or {}).get(k) for k in ("lower", "upper"))
+    return "" if lo is None or up is None else f"{100 * lo:.1f} to {100 * up:.1f}"
 
 
 def _finite_or_none(v: float) -> Optional[float]:
@@ -1009,6 +1016,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                         for k in at_bound)
             + ": the effect is named from its held-out gain, but that value is no measurement (the best fit may "
               "lie beyond the box), and the material file holds it as fitted")
+    # candidates these held-out frames can neither show nor exclude: what keeps a `none` from full confidence
+    undecided = not_ruled_out(as_dicts, winner.name if winner else None)
     result.update({
         "effect": winner.name if winner else "none",
         "decidable": True,
@@ -1041,6 +1050,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                               f"from the measurement" for f in cands if f.contradicted))),
         "effect_before_variants": unchecked.name if unchecked else "none",
         "indistinguishable_from": rivals,
+        "not_ruled_out": undecided,
         "first_on": first_on,
         "first_elsewhere": first_elsewhere,
         "variants": robustness,
@@ -1059,6 +1069,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
             f"(assumed density {base_mat.density:g} kg/m^3)"],
         "wall_time_s": None,
     })
+    if winner is None:
+        result["reason"] += not_ruled_out_text(undecided)
     clock["verdict and localisation"] = time.perf_counter() - t_start - sum(clock.values())
     result["wall_time_s"] = round(time.perf_counter() - t_start, 2)
     result["stage_wall_s"] = {k: round(v, 2) for k, v in clock.items()}  # the report's files not included
@@ -1500,6 +1512,44 @@ def _fit_dict(f: _Fit) -> dict:
             "E_window": list(f.bounds["E"]) if "E" in f.bounds else None, "at_search_bound": _params_at_bound(f)}
 
 
+def not_ruled_out(candidates: Sequence[dict], verdict: Optional[str] = None) -> List[dict]:
+    """The candidates (``doctor.json``'s ``candidates``) that the held-out frames can neither show nor exclude: the
+    gain is not significant (:func:`gain_is_significant`), but the upper end of its interval lies above the
+    candidate's penalty, so an effect that gains more than its penalty is as consistent with these frames as one
+    that gains nothing. They are what keeps a ``none`` from full confidence (:func:`_confidence` counts the
+    resamples in which one of them clears its penalty), and a reader of a ``none`` needs their names: on seed 17's
+    rope squeezed in a ring with a hidden viscosity (``none``, confidence 0.38) viscosity gained 5.0 % held out,
+    its interval -2.3 to 9.0 % about a 4 % penalty, while plasticity's and the stiffness field's intervals lay
+    wholly below theirs. The base model's table (``equivalent_to_base``), a fit that moves its own signature away
+    from the measurement (``contradicted_by_signature``) and ``verdict`` itself are left out; largest upper end
+    first. Each entry: ``effect``, ``gain``, ``lower``, ``upper``, ``threshold`` (fractions of the base model's
+    held-out loss) and ``signature`` (how the effect would show, :data:`~empm_gym.sim.effects.EFFECTS`)."""
+    out = []
+    for c in candidates:
+        t = c.get("gain") or {}
+        up, thr = (float("nan") if t.get(k) is None else float(t[k]) for k in ("upper", "threshold"))
+        if (c["effect"] == verdict or not (np.isfinite(up) and np.isfinite(thr) and up > thr)
+                or gain_is_significant(t) or c.get("equivalent_to_base", False)
+                or c.get("contradicted_by_signature", False)):
+            continue
+        out.append({"effect": c["effect"], **{k: _finite_or_none(float("nan") if t.get(k) is None else float(t[k]))
+                                              for k in ("gain", "lower", "upper", "threshold")},
+                    "signature": EFFECTS[c["effect"]].signature if c["effect"] in EFFECTS else None})
+    return sorted(out, key=lambda e: -e["upper"])
+
+
+def not_ruled_out_text(entries: Sequence[dict]) -> str:
+    """``not_ruled_out``'s entries in words, for a ``none``'s reason ('' when there are none)."""
+    if not entries:
+        return ""
+    return ("; not ruled out: " + "; ".join(
+        f"{e['effect']} (held-out gain {100 * (e['gain'] or 0.0):.1f} %, 95 % interval "
+        f"{100 * (e['lower'] or 0.0):.1f} to {100 * e['upper']:.1f} % about its {100 * e['threshold']:.0f} % penalty"
+        + (f"; it would show as: {e['signature']}" if e.get("signature") else "") + ")" for e in entries)
+        + ": these frames can neither show nor exclude " + ("it" if len(entries) == 1 else "them")
+        + " (a longer recording, or one that moves the object the way the effect shows, would tell)")
+
+
 def no_rivals(candidates: Sequence[dict], variants: Optional[dict]) -> List[str]:
     """Names of the candidates (``doctor.json``'s ``candidates``) that are out of the verdict on every resample of
     the held-out frames (:func:`_confidence`'s ``refuted``): the base model's table (``equivalent_to_base``) and
@@ -1705,6 +1755,8 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
              "E searched [Pa]": "" if not c.get("E_window") else "{:.3g} to {:.3g}".format(*c["E_window"]),
              "held-out Chamfer [mm]": 1e3 * c["heldout"]["chamfer_m"],
              "held-out loss gain [%]": 100 * (c["gain"] or {}).get("gain", float("nan")),
+             "95 % interval [%]": _interval_text(c["gain"]),
+             "penalty [%]": 100 * (c["gain"] or {}).get("threshold", float("nan")),
              "significant": (c["gain"] or {}).get("significant"),
              "own signature": _signature_word(c)} for c in cands]
     from .features import FEATURE_INFO
@@ -1727,7 +1779,11 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
            None: "no discrepancy there to explain, or undefined for this recording"}[sig["explained"]]
         + ("" if sig["trusted"] else " (shown only: this feature does not decide for this effect)")
         + (" -- the verdict is doubted, its confidence halved" if sig["doubted"] else ""))}
+    undecided = result.get("not_ruled_out") or []
+    undecided_text = {} if not undecided else {
+        "not ruled out (the held-out frames neither show nor exclude it)": ", ".join(e["effect"] for e in undecided)}
     write_report_md(d / "report.md", {k: result[k] for k in ("effect", "confidence", "reason", "decidable")} |
+                    undecided_text |
                     {"base E [Pa]": result["base"]["params"]["E"], "noise sigma [mm]": 1e3 * result["noise_sigma_m"],
                      "worst phase and region (base model)": where.get("worst_cell"),
                      "wall time [s]": f"{result['wall_time_s']:.1f} ("
