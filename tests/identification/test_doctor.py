@@ -702,13 +702,20 @@ def test_doctor_cli_marks_fits_at_their_search_bound(tmp_path, capsys, monkeypat
            "candidates": [{**fit, "effect": "gripper_slip", "params": {"E": 29936.1, "grip_friction": 0.8967},
                            "at_search_bound": [], "gain": {"gain": 0.85, "significant": True}},
                           {**fit, "effect": "fracture", "params": {"E": 2003.0, "fracture_strain": 0.02},
-                           "at_search_bound": ["E", "fracture_strain"], "gain": {"gain": -0.12, "significant": False}}]}
+                           "at_search_bound": ["E", "fracture_strain"], "gain": {"gain": -0.12, "significant": False}},
+                          {**fit, "effect": "viscosity", "params": {"E": 2100.0, "viscosity": 3.0}, "at_search_bound": [],
+                           "gain": {"gain": 0.05, "lower": -0.023, "upper": 0.09, "threshold": 0.04,
+                                    "significant": False}}],
+           "not_ruled_out": [{"effect": "viscosity"}]}
     monkeypatch.setattr(doctor, "diagnose_recording", lambda *a, **k: res)
     assert main(["doctor", str(tmp_path), "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     assert "base model: E=2000 (at bound)" in out
-    assert "fitted E=2.994e+04, grip_friction=0.8967\n" in out
+    assert "(significant); fitted E=2.994e+04, grip_friction=0.8967\n" in out
     assert "fitted E=2003 (at bound), fracture_strain=0.02 (at bound)" in out
+    # each gain with its interval and penalty; a candidate the frames cannot exclude says so
+    assert "loss gain +5.0 % (95 % interval -2.3 to 9.0 %, penalty 4 %) (not ruled out); fitted E=2100" in out
+    assert "loss gain -12.0 % ; fitted E=2003" in out  # no interval stored: none printed
 
 
 def test_variants_are_the_same_body_on_another_discretisation():

@@ -10,7 +10,7 @@ __all__ = ["register"]
 
 def _doctor(args) -> int:
     from . import DoctorConfig, DoctorError, diagnose_recording
-    from .core import fitted_text
+    from .core import interval_text, fitted_text
     from .report import gap_summary
 
     cfg = DoctorConfig(train_fraction=args.train_fraction, base_iters=args.iters, candidate_iters=args.iters,
@@ -30,11 +30,15 @@ def _doctor(args) -> int:
         print(f"  base model: {fitted_text(res['base'])} [Pa], held-out Chamfer {1e3 * b['chamfer_m']:.2f} mm")
         if gap_summary(res.get("gap")):
             print(f"  {gap_summary(res['gap'])}")
+        undecided = [e["effect"] for e in res.get("not_ruled_out") or []]
         for c in res["candidates"]:
             g = c["gain"] or {}
+            word = ("(significant)" if g.get("significant") else "(not ruled out)" if c["effect"] in undecided else "")
+            test = "" if not interval_text(g) else (
+                f" (95 % interval {interval_text(g)} %"
+                + (f", penalty {100 * g['threshold']:.0f} %" if g.get("threshold") is not None else "") + ")")
             print(f"  {c['effect']:24s} held-out Chamfer {1e3 * c['heldout']['chamfer_m']:.2f} mm, loss gain "
-                  f"{100 * g.get('gain', float('nan')):+.1f} % {'(significant)' if g.get('significant') else ''}; "
-                  f"fitted {fitted_text(c)}")
+                  f"{100 * g.get('gain', float('nan')):+.1f} %{test} {word}; fitted {fitted_text(c)}")
     for n in res.get("notes", []):
         print(f"  note: {n}")
     print(f"wrote {', '.join(res.get('files', {}).values())}")

@@ -261,7 +261,7 @@ def signature_check(effect: str, base: Dict[str, Optional[float]], with_effect: 
             "doubted": bool(trusted and (explained is False or unsupported))}
 
 
-def _interval_text(test: Optional[dict]) -> str:
+def interval_text(test: Optional[dict]) -> str:
     """A gain test's interval (:func:`~..uncertainty.paired_gain_test`) in percent, '' where it has none."""
     lo, up = ((test or {}).get(k) for k in ("lower", "upper"))
     return "" if lo is None or up is None else f"{100 * lo:.1f} to {100 * up:.1f}"
@@ -1755,7 +1755,7 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
              "E searched [Pa]": "" if not c.get("E_window") else "{:.3g} to {:.3g}".format(*c["E_window"]),
              "held-out Chamfer [mm]": 1e3 * c["heldout"]["chamfer_m"],
              "held-out loss gain [%]": 100 * (c["gain"] or {}).get("gain", float("nan")),
-             "95 % interval [%]": _interval_text(c["gain"]),
+             "95 % interval [%]": interval_text(c["gain"]),
              "penalty [%]": 100 * (c["gain"] or {}).get("threshold", float("nan")),
              "significant": (c["gain"] or {}).get("significant"),
              "own signature": _signature_word(c)} for c in cands]
