@@ -1084,6 +1084,13 @@ def test_the_signature_check_asks_whether_the_effect_moves_its_own_feature_towar
     # a slip the grippers show beyond the noise (rope pushed and lifted, seed 10: 3.13 mm, noise 2.47 mm) is judged
     c = signature_check("gripper_slip", {"track_slip_m": 3.13e-3}, {"track_slip_m": 2.1e-4}, noise_m=2.47e-3)
     assert c["explained"] is True and not c["unsupported"] and not c["doubted"]
+    # closer, but by less than the depth noise, is doubted and not vetoed: seed 18's dough lifted by one end with a
+    # fracture, called gripper slip at 0.80, moved the tracks' slip from 4.25 to 3.36 mm off (noise 1.49 mm)
+    c = signature_check("gripper_slip", {"track_slip_m": -4.25e-3}, {"track_slip_m": 3.36e-3}, noise_m=1.49e-3)
+    assert c["explained"] is True and c["marginal"] and c["doubted"] and not c["unsupported"]
+    c = signature_check("gripper_slip", {"track_slip_m": 3.13e-3}, {"track_slip_m": 2.1e-4}, noise_m=2.47e-3)
+    assert not c["marginal"] and not c["doubted"]  # 2.92 mm closer: beyond the noise
+    assert not signature_check("gripper_slip", {"track_slip_m": -4.25e-3}, {"track_slip_m": 3.36e-3})["marginal"]
     # a feature that is no length is not measured against the depth noise
     c = signature_check("plasticity", {key: 0.0008}, {key: 0.0009}, noise_m=1.36e-3)
     assert c["explained"] is False and not c["unsupported"] and c["noise_m"] is None
