@@ -232,6 +232,8 @@ def diagnose_all(problems: Path, args):
 
 def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: float) -> dict:
     """One result row of a doctor result (``diagnose``'s return value or a ``--dump`` line)."""
+    from empm_gym.identification.doctor.core import not_ruled_out
+
     red = c_true = c_base = l_base = float("nan")
     if res.get("candidates"):
         c_base, l_base = res["base"]["heldout"]["chamfer_m"], res["base"]["heldout"]["loss"]
@@ -241,8 +243,6 @@ def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: flo
     # the named effect's check against its own signature (doctor.json's evidence; a slim --dump line keeps it at
     # the top level); None where the verdict is none or the result predates the check (session 31)
     sig = (res.get("evidence") or {}).get("signature_check", res.get("signature_check")) or {}
-    from empm_gym.identification.doctor.core import not_ruled_out
-
     return {"recording": name, "script": script, "truth": truth, "verdict": res["effect"],
             "confidence": res.get("confidence", 0.0), "reduction": red, "base_chamfer_m": c_base,
             "true_effect_chamfer_m": c_true, "base_loss": l_base,

@@ -269,10 +269,15 @@ def signature_check(effect: str, base: Dict[str, Optional[float]], with_effect: 
             "doubted": bool(trusted and (explained is False or unsupported or marginal))}
 
 
+def _percent(v: Optional[float]) -> str:
+    """A fraction in percent, one decimal ('n/a' where it is missing)."""
+    return "n/a" if v is None else f"{100 * v:.1f}"
+
+
 def interval_text(test: Optional[dict]) -> str:
     """A gain test's interval (:func:`~..uncertainty.paired_gain_test`) in percent, '' where it has none."""
     lo, up = ((test or {}).get(k) for k in ("lower", "upper"))
-    return "" if lo is None or up is None else f"{100 * lo:.1f} to {100 * up:.1f}"
+    return "" if lo is None or up is None else f"{_percent(lo)} to {_percent(up)}"
 
 
 def _finite_or_none(v: float) -> Optional[float]:
@@ -1538,13 +1543,13 @@ def not_ruled_out(candidates: Sequence[dict], verdict: Optional[str] = None) -> 
     out = []
     for c in candidates:
         t = c.get("gain") or {}
-        up, thr = (float("nan") if t.get(k) is None else float(t[k]) for k in ("upper", "threshold"))
-        if (c["effect"] == verdict or not (np.isfinite(up) and np.isfinite(thr) and up > thr)
+        v = {k: _finite_or_none(float("nan") if t.get(k) is None else float(t[k]))
+             for k in ("gain", "lower", "upper", "threshold")}
+        if (c["effect"] == verdict or v["upper"] is None or v["threshold"] is None or v["upper"] <= v["threshold"]
                 or gain_is_significant(t) or c.get("equivalent_to_base", False)
                 or c.get("contradicted_by_signature", False)):
             continue
-        out.append({"effect": c["effect"], **{k: _finite_or_none(float("nan") if t.get(k) is None else float(t[k]))
-                                              for k in ("gain", "lower", "upper", "threshold")},
+        out.append({"effect": c["effect"], **v,
                     "signature": EFFECTS[c["effect"]].signature if c["effect"] in EFFECTS else None})
     return sorted(out, key=lambda e: -e["upper"])
 
@@ -1554,8 +1559,8 @@ def not_ruled_out_text(entries: Sequence[dict]) -> str:
     if not entries:
         return ""
     return ("; not ruled out: " + "; ".join(
-        f"{e['effect']} (held-out gain {100 * (e['gain'] or 0.0):.1f} %, 95 % interval "
-        f"{100 * (e['lower'] or 0.0):.1f} to {100 * e['upper']:.1f} % about its {100 * e['threshold']:.0f} % penalty"
+        f"{e['effect']} (held-out gain {_percent(e['gain'])} %, 95 % interval {interval_text(e)} % about its "
+        f"{100 * e['threshold']:.0f} % penalty"
         + (f"; it would show as: {e['signature']}" if e.get("signature") else "") + ")" for e in entries)
         + ": these frames can neither show nor exclude " + ("it" if len(entries) == 1 else "them")
         + " (a longer recording, or one that moves the object the way the effect shows, would tell)")
