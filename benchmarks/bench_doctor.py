@@ -101,7 +101,15 @@ def make(args):
     from empm_gym.perception.synth import effect_signature, synthesize
     from empm_gym.sim.effects import EFFECTS
 
-    effects = ["none", *EFFECTS] if args.effects == "all" else args.effects.split(",")
+    from empm_gym.perception.synth import SPRINGMASS_EFFECTS
+
+    sm = args.simulator == "springmass"
+    effects = (["none", *(SPRINGMASS_EFFECTS if sm else EFFECTS)] if args.effects == "all" else
+               args.effects.split(","))
+    if sm and set(effects) - {"none", *SPRINGMASS_EFFECTS}:
+        raise SystemExit(f"--simulator springmass makes only none, {', '.join(SPRINGMASS_EFFECTS)}; got "
+                         f"{', '.join(sorted(set(effects) - {'none', *SPRINGMASS_EFFECTS}))}")
+    sim_kw = {"simulator": "springmass"} if sm else {}
     params = _effect_params(args.effect_params, effects)
     base = _base_params(args.base_params)
     out = Path(args.problems) if args.problems else Path(args.make) / "problems"
@@ -121,7 +129,7 @@ def make(args):
         for script in scripts:
             for seed in range(args.first_seed, args.first_seed + args.seeds):
                 eparams = {k: v for k, v in params.items() if effect != "none" and k in EFFECTS[effect].param_names}
-                name = f"{args.object}-{script}-{seed}-{effect}" + "".join(f"-{k}{v:g}" for k, v in
+                name = ("sm_" if sm else "") + f"{args.object}-{script}-{seed}-{effect}" + "".join(f"-{k}{v:g}" for k, v in
                                                                              {**base, **eparams}.items())
                 rec = Path(args.make) / name
                 t0 = time.perf_counter()
@@ -142,7 +150,7 @@ def make(args):
                     if "signature_m" not in prob:
                         prob["signature_m"] = effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
                                                                effect_params=eparams or None, base_params=base,
-                                                               dx=synth_dx)
+                                                               dx=synth_dx, **sim_kw)
                         changed = True
                     if args.view_bodies and "view_bodies" not in prob and rec.exists():
                         prob["view_bodies"] = view_jackknife_bodies(rec, prob["scene"], particles_per_cell=args.ppc)
@@ -154,7 +162,7 @@ def make(args):
                 synthesize(rec, args.object, script=script, effect=effect, effect_params=eparams or None,
                            **base, frames=args.frames, cameras=args.cameras, dx=synth_dx,
                            width=args.width, height=args.height, seed=seed, overwrite=True, progress=False,
-                           tangent_splats=args.tangent_splats)
+                           tangent_splats=args.tangent_splats, **sim_kw)
                 truth = [e["name"] for e in json.loads((rec / "ground_truth.json").read_text())["effects"]]
                 try:
                     scene, obs, _, _, notes = load_for_doctor(rec, dx=args.dx, particles_per_cell=args.ppc,
@@ -165,13 +173,13 @@ def make(args):
                 obs = _subsample(obs, seed, args.max_points)
                 prob = {"scene": scene, "obs": obs, "truth": truth[0] if truth else "none", "script": script,
                         "seed": seed, "truth_params": eparams, "body_notes": notes, "base_params": base,
-                        "synth_dx": synth_dx, "trim_to_surface": args.trim_bodies,
+                        "synth_dx": synth_dx, "trim_to_surface": args.trim_bodies, "simulator": args.simulator,
                         **({"view_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc,
                                                                  trim_to_surface=args.trim_bodies)}
                            if args.view_bodies else {}),
                         "signature_m": effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
                                                         effect_params=eparams or None, base_params=base,
-                                                        dx=synth_dx)}
+                                                        dx=synth_dx, **sim_kw)}
                 _write_problem(out / f"{name}.pkl", prob)
                 print(f"{name}: {len(scene.particles)} particles, {obs.num_frames} frames "
                       f"({time.perf_counter() - t0:.1f} s)", flush=True)
@@ -618,6 +626,9 @@ def _parser():
                    help="the doctor's grid cell (m) for --make; default auto: as `empm doctor` chooses it "
                         "(doctor.load_for_doctor)")
     p.add_argument("--ppc", type=float, default=8)
+    p.add_argument("--simulator", default="mpm", choices=("mpm", "springmass"),
+                   help="--make's recordings moved by our MPM or by a spring-mass network (another simulator's "
+                        "output: only none, table_friction and heterogeneous_stiffness; names start with sm_)")
     p.add_argument("--synth-dx", type=float, default=None,
                    help="the synthesiser's grid cell (m) for --make; default --dx, the doctor's (a finer one makes "
                         "recordings of physics the doctor's grid does not share, as another simulator's would)")

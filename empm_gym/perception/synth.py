@@ -320,24 +320,43 @@ def _check_scene_args(object: str, script: str, frames) -> None:
         raise ValueError(f"frames must be >= 2, got {frames!r}")
 
 
+#: The simulators a recording can be made with: our MPM, or the spring-mass family of PhysTwin
+#: (:mod:`empm_gym.springmass`), which the doctor's base model is not, as another simulator's output would be.
+SIMULATORS = ("mpm", "springmass")
+#: Effects the spring-mass simulator can carry (its springs have no yield, rate term beyond their dashpots,
+#: damage or gripper slip): the table's friction and a stiffness field (per-spring multipliers).
+SPRINGMASS_EFFECTS = ("table_friction", "heterogeneous_stiffness")
+
+
 def simulate(object: str, material, *, script: str = "default", frames: int = 60, fps: float = 30.0,
              dx: float = 0.01, particles_per_cell: float = 8, table_friction: float = 0.5,
-             gripper_friction: float = 0.8, seed: int = 0, device: str = "cpu", progress: bool = False) -> dict:
+             gripper_friction: float = 0.8, seed: int = 0, device: str = "cpu", progress: bool = False,
+             simulator: str = "mpm", springmass_damping: float = 1.0) -> dict:
     """Run ``script`` on ``object`` of ``material`` without rendering. Returns a dict: ``particles`` [T, N, 3]
     (m, frame t = after t intervals), ``positions`` [T, K, 3], ``grip`` [T, K], ``end_effectors``
-    (EndEffectorConfig list), ``grid``, ``model``, ``substeps``, ``dt``. The table friction is
-    ``material.params['friction']`` where set, else ``table_friction``."""
+    (EndEffectorConfig list), ``grid``, ``model``, ``substeps``, ``dt``, ``volumes`` [N] (m^3). The table
+    friction is ``material.params['friction']`` where set, else ``table_friction``.
+
+    ``simulator`` "springmass" runs the body as a spring-mass network instead (see :func:`_simulate_springmass`):
+    the MPM's frame-0 particles voxel-downsampled to half a cell, springs of stiffness ``material.E`` (the
+    network's Young's modulus, Pa), dashpots of ``springmass_damping`` (Pa s), the same table, friction and
+    end-effector motion, a closed gripper holding the particles it touches."""
     from tqdm.auto import tqdm
 
     from empm_gym.sim import SolverMPM
 
     _check_scene_args(object, script, frames)
+    if simulator not in SIMULATORS:
+        raise ValueError(f"simulator must be one of {', '.join(SIMULATORS)}, got {simulator!r}")
     T = int(frames)
     pos, grip, ee_kw, grid_box = _script(object, script, T, dx)
     model, ee_cfgs, grid = _build(object, material, dx=dx, ppc=particles_per_cell, table_friction=table_friction,
                                   ee_friction=gripper_friction, seed=seed, device=device, controls_pos=pos,
                                   ee_kwargs=[dict(kw, gripper=bool(np.any(grip[:, k]))) for k, kw in enumerate(ee_kw)],
                                   grid_box=grid_box)
+    if simulator == "springmass":
+        return _simulate_springmass(model, material, pos, grip, ee_cfgs, grid, fps=fps, damping=springmass_damping,
+                                    table_friction=table_friction, device=device, progress=progress)
     solver = SolverMPM(model)
     vel = np.diff(pos, axis=0) * fps
     vmax = float(np.max(np.linalg.norm(vel, axis=-1))) if len(vel) else 0.0
@@ -355,7 +374,51 @@ def simulate(object: str, material, *, script: str = "default", frames: int = 60
             s0, s1 = s1, s0
         X[t + 1] = s0.particle_x.numpy()
     return {"particles": X, "positions": pos, "grip": grip, "end_effectors": ee_cfgs, "grid": grid,
-            "model": model, "substeps": n_sub, "dt": dt}
+            "model": model, "substeps": n_sub, "dt": dt, "volumes": model.particle_vol.numpy()}
+
+
+def _simulate_springmass(mpm_model, material, pos, grip, ee_cfgs, grid, *, fps: float, damping: float,
+                         table_friction: float, device, progress: bool) -> dict:
+    """:func:`simulate`'s spring-mass run: the MPM model's frame-0 particles and volumes become a network at half
+    a grid cell (:func:`empm_gym.springmass.model.model_from_body`), stiffness E, dashpots ``damping``; the
+    table friction is the material's where set; a stiffness field E exp(a . u) (u: the body's principal
+    coordinates, :func:`empm_gym.sim.model.principal_coords`) multiplies each spring by its value at the
+    spring's midpoint. Any other effect raises ValueError: the spring-mass family has no such term."""
+    from tqdm.auto import tqdm
+
+    from empm_gym.sim.model import principal_coords
+    from empm_gym.springmass import SpringMassConfig, SpringMassSim, model_from_body
+
+    other = [e for e in material.effects() if e not in SPRINGMASS_EFFECTS]
+    if other:
+        raise ValueError(f"the spring-mass simulator cannot carry {', '.join(other)} (only "
+                         f"{', '.join(SPRINGMASS_EFFECTS)}); make that recording with simulator='mpm'")
+    if material.get("friction") is not None:
+        table_friction = float(material.get("friction"))
+    spacing = 0.5 * grid.dx
+    cfg = SpringMassConfig(stiffness=float(material.E), damping=float(damping), spacing=spacing)
+    sm = model_from_body(mpm_model.state().particle_x.numpy(), mpm_model.particle_vol.numpy(),
+                         density=float(material.density), config=cfg, spacing=spacing, device=device)
+    slope = np.array([material.get(f"stiffness_slope_{i}") or 0.0 for i in (1, 2, 3)], np.float64)
+    log_scale = None
+    if np.any(slope != 0.0):
+        u = principal_coords(sm.x0)
+        i, j = sm.springs_np[:, 0], sm.springs_np[:, 1]
+        log_scale = 0.5 * (u[i] + u[j]) @ slope
+        sm.set_params(float(material.E), float(damping), log_scale)
+    sim = SpringMassSim(sm, fps=fps, ee_configs=ee_cfgs, ee_positions=pos, ee_grip=grip, table_height=0.0,
+                        table_friction=table_friction)
+    T = len(pos)
+    n_sub, dt = sim.substeps(float(material.E), float(damping), T,
+                             log_scale_max=0.0 if log_scale is None else float(log_scale.max()))
+    bar = tqdm(total=T - 1, desc=f"simulate spring-mass ({sm.particle_count} particles, {sm.spring_count} springs, "
+               f"{n_sub} substeps/frame)", disable=not progress, leave=False)
+    try:
+        X = sim.run(T, substeps=n_sub, progress=lambda t: bar.update(1))
+    finally:
+        bar.close()
+    return {"particles": X.astype(np.float32), "positions": pos, "grip": grip, "end_effectors": ee_cfgs,
+            "grid": grid, "model": sm, "substeps": n_sub, "dt": dt, "volumes": sm.mass / float(material.density)}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -713,7 +776,8 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
                noise_sigma_m: float = 1.5e-3, n_tracks: int = 128, depth_format: str = "npy",
                overwrite: bool = False, progress: bool = True, device: str = "cpu", script: str = "default",
                effect: Optional[str] = None, effect_params: Optional[Dict[str, float]] = None,
-               material=None, debug_particles: Optional[bool] = None, tangent_splats: bool = True) -> Path:
+               material=None, debug_particles: Optional[bool] = None, tangent_splats: bool = True,
+               simulator: str = "mpm", springmass_damping: float = 1.0) -> Path:
     """Simulate a scripted manipulation and write a synthetic recording with known parameters to ``out_dir``.
 
     ``object`` is "rope", "dough" or "block"; ``script`` "default" (rope lift-and-stretch, dough squeeze,
@@ -736,6 +800,10 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
     the true surface as a depth camera measures it (:func:`render_view`); False draws flat discs at their
     centres' depth, which put inclined faces 0.3-0.8 mm too near and widen the silhouette (the recordings of
     benchmark seeds up to 14 were made so).
+    ``simulator`` "springmass" moves the body as a spring-mass network (PhysTwin's family; only table friction
+    and a stiffness field can be its effects, dashpots ``springmass_damping`` Pa s) instead of our MPM, so that
+    the doctor and identification can be tried on another simulator's output (:func:`simulate`); the
+    rendering is the same.
     Returns the recording path. See the module docstring for the scene, the noise model and how
     ``controls.npz`` replays.
     """
@@ -744,6 +812,8 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
     from empm_gym.sim import MaterialConfig
 
     _check_scene_args(object, script, frames)
+    if simulator not in SIMULATORS:
+        raise ValueError(f"simulator must be one of {', '.join(SIMULATORS)}, got {simulator!r}")
     if int(cameras) < 1:
         raise ValueError(f"cameras must be >= 1, got {cameras!r}")
     T, C = int(frames), int(cameras)
@@ -785,7 +855,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
     # -- simulate -------------------------------------------------------------------------------
     sim = simulate(object, material, script=script, frames=T, fps=fps, dx=dx, particles_per_cell=particles_per_cell,
                    table_friction=table_friction, gripper_friction=gripper_friction, seed=seed, device=device,
-                   progress=progress)
+                   progress=progress, simulator=simulator, springmass_damping=springmass_damping)
     X, pos, grip, ee_cfgs, grid, model = (sim["particles"], sim["positions"], sim["grip"], sim["end_effectors"],
                                           sim["grid"], sim["model"])
     n_sub, dt = sim["substeps"], sim["dt"]
@@ -855,7 +925,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
     # debug only (never read by identification): the simulated particle trajectories [T, N, 3] (m) and
     # the end-effector centres per frame, to check that a replay of the recording reproduces them
     if debug_particles:
-        np.savez_compressed(out / "ground_truth_particles.npz", positions=X, volumes=model.particle_vol.numpy(),
+        np.savez_compressed(out / "ground_truth_particles.npz", positions=X, volumes=sim["volumes"],
                             ee_positions=pos.astype(np.float32), grip=grip)
     writer.write_ground_truth({
         "synthetic": True,
@@ -870,10 +940,13 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
         "grip": ("rigid" if material.get("grip_friction") is None else
                  f"friction {material.get('grip_friction'):g}"),
         "effects": effects,
+        "simulator": ({"name": "mpm"} if simulator == "mpm" else
+                      {"name": "springmass", "stiffness_Pa": float(material.E), "damping_Pa_s": float(springmass_damping),
+                       "spacing_m": float(model.spacing), "springs": int(model.spring_count)}),
         "scene": {
             "grid": {"lower": list(grid.lower), "upper": list(grid.upper), "dx": grid.dx},
             "particles_per_cell": float(particles_per_cell),
-            "particle_count": int(model.particle_count),
+            "particle_count": int(X.shape[1]),
             "substeps_per_frame": n_sub,
             "dt_s": dt,
             "gravity": [0.0, 0.0, -9.81],
@@ -929,7 +1002,8 @@ def _cli(args) -> int:
                           depth_format=args.depth_format, progress=not args.quiet, device=args.device,
                           script=args.script, effect=effect, effect_params=params, material=material,
                           debug_particles=True if args.debug_particles else None,
-                          tangent_splats=args.tangent_splats)
+                          tangent_splats=args.tangent_splats, simulator=args.simulator,
+                          springmass_damping=args.springmass_damping)
     except (RecordingError, ValueError, OSError) as exc:
         print(f"empm synth: error: {exc}", file=sys.stderr)
         return 2
@@ -939,7 +1013,7 @@ def _cli(args) -> int:
                     for e in gt["effects"]) or "none"
     print(f"wrote {path}: {args.object}, script {gt['script']}, {args.frames} frames x {args.cameras} cameras; "
           f"E={m['E']:g} Pa, nu={m['nu']:g}, density={m['density']:g} kg/m^3, yield_stress={m['yield_stress']} Pa; "
-          f"effects: {eff} ({gt['timing_s']['total']:.1f} s)")
+          f"effects: {eff}; simulator {gt['simulator']['name']} ({gt['timing_s']['total']:.1f} s)")
     return 0
 
 
@@ -987,6 +1061,12 @@ def register(subparsers) -> None:
     p.add_argument("--flat-splats", dest="tangent_splats", action="store_false",
                    help="draw the surface as flat discs at their centres' depth, as recordings made before "
                         "2026-11-28 were: inclined faces 0.3-0.8 mm too near, the silhouette a little wide")
+    p.add_argument("--simulator", choices=SIMULATORS, default="mpm",
+                   help="move the body with our MPM (default) or a spring-mass network (PhysTwin's family: "
+                        "springs of stiffness E, only table_friction and heterogeneous_stiffness as effects), "
+                        "to try the doctor and identification on another simulator's output")
+    p.add_argument("--springmass-damping", dest="springmass_damping", type=float, default=1.0,
+                   help="the spring-mass dashpots, Pa s (with --simulator springmass)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing recording in out_dir")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cli)

@@ -266,3 +266,53 @@ def test_grid_shift_off_faces_moves_only_a_grid_that_holds_a_face_on_its_nodes()
     assert S.grid_shift_off_faces((-0.08, -0.065, -0.04), sweep, [box], dx).tolist() == [0.0, 0.0]
     sphere = {"shape": "sphere", "radius": 0.0175}
     assert S.grid_shift_off_faces((-0.08, -0.065, -0.04), held, [sphere], dx).tolist() == [0.0, 0.0]
+
+
+# -- recordings from another simulator: the spring-mass family ----------------------------------------------------
+
+
+def test_a_springmass_recording_names_its_simulator_only_in_ground_truth(tmp_path):
+    """``simulator="springmass"`` writes a recording in the same layout; only ground_truth.json says which
+    simulator moved the body (the doctor must not be able to tell), and the metadata equal the MPM one's."""
+    a = S.synthesize(tmp_path / "mpm", "dough", effect="none", script="push-slide", **TINY)
+    b = S.synthesize(tmp_path / "sm", "dough", effect="none", script="push-slide", simulator="springmass", **TINY)
+    assert _files(a) == _files(b)
+    for f in ("metadata.json", "calibrate.json"):
+        assert (a / f).read_text() == (b / f).read_text()
+    gt = Recording(b).ground_truth()
+    assert gt["simulator"]["name"] == "springmass" and gt["simulator"]["stiffness_Pa"] == 2.0e4
+    assert Recording(a).ground_truth()["simulator"] == {"name": "mpm"}
+    assert not np.array_equal(Recording(a).depth(0, 7), Recording(b).depth(0, 7))  # another body moved
+
+
+def test_springmass_table_friction_lets_the_pushed_dough_slide_farther():
+    """The table's friction reaches the spring-mass run: the dough pushed on a table of friction 0.05 ends
+    farther along the push than on 0.5 (the base model's)."""
+    runs = {e: S.simulate("dough", S.effect_material("dough", e)[0], script="push-slide", frames=30, dx=0.01,
+                          simulator="springmass")["particles"] for e in ("none", "table_friction")}
+    moved = {e: np.linalg.norm(X[-1].mean(0)[:2] - X[0].mean(0)[:2]) for e, X in runs.items()}
+    assert moved["table_friction"] > moved["none"] + 0.005, moved
+
+
+def test_springmass_stiffness_field_makes_the_soft_half_stretch_more():
+    """A stiffness field exp(a u_1) along the rope: pulled apart by its ends, the half where the field is low
+    (u_1 < 0 for a > 0) lengthens more than the stiff half; with the field reversed, the other half does."""
+    def halves(slope):
+        mat = S.effect_material("rope", "heterogeneous_stiffness", {"stiffness_slope_1": slope})[0]
+        X = S.simulate("rope", mat, script="pull-apart", frames=24, dx=0.01, simulator="springmass")["particles"]
+        left, right = X[0, :, 0] < -0.05, X[0, :, 0] > 0.05     # the outer thirds' spans, on the rope's axis
+        span = lambda sel, t: np.ptp(X[t, sel, 0])
+        return span(left, -1) / span(left, 0), span(right, -1) / span(right, 0)
+    l, r = halves(1.5)
+    assert l > r + 0.01, (l, r)
+    l, r = halves(-1.5)
+    assert r > l + 0.01, (l, r)
+
+
+def test_springmass_refuses_an_effect_it_has_no_term_for(tmp_path):
+    with pytest.raises(ValueError, match="spring-mass simulator cannot carry plasticity"):
+        S.synthesize(tmp_path / "rec", "dough", effect="plasticity", script="press-release", simulator="springmass",
+                     **TINY)
+    assert not (tmp_path / "rec").exists() or not any((tmp_path / "rec").iterdir())
+    with pytest.raises(ValueError, match="simulator must be one of"):
+        S.simulate("dough", S.effect_material("dough", "none")[0], simulator="fem")
