@@ -98,17 +98,16 @@ def make(args):
     from empm_gym.identification.data import view_jackknife_bodies
     from empm_gym.identification.doctor import DEFAULT_DX, load_for_doctor
     from empm_gym.perception.scripts import SCRIPTS
-    from empm_gym.perception.synth import effect_signature, synthesize
+    from empm_gym.perception.synth import SPRINGMASS_EFFECTS, effect_signature, synthesize
     from empm_gym.sim.effects import EFFECTS
-
-    from empm_gym.perception.synth import SPRINGMASS_EFFECTS
 
     sm = args.simulator == "springmass"
     effects = (["none", *(SPRINGMASS_EFFECTS if sm else EFFECTS)] if args.effects == "all" else
                args.effects.split(","))
-    if sm and set(effects) - {"none", *SPRINGMASS_EFFECTS}:
+    refused = sorted(set(effects) - {"none", *SPRINGMASS_EFFECTS}) if sm else []
+    if refused:
         raise SystemExit(f"--simulator springmass makes only none, {', '.join(SPRINGMASS_EFFECTS)}; got "
-                         f"{', '.join(sorted(set(effects) - {'none', *SPRINGMASS_EFFECTS}))}")
+                         f"{', '.join(refused)}")
     sim_kw = {"simulator": "springmass"} if sm else {}
     params = _effect_params(args.effect_params, effects)
     base = _base_params(args.base_params)

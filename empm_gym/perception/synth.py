@@ -812,8 +812,6 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
     from empm_gym.sim import MaterialConfig
 
     _check_scene_args(object, script, frames)
-    if simulator not in SIMULATORS:
-        raise ValueError(f"simulator must be one of {', '.join(SIMULATORS)}, got {simulator!r}")
     if int(cameras) < 1:
         raise ValueError(f"cameras must be >= 1, got {cameras!r}")
     T, C = int(frames), int(cameras)
