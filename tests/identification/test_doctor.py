@@ -647,6 +647,9 @@ def doctor_names_the_hidden_effect(tmp_path, effect, script, obj="dough"):
     hidden = [n for n in res["notes"] if "completed by a prior" in n]
     assert len(hidden) == (obj in ("dough", "block") and script in ("squeeze-lift", "lift-end", "pull-apart")), \
         res["notes"]
+    # the controls and the images share one clock here: no lag is reported (doctor.json holds what was read)
+    assert not any("out of step" in n for n in res["notes"]), res["control_lag"]
+    assert set(res["control_lag"]) >= {"lag_frames", "lower", "upper", "slip_share", "followers", "points"}
     # the CPU's small search is said (3 generations of 5, 1 variant: less than the doctor was measured with)
     assert sum(n.startswith("search: the fits ran 3 (base model)") for n in res["notes"]) == 1, res["notes"]
     if effect != "none":

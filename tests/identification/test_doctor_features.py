@@ -227,3 +227,60 @@ def test_figures_and_report_written(tmp_path):
     text = md.read_text()
     assert text.index("gripper_slip explains the gap") < text.index("Where the disagreement is")
     assert "![Residual over time](fig/timeline.png)" in text and "| effect | gain_mm |" in text
+
+
+def _held_block(lag=0.0, slip=0.0, seed=0, T=30, M=40, noise=1.5e-3):
+    """A box gripper closed on a block, at rest, lifted 8 cm over frames 6-14, held still, lowered over 20-25;
+    ``M`` tracked points on the block beside the jaws follow the gripper ``lag`` frames late and fall behind by
+    ``slip`` of its travel, with depth-like noise. Returns (tracks, visible, ee [T, 1, 3], grip, size, points)."""
+    rng = np.random.default_rng(seed)
+    z = np.interp(np.arange(T), [0, 6, 14, 20, 25, T - 1], [0.03, 0.03, 0.11, 0.11, 0.05, 0.05])
+    ee = np.zeros((T, 1, 3))
+    ee[:, 0, 2] = z
+    size = np.array([[0.02, 0.03, 0.02]])
+    offs = np.column_stack([rng.uniform(0.021, 0.03, M) * rng.choice([-1, 1], M), rng.uniform(-0.03, 0.03, M),
+                            rng.uniform(-0.02, 0.02, M)])
+    late = np.interp(np.arange(T) - lag, np.arange(T), z)  # the gripper's height lag frames earlier
+    tz = late - slip * (late - z[0])
+    tracks = offs[None] + np.column_stack([np.zeros(T), np.zeros(T), tz])[:, None, :]
+    tracks = tracks + rng.normal(0, noise, tracks.shape)
+    points = [tracks[t] for t in range(T)]
+    return tracks, np.ones((T, M), bool), ee, np.ones((T, 1)), size, points
+
+
+@pytest.mark.parametrize("lag", [0.0, 1.0, -0.5, 2.0])
+def test_a_lag_between_controls_and_images_is_read_from_the_held_material(lag):
+    from empm_gym.identification.doctor.core import lag_note
+    from empm_gym.identification.doctor.features import control_lag
+
+    tracks, vis, ee, grip, size, pts = _held_block(lag=lag)
+    r = control_lag(tracks, vis, ee, grip, [size[0]], pts, contact_dist_m=0.015)
+    # first order in the lag: within 0.1 frame up to a frame; a 2-frame lag across the lift's corners reads 1.85
+    assert abs(r["lag_frames"] - lag) < (0.1 if abs(lag) <= 1 else 0.2), r
+    assert abs(r["slip_share"]) < (0.05 if abs(lag) <= 1 else 0.12) and r["followers"] == 40, r
+    note = lag_note(r, 30.0)
+    if lag == 0.0:
+        assert note is None
+    else:
+        assert note is not None and f"{abs(r['lag_frames']):.2f} frames" in note
+        assert ("after" if lag > 0 else "before") in note
+
+
+def test_material_sliding_in_the_grip_is_no_measure_of_a_lag():
+    from empm_gym.identification.doctor.core import lag_note
+    from empm_gym.identification.doctor.features import control_lag
+
+    # the points fall behind by half the gripper's travel (and a frame): they move by the slip, not by the
+    # controls' clock, and no lag is read from them
+    tracks, vis, ee, grip, size, pts = _held_block(lag=1.0, slip=0.5)
+    r = control_lag(tracks, vis, ee, grip, [size[0]], pts, contact_dist_m=0.015)
+    assert np.isnan(r["lag_frames"]) and r["followers"] == 0 and r["points"] == 40, r
+    assert abs(r["slip_share"] - 0.5) < 0.05, r
+    assert lag_note(r, 30.0) is None
+    # a gripper at one steady speed throughout: a lag is an offset there, and is not read
+    tracks, vis, ee, grip, size, pts = _held_block(lag=1.0)
+    ee[:, 0, 2] = 0.03 + 0.002 * np.arange(len(ee))
+    r = control_lag(tracks, vis, ee, grip, [size[0]], pts, contact_dist_m=0.015)
+    assert np.isnan(r["lag_frames"])
+    # no tracks at all
+    assert control_lag(None, None, ee, grip, [size[0]], pts)["samples"] == 0

@@ -864,9 +864,13 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     if hidden:
         grid_notes.append(f"the object is wholly hidden in frames {frame_ranges(hidden)} (no observed point): they are "
                           f"simulated but neither fitted nor scored")
+    lag = _control_lag(scene, obs, T)
+    if lag_note(lag, obs.fps):
+        grid_notes.append(lag_note(lag, obs.fps))
     result = {"schema": 1, "frames": T, "fit_frames": [0, F - 1], "heldout_frames": [F, T - 1],
               "hidden_frames": hidden, "fps": obs.fps,
               "noise_sigma_m": noise, "observed_motion_m": motion, "driven_motion_m": driven, "grid": grid,
+              "control_lag": {k: _finite_or_none(v) if isinstance(v, float) else v for k, v in lag.items()},
               "notes": grid_notes}
     still = max(3.0 * noise, 2e-3)
     if motion < still and driven < still:
@@ -1679,6 +1683,42 @@ class _Features:
         f = summary_features(self.phases, o.points[:T], P_sim, sc.ee_positions[:T], sc.ee_grip[:T], self.radius,
                              self.obs.fps, table_z=self.table_z, **kw)
         return {k: _finite_or_none(v) for k, v in f.items()}
+
+
+def _control_lag(scene: Scene, obs: Observations, T: int) -> dict:
+    """:func:`~.features.control_lag` of a loaded recording's tracks and controls over its first ``T`` frames."""
+    from .features import control_lag
+
+    if obs.tracks is None:
+        return control_lag(None, None, scene.ee_positions[:T], scene.ee_grip[:T], _ee_sizes(scene), obs.points[:T])
+    return control_lag(obs.tracks[:T], None if obs.visibility is None else obs.visibility[:T], scene.ee_positions[:T],
+                       scene.ee_grip[:T], _ee_sizes(scene), obs.points[:T], contact_dist_m=CONTACT_GAP_M)
+
+
+#: A lag of the tracked material behind the grippers' controls (:func:`~.features.control_lag`) of at least this
+#: many frames, with its interval clear of zero, is reported (:func:`lag_note`).
+LAG_REPORT_FRAMES = 0.5
+
+
+def lag_note(lag: Optional[dict], fps: float) -> Optional[str]:
+    """The note the doctor adds when the material held by the grippers follows their controls with a lag
+    (:func:`~.features.control_lag`) of :data:`LAG_REPORT_FRAMES` or more whose interval excludes zero, else
+    None. Every candidate is simulated with the controls as recorded; a lag between the controls and the images
+    reads as the body trailing (or leading) its grippers, which gripper slip, viscosity or a soft end can
+    imitate."""
+    if not lag or not lag.get("samples"):
+        return None
+    v, lo, hi = (lag.get(k) for k in ("lag_frames", "lower", "upper"))
+    if not all(x is not None and np.isfinite(x) for x in (v, lo, hi)):
+        return None
+    if abs(v) < LAG_REPORT_FRAMES or lo <= 0.0 <= hi:
+        return None
+    way = "after" if v > 0 else "before"
+    return (f"the tracked points next to the closed grippers move {abs(v):.2f} frames ({1e3 * abs(v) / fps:.0f} ms) "
+            f"{way} the controls say the grippers moved (95 % interval {lo:+.2f} to {hi:+.2f} frames): the controls' "
+            f"and the images' clocks may be out of step. Every model is driven by the controls as recorded, so an "
+            f"effect named from motion near the grippers (gripper slip, viscosity, a soft end) may be that lag; "
+            f"check the recording's timestamps")
 
 
 def _signature_word(c: dict) -> str:

@@ -32,6 +32,7 @@ __all__ = [
     "particle_residual_map",
     "count_pieces",
     "summary_features",
+    "control_lag",
     "localise",
 ]
 
@@ -422,6 +423,132 @@ def summary_features(
     fm = _nanmean(np.concatenate(free_r)) if free_r else float("nan")
     f["residual_near_ee_vs_free"] = _nanratio(nm, fm)
     return f
+
+
+# ----------------------------------------------------------------------------- controls against images
+
+
+#: Fewest (track, frame) samples, and least spread of the gripper's speed over its closed intervals [m/frame],
+#: with which :func:`control_lag` estimates a lag: a gripper that moves at one constant speed while closed makes a
+#: lag indistinguishable from a constant offset (and from slip, which grows with the gripper's travel).
+LAG_MIN_SAMPLES = 30
+LAG_MIN_SPEED_SPREAD = 5e-4
+#: Largest share of the gripper's travel the material next to it may fall behind by (``slip_share``) for
+#: :func:`control_lag` to read a lag: material that stretches or slides away from the gripper moves by its own
+#: dynamics, which a lag of the controls cannot be told from (dough lifted by one end: 0.66-0.78 with rigid
+#: grips; benchmarks/RESULTS.md, session 50).
+LAG_MAX_SLIP_SHARE = 0.25
+#: Fewest tracked points that move with their gripper (:data:`LAG_MAX_SLIP_SHARE`) from which a lag is read, and
+#: their least share of the points near the grippers: where most of the material there stretches or slides,
+#: the few that pass by chance read its dynamics (dough pulled apart with a soft end: 9 of 34 and 17 of 68 pass
+#: and read 2.2 and 1.6 frames where there is no lag; benchmarks/RESULTS.md, session 50).
+LAG_MIN_TRACKS = 8
+LAG_MIN_FOLLOWER_SHARE = 0.5
+
+
+def control_lag(
+    tracks: np.ndarray,
+    visible: Optional[np.ndarray],
+    ee_positions: np.ndarray,
+    ee_grip: np.ndarray,
+    ee_radius,
+    obs_list: Sequence[np.ndarray],
+    *,
+    near_m: float = 0.03,
+    contact_dist_m: float = 0.01,
+    min_frames: int = 4,
+    n_boot: int = 400,
+    level: float = 0.95,
+    seed: int = 0,
+) -> Dict[str, float]:
+    """How many frames the tracked material next to a closed gripper lags behind the gripper's controls,
+    from data alone: the controls and the images out of sync.
+
+    Over each interval where a gripper is closed and touching the object (as for ``track_slip_m``), every
+    tracked point near it at the interval's start has, relative to the gripper, the position
+    ``r(t) = a - beta * D(t) - lag * v(t)``, with ``D`` the gripper's travel since the interval's start, ``v`` its
+    velocity per frame (central differences of the controls) and ``a`` the point's own offset: a lag of ``lag``
+    frames (the images show the gripper's effect ``lag`` frames after the controls say it happened; negative:
+    before) puts the point behind the gripper by ``lag * v``, which vanishes once the gripper stops, while slip
+    leaves it behind by a share ``beta`` of the travel, which stays. Each point's own ``beta`` picks the points
+    that move with their gripper (:data:`LAG_MAX_SLIP_SHARE`; material that stretches or slides moves by its own
+    dynamics); ``beta`` and ``lag`` are then fitted by least squares over those points and their frames, and the
+    interval of ``lag`` is a bootstrap over them.
+
+    Returns ``lag_frames``, ``lower``, ``upper`` (the ``level`` interval), ``slip_share`` (beta over all points
+    near the grippers), ``samples`` (point-frames used), ``followers`` / ``points`` (points that move with their
+    gripper / all near it) and ``speed_spread_m`` (the standard deviation of the gripper's speed over the
+    samples, m/frame). The lag and its interval are NaN without tracks, without a closed interval of
+    ``min_frames`` frames with tracked points near the gripper, where the gripper's speed varies too little to
+    tell a lag from an offset (:data:`LAG_MIN_SPEED_SPREAD`), or with fewer than :data:`LAG_MIN_TRACKS` points
+    (:data:`LAG_MIN_SAMPLES` point-frames), or under :data:`LAG_MIN_FOLLOWER_SHARE` of those near the grippers,
+    that move with their gripper."""
+    nan = {"lag_frames": float("nan"), "lower": float("nan"), "upper": float("nan"), "slip_share": float("nan"),
+           "samples": 0, "speed_spread_m": float("nan"), "followers": 0, "points": 0}
+    if tracks is None:
+        return nan
+    ee = np.asarray(ee_positions, dtype=float)
+    if ee.ndim == 2:
+        ee = ee[:, None, :]
+    tr = np.asarray(tracks, dtype=float)
+    T = min(len(tr), len(ee), len(obs_list))
+    if T < min_frames:
+        return nan
+    tr, ee = tr[:T], ee[:T]
+    K = ee.shape[1]
+    vis = (np.ones(tr.shape[:2], bool) if visible is None else np.asarray(visible)[:T] > 0.5) & np.all(
+        np.isfinite(tr), axis=-1)
+    grip = np.asarray(ee_grip, dtype=float).reshape(len(ee_grip), -1)[:T] > 0.5
+    gap = contact_distances(ee, ee_radius, obs_list[:T])
+    size = ee_sizes(ee_radius, K)
+    vel = np.gradient(ee, axis=0) if T > 1 else np.zeros_like(ee)  # [T, K, 3] m per frame
+    groups: List[Tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # per tracked point: (r, D, v) demeaned
+    speeds = []
+    for k in range(K):
+        for s, e in _segments(grip[:, k] & (gap[:, k] <= contact_dist_m)):
+            if e - s < min_frames:
+                continue
+            near = vis[s] & (surface_gap(tr[s], ee[s, k], size[k]) <= near_m)
+            for m in np.flatnonzero(near):
+                ts = s + np.flatnonzero(vis[s:e, m])
+                if len(ts) < min_frames:
+                    continue
+                r = tr[ts, m] - ee[ts, k]
+                D = ee[ts, k] - ee[s, k]
+                v = vel[ts, k]
+                groups.append((r - r.mean(0), D - D.mean(0), v - v.mean(0)))
+                speeds.append(np.linalg.norm(vel[ts, k], axis=-1))
+    if not groups:
+        return nan
+    n = sum(len(g[0]) for g in groups)
+    spread = float(np.std(np.concatenate(speeds)))
+    if n < LAG_MIN_SAMPLES or not spread >= LAG_MIN_SPEED_SPREAD:
+        return {**nan, "samples": int(n), "speed_spread_m": spread, "points": len(groups)}
+    # per point, the normal equations' pieces (r = -beta D - lag v, every coordinate a sample)
+    A = np.array([[[np.sum(D * D), np.sum(D * v)], [np.sum(D * v), np.sum(v * v)]] for _, D, v in groups])
+    b = np.array([[-np.sum(D * r), -np.sum(v * r)] for r, D, v in groups])
+
+    def solve(idx):
+        try:
+            return np.linalg.solve(A[idx].sum(0), b[idx].sum(0))
+        except np.linalg.LinAlgError:
+            return np.array([np.nan, np.nan])
+
+    # the points that move with their gripper: each one's own share of the travel it falls behind by is small
+    own = np.array([solve([i])[0] if np.linalg.cond(A[i]) < 1e8 else np.nan for i in range(len(groups))])
+    keep = np.flatnonzero(np.abs(own) <= LAG_MAX_SLIP_SHARE)
+    n_keep = int(sum(len(groups[i][0]) for i in keep))
+    beta_all = float(solve(np.arange(len(groups)))[0])
+    if len(keep) < max(LAG_MIN_TRACKS, LAG_MIN_FOLLOWER_SHARE * len(groups)) or n_keep < LAG_MIN_SAMPLES:
+        return {**nan, "slip_share": beta_all, "samples": int(n), "speed_spread_m": spread, "followers": int(len(keep)),
+                "points": len(groups)}
+    beta, lag = solve(keep)
+    rng = np.random.default_rng(seed)
+    boot = np.array([solve(keep[rng.integers(0, len(keep), len(keep))])[1] for _ in range(n_boot)])
+    boot = boot[np.isfinite(boot)]
+    lo, hi = (np.quantile(boot, [(1 - level) / 2, (1 + level) / 2]) if len(boot) else (np.nan, np.nan))
+    return {"lag_frames": float(lag), "lower": float(lo), "upper": float(hi), "slip_share": beta_all,
+            "samples": n_keep, "speed_spread_m": spread, "followers": int(len(keep)), "points": len(groups)}
 
 
 def localise(
