@@ -46,6 +46,10 @@ with open(os.environ["OUT"] + "/slim.jsonl", "w") as f:
         r = json.load(open(p))
         s = {k: r.get(k) for k in keys}
         s["signature_check"] = (r.get("evidence") or {}).get("signature_check")
+        # the base model's and the verdict's summary features (pieces, slip, ...) and the controls' lag
+        s["features"] = (r.get("evidence") or {}).get("features")
+        s["features_with_effect"] = (r.get("evidence") or {}).get("features_with_effect")
+        s["control_lag"] = r.get("control_lag")
         f.write(json.dumps(s) + "\n")
 PY
 cat $W/res/*.jsonl > $OUT/rows.jsonl 2>/dev/null
