@@ -3,10 +3,10 @@ they are and with their controls moved in time: does it read a lag that is there
 
     python benchmarks/control_lag.py REC_DIR [REC_DIR ...] [--shifts -1,-0.5,0.5,1] [--out rows.jsonl]
 
-For each recording (every one whose grippers close on the object; others print "no closed interval") the lag is
-estimated from the recording as it is, then with the controls' positions replaced by their linear interpolation
-``shift`` frames later (the images then show the gripper's effect ``shift`` frames after the controls say it
-happened: a lag of ``shift`` to recover). Reads only what the doctor reads (images, depth, masks, tracks,
+For each recording (those whose grippers never close on the object read "undetermined") the lag is estimated
+from the recording as it is, then with the controls' positions read ``shift`` frames later
+(:func:`~empm_gym.identification.data.delayed_positions` by ``-shift``): the images then show the gripper's
+effect ``shift`` frames after the controls say it happened, a lag of ``shift`` to recover. Reads only what the doctor reads (images, depth, masks, tracks,
 controls); the table prints the estimate, its 95 % interval, and whether the doctor would report it
 (:func:`~empm_gym.identification.doctor.core.lag_note`).
 """
@@ -21,20 +21,10 @@ from pathlib import Path
 import numpy as np
 
 
-def shifted(positions: np.ndarray, shift: float) -> np.ndarray:
-    """``positions`` [T, K, 3] read ``shift`` frames later, linearly interpolated, held at the ends."""
-    T = len(positions)
-    t = np.clip(np.arange(T) + shift, 0, T - 1)
-    i0 = np.floor(t).astype(int)
-    i1 = np.minimum(i0 + 1, T - 1)
-    w = (t - i0)[:, None, None]
-    return (1 - w) * positions[i0] + w * positions[i1]
-
-
 def main(argv=None) -> int:
     from tqdm import tqdm
 
-    from empm_gym.identification.data import load_recording
+    from empm_gym.identification.data import delayed_positions, load_recording
     from empm_gym.identification.doctor.core import CONTACT_GAP_M, _ee_sizes, lag_note
     from empm_gym.identification.doctor.features import control_lag
 
@@ -55,7 +45,7 @@ def main(argv=None) -> int:
             continue
         T = len(obs.points)
         for s in shifts:
-            ee = shifted(np.asarray(scene.ee_positions[:T], float), s)
+            ee = delayed_positions(scene.ee_positions[:T], -s)  # read s frames later
             r = control_lag(obs.tracks, obs.visibility, ee, scene.ee_grip[:T], _ee_sizes(scene), obs.points[:T],
                             contact_dist_m=CONTACT_GAP_M)
             note = lag_note(r, obs.fps)

@@ -397,6 +397,43 @@ AXIS_SHIFT_PIXELS = 1.0
 AXIS_VARIANT = "half-turn axis moved"
 
 
+def delayed_positions(positions: np.ndarray, frames: float) -> np.ndarray:
+    """End-effector positions ``[T, K, 3]`` delayed by ``frames`` (fractional): row ``t`` is where the controls put
+    the end-effector at time ``t - frames``, linearly interpolated between recorded frames and held at the
+    recording's first and last (a negative delay reads them ahead)."""
+    p = np.asarray(positions, np.float64)
+    T = len(p)
+    t = np.clip(np.arange(T) - float(frames), 0.0, T - 1.0)
+    i0 = np.floor(t).astype(int)
+    i1 = np.minimum(i0 + 1, T - 1)
+    w = (t - i0).reshape((T,) + (1,) * (p.ndim - 1))
+    return (1.0 - w) * p[i0] + w * p[i1]
+
+
+def delayed_controls(scene: Scene, frames: float) -> Scene:
+    """``scene`` with its end-effector controls delayed by ``frames`` (:func:`delayed_positions`; grips and
+    orientations from the nearest frame): for a recording whose images show the end-effectors' effect ``frames``
+    after the controls say it happened (the doctor's ``control_lag``), so that both run on one clock. Raises
+    ``ValueError`` for a delay that is not finite or not shorter than the recording, or a scene without
+    controls."""
+    import dataclasses
+
+    d = float(frames)
+    if scene.ee_positions is None:
+        raise ValueError("delayed_controls: the scene has no end-effector controls to delay")
+    T = len(scene.ee_positions)
+    if not np.isfinite(d) or abs(d) >= T - 1:
+        raise ValueError(f"control delay must be a finite number of frames shorter than the recording "
+                         f"({T} frames), got {frames!r}")
+    if d == 0.0:
+        return scene
+    near = np.clip(np.rint(np.arange(T) - d).astype(int), 0, T - 1)
+    kw = {"ee_positions": delayed_positions(scene.ee_positions, d), "ee_grip": np.asarray(scene.ee_grip)[near]}
+    if scene.ee_orientations is not None:
+        kw["ee_orientations"] = np.asarray(scene.ee_orientations)[near]
+    return dataclasses.replace(scene, **kw)
+
+
 def frame_ranges(frames) -> str:
     """"3-5, 9" for [3, 4, 5, 9]."""
     out, start = [], None

@@ -26,6 +26,25 @@ def _still_scene(T=20, with_ee=True, motion=0.0, seed=0):
     return scene, Observations(30.0, pts, surface=True)
 
 
+def test_controls_are_delayed_whole_and_checked():
+    from empm_gym.identification.data import delayed_controls
+
+    scene, _ = _still_scene(T=10)
+    pos = np.asarray(scene.ee_positions).copy()
+    pos[:, 0, 2] += 0.01 * np.arange(10)
+    grip = np.zeros((10, 1))
+    grip[4:] = 1
+    scene = dataclasses.replace(scene, ee_positions=pos, ee_grip=grip)
+    d = delayed_controls(scene, 2.0)
+    assert np.allclose(d.ee_positions[2:], pos[:-2]) and np.allclose(d.ee_positions[:2], pos[0])
+    assert d.ee_grip[:, 0].tolist() == [0] * 6 + [1] * 4  # the grip closes two frames later too
+    assert np.array_equal(scene.ee_positions, pos)  # the scene given is not changed
+    assert delayed_controls(scene, 0.0) is scene
+    for bad in (float("nan"), 9.0, -12.0):
+        with pytest.raises(ValueError, match="control delay"):
+            delayed_controls(scene, bad)
+
+
 def test_too_short_recording_is_refused():
     scene, obs = _still_scene(T=8)
     with pytest.raises(DoctorError, match="too few"):
@@ -727,8 +746,10 @@ def test_doctor_cli_marks_fits_at_their_search_bound(tmp_path, capsys, monkeypat
                            "gain": {"gain": 0.05, "lower": -0.023, "upper": 0.09, "threshold": 0.04,
                                     "significant": False}}],
            "not_ruled_out": [{"effect": "viscosity"}]}
-    monkeypatch.setattr(doctor, "diagnose_recording", lambda *a, **k: res)
-    assert main(["doctor", str(tmp_path), "--out", str(tmp_path / "out")]) == 0
+    seen = {}
+    monkeypatch.setattr(doctor, "diagnose_recording", lambda *a, **k: seen.update(k) or res)
+    assert main(["doctor", str(tmp_path), "--out", str(tmp_path / "out"), "--control-delay", "1.5"]) == 0
+    assert seen["control_delay"] == 1.5  # handed on to delay the controls (delayed_controls checks the value)
     out = capsys.readouterr().out
     assert "base model: E=2000 (at bound)" in out
     assert "(significant); fitted E=2.994e+04, grip_friction=0.8967\n" in out

@@ -284,3 +284,16 @@ def test_material_sliding_in_the_grip_is_no_measure_of_a_lag():
     assert np.isnan(r["lag_frames"])
     # no tracks at all
     assert control_lag(None, None, ee, grip, [size[0]], pts)["samples"] == 0
+
+
+def test_controls_delayed_to_the_images_clock_read_no_lag():
+    from empm_gym.identification.data import delayed_positions
+    from empm_gym.identification.doctor.features import control_lag
+
+    tracks, vis, ee, grip, size, pts = _held_block(lag=1.0)
+    r = control_lag(tracks, vis, delayed_positions(ee, 1.0), grip, [size[0]], pts, contact_dist_m=0.015)
+    assert abs(r["lag_frames"]) < 0.1, r
+    # exact: a whole frame is the previous row, half a frame the midpoint, the first row held
+    assert np.array_equal(delayed_positions(ee, 1.0)[1:], ee[:-1]) and np.array_equal(delayed_positions(ee, 1.0)[0], ee[0])
+    assert np.allclose(delayed_positions(ee, 0.5)[1:], 0.5 * (ee[1:] + ee[:-1]))
+    assert np.array_equal(delayed_positions(ee, -2.0)[:-2], ee[2:])

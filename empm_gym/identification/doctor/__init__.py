@@ -100,13 +100,16 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
 
 def diagnose_recording(rec_dir, *, out_dir=None, base=None, config=None, dx: Optional[float] = None,
                        particles_per_cell: float = 8, device=None, progress: bool = True, effects=None,
-                       view_bodies: bool = True) -> dict:
+                       view_bodies: bool = True, control_delay: float = 0.0) -> dict:
     """Load a recording directory (our / PhysTwin's layout) and :func:`diagnose` it.
 
     ``base`` is a MaterialConfig or a material file path (its effects are part of the base model); ``dx`` [m]
     and ``particles_per_cell`` set the simulated body's resolution (without ``dx``, a cell that resolves the
     body: :func:`load_for_doctor`). ``view_bodies``: the frame-0 body rebuilt with each camera left out
     (:func:`~empm_gym.identification.data.view_jackknife_bodies`) joins the discretisation variants on which a
+    named effect must hold its gain. ``control_delay``: the controls are delayed by this many frames
+    (:func:`~empm_gym.identification.data.delayed_controls`) before anything is fitted, for a recording whose
+    images trail its controls (the lag ``doctor.json``'s ``control_lag`` reads; a note says it was applied).
     named effect must hold its gain.
     """
     from empm_gym.sim import MaterialConfig
@@ -118,6 +121,12 @@ def diagnose_recording(rec_dir, *, out_dir=None, base=None, config=None, dx: Opt
         base = read_material(base).material
     scene, obs, views, info, notes = load_for_doctor(rec_dir, dx=dx, particles_per_cell=particles_per_cell,
                                                      device=device, progress=progress)
+    if control_delay:
+        from ..data import delayed_controls
+
+        scene = delayed_controls(scene, control_delay)
+        notes = list(notes) + [f"the controls are delayed by {float(control_delay):g} frames (as asked) before every fit: "
+                               f"the lag read below is what remains"]
     others = ((lambda: view_jackknife_bodies(rec_dir, scene, particles_per_cell=particles_per_cell,
                                              symmetry=info.get("symmetry"))) if view_bodies
               else ())

@@ -19,7 +19,8 @@ def _doctor(args) -> int:
     try:
         res = diagnose_recording(args.rec_dir, out_dir=args.out, base=args.base, config=cfg, dx=args.dx,
                                  particles_per_cell=args.particles_per_cell, device=args.device,
-                                 progress=not args.quiet, effects=effects, view_bodies=not args.no_view_bodies)
+                                 progress=not args.quiet, effects=effects, view_bodies=not args.no_view_bodies,
+                                 control_delay=args.control_delay)
     except (DoctorError, ValueError, OSError) as exc:
         print(f"empm doctor: error: {exc}", file=sys.stderr)
         return 2
@@ -82,5 +83,9 @@ def register(subparsers) -> None:
     p.add_argument("--no-view-bodies", action="store_true",
                    help="do not check a named effect on the body rebuilt without each camera (faster; the check on "
                         "other discretisations stays)")
+    p.add_argument("--control-delay", type=float, default=0.0, metavar="FRAMES",
+                   help="delay the recorded controls by this many frames (fractional) before fitting: for a "
+                        "recording whose images trail its controls, as doctor.json's control_lag and its note say "
+                        "(default 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_doctor)

@@ -1718,7 +1718,8 @@ def lag_note(lag: Optional[dict], fps: float) -> Optional[str]:
             f"{way} the controls say the grippers moved (95 % interval {lo:+.2f} to {hi:+.2f} frames): the controls' "
             f"and the images' clocks may be out of step. Every model is driven by the controls as recorded, so an "
             f"effect named from motion near the grippers (gripper slip, viscosity, a soft end) may be that lag; "
-            f"check the recording's timestamps")
+            f"check the recording's timestamps, or diagnose again with the controls delayed to match "
+            f"(`empm doctor --control-delay {v:.2g}`)")
 
 
 def _signature_word(c: dict) -> str:
