@@ -125,8 +125,9 @@ def diagnose_recording(rec_dir, *, out_dir=None, base=None, config=None, dx: Opt
         from ..data import delayed_controls
 
         scene = delayed_controls(scene, control_delay)
-        notes = list(notes) + [f"the controls are delayed by {float(control_delay):g} frames (as asked) before every fit: "
-                               f"the lag read below is what remains"]
+        d = float(control_delay)
+        notes = list(notes) + [f"the controls are delayed by {d:g} frame{'' if abs(d) == 1 else 's'} (as asked) before "
+                               f"every fit: the lag read below is what remains"]
     others = ((lambda: view_jackknife_bodies(rec_dir, scene, particles_per_cell=particles_per_cell,
                                              symmetry=info.get("symmetry"))) if view_bodies
               else ())
