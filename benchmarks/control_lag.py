@@ -6,9 +6,9 @@ they are and with their controls moved in time: does it read a lag that is there
 For each recording (those whose grippers never close on the object read "undetermined") the lag is estimated
 from the recording as it is, then with the controls' positions read ``shift`` frames later
 (:func:`~empm_gym.identification.data.delayed_positions` by ``-shift``): the images then show the gripper's
-effect ``shift`` frames after the controls say it happened, a lag of ``shift`` to recover. Reads only what the doctor reads (images, depth, masks, tracks,
-controls); the table prints the estimate, its 95 % interval, and whether the doctor would report it
-(:func:`~empm_gym.identification.doctor.core.lag_note`).
+effect ``shift`` frames after the controls say it happened, a lag of ``shift`` to recover. Reads only what the
+doctor reads (images, depth, masks, tracks, controls); the table prints the estimate, its 95 % interval, and
+whether the doctor would report it (:func:`~empm_gym.identification.doctor.core.lag_note`).
 """
 
 from __future__ import annotations
@@ -52,7 +52,8 @@ def main(argv=None) -> int:
             rows.append({"recording": Path(rec).name, "shift_frames": s, **r, "reported": note is not None,
                          "load_s": time.perf_counter() - t0})
             if not r["samples"] or not np.isfinite(r["lag_frames"]):
-                print(f"| {Path(rec).name} | {s:+.1f} | undetermined ({r['followers']} of {r['points']} points move with their gripper) | | {r['slip_share']:+.3f} | {r['samples']} | no |")
+                print(f"| {Path(rec).name} | {s:+.1f} | undetermined ({r['followers']} of {r['points']} points "
+                      f"move with their gripper) | | {r['slip_share']:+.3f} | {r['samples']} | no |")
                 continue
             print(f"| {Path(rec).name} | {s:+.1f} | {r['lag_frames']:+.2f} | {r['lower']:+.2f} to {r['upper']:+.2f} "
                   f"| {r['slip_share']:+.3f} | {r['samples']} | {'yes' if note else 'no'} |")

@@ -110,7 +110,6 @@ def diagnose_recording(rec_dir, *, out_dir=None, base=None, config=None, dx: Opt
     named effect must hold its gain. ``control_delay``: the controls are delayed by this many frames
     (:func:`~empm_gym.identification.data.delayed_controls`) before anything is fitted, for a recording whose
     images trail its controls (the lag ``doctor.json``'s ``control_lag`` reads; a note says it was applied).
-    named effect must hold its gain.
     """
     from empm_gym.sim import MaterialConfig
     from empm_gym.sim.material_file import read_material

@@ -865,8 +865,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         grid_notes.append(f"the object is wholly hidden in frames {frame_ranges(hidden)} (no observed point): they are "
                           f"simulated but neither fitted nor scored")
     lag = _control_lag(scene, obs, T)
-    if lag_note(lag, obs.fps):
-        grid_notes.append(lag_note(lag, obs.fps))
+    grid_notes += [n for n in [lag_note(lag, obs.fps)] if n]
     result = {"schema": 1, "frames": T, "fit_frames": [0, F - 1], "heldout_frames": [F, T - 1],
               "hidden_frames": hidden, "fps": obs.fps,
               "noise_sigma_m": noise, "observed_motion_m": motion, "driven_motion_m": driven, "grid": grid,
@@ -1689,10 +1688,8 @@ def _control_lag(scene: Scene, obs: Observations, T: int) -> dict:
     """:func:`~.features.control_lag` of a loaded recording's tracks and controls over its first ``T`` frames."""
     from .features import control_lag
 
-    if obs.tracks is None:
-        return control_lag(None, None, scene.ee_positions[:T], scene.ee_grip[:T], _ee_sizes(scene), obs.points[:T])
-    return control_lag(obs.tracks[:T], None if obs.visibility is None else obs.visibility[:T], scene.ee_positions[:T],
-                       scene.ee_grip[:T], _ee_sizes(scene), obs.points[:T], contact_dist_m=CONTACT_GAP_M)
+    return control_lag(obs.tracks, obs.visibility, scene.ee_positions[:T], scene.ee_grip[:T], _ee_sizes(scene),
+                       obs.points[:T], contact_dist_m=CONTACT_GAP_M)
 
 
 #: A lag of the tracked material behind the grippers' controls (:func:`~.features.control_lag`) of at least this

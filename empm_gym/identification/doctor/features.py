@@ -542,7 +542,7 @@ def control_lag(
     if len(keep) < max(LAG_MIN_TRACKS, LAG_MIN_FOLLOWER_SHARE * len(groups)) or n_keep < LAG_MIN_SAMPLES:
         return {**nan, "slip_share": beta_all, "samples": int(n), "speed_spread_m": spread, "followers": int(len(keep)),
                 "points": len(groups)}
-    beta, lag = solve(keep)
+    lag = solve(keep)[1]
     rng = np.random.default_rng(seed)
     boot = np.array([solve(keep[rng.integers(0, len(keep), len(keep))])[1] for _ in range(n_boot)])
     boot = boot[np.isfinite(boot)]
