@@ -264,6 +264,7 @@ def test_a_lag_between_controls_and_images_is_read_from_the_held_material(lag):
     else:
         assert note is not None and f"{abs(r['lag_frames']):.2f} frames" in note
         assert ("after" if lag > 0 else "before") in note
+        assert ("reads low" in note) == (abs(r["lag_frames"]) > 1.0)  # a 2-frame lag reads 1.85: said so
 
 
 def test_material_sliding_in_the_grip_is_no_measure_of_a_lag():

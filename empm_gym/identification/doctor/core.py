@@ -1711,8 +1711,10 @@ def lag_note(lag: Optional[dict], fps: float) -> Optional[str]:
     if abs(v) < LAG_REPORT_FRAMES or lo <= 0.0 <= hi:
         return None
     way = "after" if v > 0 else "before"
+    # first order in the lag: a lag of two frames read 1.5-1.9 (benchmarks/RESULTS.md, session 50)
+    low = " (a lag over a frame reads low: the estimate is first order)" if abs(v) > 1.0 else ""
     return (f"the tracked points next to the closed grippers move {abs(v):.2f} frames ({1e3 * abs(v) / fps:.0f} ms) "
-            f"{way} the controls say the grippers moved (95 % interval {lo:+.2f} to {hi:+.2f} frames): the controls' "
+            f"{way} the controls say the grippers moved{low} (95 % interval {lo:+.2f} to {hi:+.2f} frames): the controls' "
             f"and the images' clocks may be out of step. Every model is driven by the controls as recorded, so an "
             f"effect named from motion near the grippers (gripper slip, viscosity, a soft end) may be that lag; "
             f"check the recording's timestamps, or diagnose again with the controls delayed to match "
