@@ -116,15 +116,18 @@ def make(args):
     only = set(args.only_scripts.split(",")) if args.only_scripts else None
     # the synthesiser's grid: the doctor's (--dx) unless --synth-dx gives another, as another simulator's would be
     synth_dx = (args.dx or DEFAULT_DX) if args.synth_dx is None else args.synth_dx
-    unknown = sorted((only or set()) - set(SCRIPTS))
+    every_on = args.every_effect_on.split(",") if args.every_effect_on else None
+    unknown = sorted((only or set()) - set(SCRIPTS)) or sorted(set(every_on or ()) - set(SCRIPTS))
     if unknown:
-        raise SystemExit(f"--only-scripts: unknown script(s) {unknown}; known: {', '.join(SCRIPTS)}")
+        raise SystemExit(f"--only-scripts / --every-effect-on: unknown script(s) {unknown}; known: {', '.join(SCRIPTS)}")
     for effect in effects:
         scripts = list(dict.fromkeys([NATURAL[effect], OTHER[effect], FIRST_OTHER[effect]]))[: args.scripts]
         if effect == "none":
             scripts = list(SCRIPTS)  # an invented effect may hide on any script: none runs on all of them
         if only:
             scripts = [s for s in scripts if s in only]
+        if every_on:
+            scripts = every_on
         for script in scripts:
             for seed in range(args.first_seed, args.first_seed + args.seeds):
                 eparams = {k: v for k, v in params.items() if effect != "none" and k in EFFECTS[effect].param_names}
@@ -608,6 +611,9 @@ def _parser():
     p.add_argument("--only-scripts", default=None,
                    help="with --make: only these scripts (comma-separated) of those --scripts picks, e.g. the ones "
                         "whose grippers close, to rerun after a change to the grippers")
+    p.add_argument("--every-effect-on", default=None,
+                   help="with --make: every effect (none included) on these scripts (comma-separated) instead of "
+                        "each effect's own two, e.g. a script none of the doctor's rules were chosen on")
     p.add_argument("--effect-params", default=None,
                    help="with --make: NAME=VALUE pairs (comma-separated) replacing effect defaults, e.g. viscosity=200 "
                         "(a detection limit); the recordings' names end with them")

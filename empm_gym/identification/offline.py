@@ -769,7 +769,7 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
     solver = SolverMPM(model, SolverConfig(cfl=scene.cfl, check_every=0))
     vel, om = scene.ee_velocities(F), scene.ee_omegas(F)
     grip = scene.ee_grip[: F - 1] if model.ee_count else None
-    vmax = float(np.max(np.linalg.norm(vel, axis=-1))) if vel.size else 0.0
+    vmax = scene.ee_max_speed(F)
     z = torch.tensor(space.to_z(init_vals), dtype=torch.float64, requires_grad=True)
     opt = torch.optim.AdamW([z], lr=lr, betas=betas, weight_decay=0.0)
     scale = 1.0  # step multiplier: halved when the loss went up, regrown by 25 % per improvement
@@ -1032,8 +1032,7 @@ def identify_lockstep(observations: Observations, fits: Sequence[Tuple[Scene, di
         # where its scene's dt_materials fix them for every point of its box (the box's corners bound the
         # wave speed), else the others' materials would change its substeps: it then runs alone
         sc = p.scene
-        vel = sc.ee_velocities(p.F)
-        speed = float(np.max(np.linalg.norm(vel, axis=-1))) if vel.size else 0.0
+        speed = sc.ee_max_speed(p.F)
         names = [n for n in p.params if n != "friction"]
         corners = [p.space.material({**p.init_vals, **{n: p.space.bounds[n][(k >> j) & 1] for j, n in enumerate(names)}},
                                     p.base_mat, sc.table_friction)[0] for k in range(2 ** len(names))]

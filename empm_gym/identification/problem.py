@@ -21,6 +21,7 @@ import warp as wp
 
 from empm_gym.sim import (EndEffectorConfig, GridConfig, MaterialConfig, ModelBuilder, SimulationDiverged,
                           SolverConfig, SolverMPM, TableConfig, stable_dt)
+from empm_gym.perception.recording import quat_angular_velocity
 from empm_gym.sim.effects import BASE_PARAMETERS, PARAMETERS, parameter
 
 _log = logging.getLogger(__name__)
@@ -44,26 +45,6 @@ PARAM_NAMES = tuple(BASE_PARAMETERS) + tuple(PARAMETERS)
 _NU_LO, _NU_HI = -1.0, 0.5
 # a table node layer sits this fraction of a cell below the table height (see Scene.grid_config)
 _TABLE_NODE_EPS = 1.0e-4
-
-
-def quat_angular_velocity(q: np.ndarray, fps: float) -> np.ndarray:
-    """Angular velocities [T-1, K, 3] (rad/s, world frame) taking quaternions (x, y, z, w) q[t] to q[t+1] in 1/fps s."""
-    q = np.asarray(q, np.float64)
-    a, b = q[:-1], q[1:]
-    # relative rotation r = b * conj(a)
-    ax, ay, az, aw = -a[..., 0], -a[..., 1], -a[..., 2], a[..., 3]
-    bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    rw = bw * aw - bx * ax - by * ay - bz * az
-    rx = bw * ax + bx * aw + by * az - bz * ay
-    ry = bw * ay - bx * az + by * aw + bz * ax
-    rz = bw * az + bx * ay - by * ax + bz * aw
-    v = np.stack([rx, ry, rz], -1)
-    sign = np.where(rw < 0, -1.0, 1.0)[..., None]
-    v, rw = v * sign, np.abs(rw)
-    s = np.linalg.norm(v, axis=-1)
-    angle = 2.0 * np.arctan2(s, rw)
-    axis = np.where(s[..., None] > 1e-12, v / np.maximum(s, 1e-12)[..., None], 0.0)
-    return axis * angle[..., None] * float(fps)
 
 
 @dataclass
@@ -168,6 +149,17 @@ class Scene:
             return np.zeros((frames - 1, K, 3))
         self._check_frames(frames)
         return quat_angular_velocity(self.ee_orientations[:frames], self.fps)
+
+    def ee_max_speed(self, frames: int, start_frame: int = 0) -> float:
+        """Largest speed [m/s] of an end-effector's surface over the intervals of frames ``start_frame`` to
+        ``frames - 1``: its centre's speed plus its turn's (angular speed times its reach), for the time step."""
+        K = len(self.ee_configs)
+        if not K or frames - start_frame < 2:
+            return 0.0
+        v = np.linalg.norm(self.ee_velocities(frames)[start_frame:], axis=-1)
+        w = np.linalg.norm(self.ee_omegas(frames)[start_frame:], axis=-1)
+        reach = np.array([c.reach for c in self.ee_configs])
+        return float(np.max(v + w * reach)) if v.size else 0.0
 
     def _check_frames(self, frames):
         if self.num_frames is not None and frames > self.num_frames:
@@ -447,7 +439,11 @@ class _ForwardSim:
         vel = sc.ee_velocities(end)[start_frame:] if velocities is None else np.asarray(velocities)
         om = sc.ee_omegas(end)[start_frame:] if omegas is None else np.asarray(omegas)
         grip = (sc.ee_grip[start_frame:end - 1] if K else None) if grips is None else np.asarray(grips)
-        speed = float(np.max(np.linalg.norm(vel, axis=-1))) if vel.size else 0.0
+        speed = sc.ee_max_speed(end, start_frame)
+        if velocities is not None or omegas is not None:   # the commands given, with the scene's reach
+            reach = np.array([c.reach for c in sc.ee_configs])
+            speed = float(np.max(np.linalg.norm(vel, axis=-1) + np.linalg.norm(om, axis=-1) * reach)) \
+                if vel.size else 0.0
         sub, dt = substeps_for(sc, m.materials, speed)
         a = state if state is not None else m.state()
         b = m.state()

@@ -53,6 +53,7 @@ __all__ = [
     "validate_controls",
     "controls_to_end_effectors",
     "end_effector_velocities",
+    "quat_angular_velocity",
     "CONTROLLER_LABEL",
 ]
 
@@ -276,6 +277,26 @@ def end_effector_velocities(positions: np.ndarray, fps: float) -> np.ndarray:
     if not (fps > 0 and math.isfinite(fps)):
         raise ValueError(f"fps must be a positive frame rate in 1/s, got {fps!r}")
     return np.diff(p, axis=0) * float(fps)
+
+
+def quat_angular_velocity(q: np.ndarray, fps: float) -> np.ndarray:
+    """Angular velocities [T-1, K, 3] (rad/s, world frame) taking quaternions (x, y, z, w) q[t] to q[t+1] in 1/fps s."""
+    q = np.asarray(q, np.float64)
+    a, b = q[:-1], q[1:]
+    # relative rotation r = b * conj(a)
+    ax, ay, az, aw = -a[..., 0], -a[..., 1], -a[..., 2], a[..., 3]
+    bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    rw = bw * aw - bx * ax - by * ay - bz * az
+    rx = bw * ax + bx * aw + by * az - bz * ay
+    ry = bw * ay - bx * az + by * aw + bz * ax
+    rz = bw * az + bx * ay - by * ax + bz * aw
+    v = np.stack([rx, ry, rz], -1)
+    sign = np.where(rw < 0, -1.0, 1.0)[..., None]
+    v, rw = v * sign, np.abs(rw)
+    s = np.linalg.norm(v, axis=-1)
+    angle = 2.0 * np.arctan2(s, rw)
+    axis = np.where(s[..., None] > 1e-12, v / np.maximum(s, 1e-12)[..., None], 0.0)
+    return axis * angle[..., None] * float(fps)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -27,6 +27,10 @@ Scripts (phases as fractions of the recording; "long axis" = x, the object's lon
   draws it outwards, held there to the end (fracture: the body tears).
 * ``drag``: one closed gripper on the -x end drags the object 4 cm along +x, stops, opens and moves away; the
   object slides on by itself (table friction: how far it slides).
+* ``lift-twist``: the end grippers lift the object by 4 cm; then the +x gripper turns by 60 degrees about the
+  long axis (a wrist roll, about its own centre) while the other holds still, and both hold to the end (a
+  stiffness field: one side twists more; gripper slip: the twisted body turns back in the grip; fracture: it
+  tears). The only script whose end-effectors rotate: ``orientations`` is set.
 
 ``default`` (resolved in :mod:`empm_gym.perception.synth`) is the object's historic script: rope
 lift-and-stretch, dough squeeze, block press-release.
@@ -35,11 +39,11 @@ lift-and-stretch, dough squeeze, block press-release.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
-__all__ = ["ObjectGeometry", "ScriptResult", "SCRIPTS", "run_script"]
+__all__ = ["ObjectGeometry", "ScriptResult", "SCRIPTS", "axis_angle_quaternions", "run_script"]
 
 
 def _smooth(s):
@@ -83,6 +87,15 @@ class ScriptResult:
     """Per end-effector kwargs of :class:`empm_gym.sim.EndEffectorConfig` (shape, radius, half_extents)."""
     reach: Tuple[Tuple[float, float, float], Tuple[float, float, float]]
     """(lower, upper) corners (m) of the region the object may reach (for sizing the grid)."""
+    orientations: Optional[np.ndarray] = None
+    """End-effector orientations [T, K, 4], unit quaternions (x, y, z, w); None: they never turn (identity)."""
+
+    def quaternions(self) -> np.ndarray:
+        """``orientations``, the identity where the script leaves them unset."""
+        if self.orientations is not None:
+            return np.asarray(self.orientations, np.float64)
+        T, K = self.positions.shape[:2]
+        return np.tile([0.0, 0.0, 0.0, 1.0], (T, K, 1))
 
 
 #: Half thickness of pushers and plates (m): thick against the grid, so that no grid node inside one sees
@@ -244,6 +257,33 @@ def _drag(T: int, g: ObjectGeometry) -> ScriptResult:
     return ScriptResult(pos, grip, ees, (lo, hi))
 
 
+def axis_angle_quaternions(axis, angles) -> np.ndarray:
+    """Unit quaternions (x, y, z, w) [len(angles), 4] of turns by ``angles`` (rad) about the unit ``axis``."""
+    a = np.asarray(angles, np.float64)[:, None]
+    u = np.asarray(axis, np.float64)
+    u = u / np.linalg.norm(u)
+    return np.concatenate([np.sin(a / 2) * u, np.cos(a / 2)], axis=1)
+
+
+def _lift_twist(T: int, g: ObjectGeometry) -> ScriptResult:
+    sx, sy, sz = g.size
+    start, ees, _ = _end_grippers(g)
+    # lifted clear of the table first, so that nothing but the grippers holds the body while one end turns; the
+    # turn runs into the held-out 30 % (a fit on the first 70 % must carry its material past what it saw)
+    _, a, b, c, d, _ = _phases(T, [0.06, 0.2, 0.06, 0.42, 0.26])
+    t = np.arange(T, dtype=np.float64)
+    lift = 0.04
+    pos = np.repeat(start[None], T, axis=0)
+    pos[:, :, 2] += lift * _ramp(t, a, b)[:, None]
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (T, 2, 1))
+    q[:, 1] = axis_angle_quaternions((1.0, 0.0, 0.0), np.deg2rad(60.0) * _ramp(t, c, d))
+    grip = np.ones((T, 2), np.int32)
+    # a turned clamp sweeps its corners about its centre: the reach covers the body turned as a whole
+    r = float(np.hypot(sy, sz))
+    lo, hi = (-sx / 2, -r, 0.0), (sx / 2, r, sz + lift + r)
+    return ScriptResult(pos, grip, ees, (lo, hi), q)
+
+
 def _squeeze_ring(T: int, g: ObjectGeometry) -> ScriptResult:
     sx, sy, sz = g.size
     hz = _THICK
@@ -270,6 +310,7 @@ SCRIPTS: Dict[str, Callable[[int, ObjectGeometry], ScriptResult]] = {
     "squeeze-ring": _squeeze_ring,
     "lift-end": _lift_end,
     "drag": _drag,
+    "lift-twist": _lift_twist,
 }
 
 

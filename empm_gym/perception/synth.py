@@ -59,7 +59,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from .cameras import Camera, intrinsics_matrix, look_at
-from .recording import RecordingError, RecordingWriter
+from .recording import RecordingError, RecordingWriter, end_effector_velocities, quat_angular_velocity
 from .scripts import SCRIPTS, ObjectGeometry, _phases, _smooth, run_script
 
 __all__ = ["synthesize", "simulate", "effect_signature", "effect_material", "default_effect_params", "register",
@@ -138,20 +138,23 @@ DEFAULT_SCRIPT = {"rope": "default", "dough": "default", "block": "press-release
 
 
 def _script(obj: str, script: str, T: int, dx: float = 0.01):
-    """(positions [T, K, 3], grip [T, K], end-effector kwargs, grid (lower, upper) or None)."""
+    """(positions [T, K, 3], grip [T, K], end-effector kwargs, grid (lower, upper), orientations [T, K, 4] (x, y, z,
+    w): the identity where the end-effectors never turn)."""
     if script == "default" and obj in ("rope", "dough"):
         if obj == "rope":
             pos, grip = _rope_script(T)
             ees = [{"shape": "sphere", "radius": _ROPE_GRIPPER_RADIUS_M}] * 2
-            return pos, grip, ees, ((-0.25, -0.08, -0.04), (0.25, 0.08, 0.17))
+            return pos, grip, ees, ((-0.25, -0.08, -0.04), (0.25, 0.08, 0.17)), _identity_quats(pos)
         pos, grip = _dough_script(T)
         ees = [{"shape": "box", "half_extents": _PLATE_HALF_M}] * 2
-        return pos, grip, ees, ((-0.12, -0.09, -0.04), (0.12, 0.09, 0.12))
+        return pos, grip, ees, ((-0.12, -0.09, -0.04), (0.12, 0.09, 0.12)), _identity_quats(pos)
     name = DEFAULT_SCRIPT[obj] if script == "default" else script
     r = run_script(name, T, _GEOMETRY[obj])
     lo, hi = np.array(r.reach[0], float), np.array(r.reach[1], float)
     for k, e in enumerate(r.end_effectors):
         ext = np.full(3, e["radius"]) if e["shape"] == "sphere" else np.asarray(e["half_extents"], float)
+        if r.orientations is not None and e["shape"] != "sphere":    # a turning box reaches its corners' sphere
+            ext = np.full(3, float(np.linalg.norm(ext)))
         lo = np.minimum(lo, r.positions[:, k].min(0) - ext)
         hi = np.maximum(hi, r.positions[:, k].max(0) + ext)
     m = max(0.03, 3.5 * dx)                            # the grid's boundary cells are not usable
@@ -161,7 +164,14 @@ def _script(obj: str, script: str, T: int, dx: float = 0.01):
     lo[2] = min(-0.04, -2 * dx)
     lo = np.round(lo, 4)
     lo[:2] -= grid_shift_off_faces(lo, r.positions, r.end_effectors, dx)
-    return r.positions, r.grip, r.end_effectors, (tuple(np.round(lo, 4)), tuple(np.round(hi, 4)))
+    return (r.positions, r.grip, r.end_effectors, (tuple(np.round(lo, 4)), tuple(np.round(hi, 4))),
+            r.quaternions())
+
+
+def _identity_quats(pos) -> np.ndarray:
+    return np.tile([0.0, 0.0, 0.0, 1.0], (*np.shape(pos)[:2], 1))
+
+
 
 
 #: A box end-effector face within this fraction of a cell of a grid node plane lies "on" it (see
@@ -212,7 +222,7 @@ def grid_shift_off_faces(lower, positions, end_effectors, dx: float, axes=(0, 1)
 
 
 def _build(obj: str, material, *, dx: float, ppc: float, table_friction: float, ee_friction: float, seed: int,
-           device, controls_pos, ee_kwargs, grid_box):
+           device, controls_pos, ee_kwargs, grid_box, controls_quat=None):
     from empm_gym.sim import (EndEffectorConfig, GridConfig, ModelBuilder, TableConfig, sample_box,
                               sample_cylinder)
 
@@ -228,7 +238,7 @@ def _build(obj: str, material, *, dx: float, ppc: float, table_friction: float, 
     w = b.add_world(material)
     b.add_particles(w, x, vol)
     for k, cfg in enumerate(ee):
-        b.add_end_effector(w, cfg, controls_pos[0, k])
+        b.add_end_effector(w, cfg, controls_pos[0, k], (0, 0, 0, 1) if controls_quat is None else controls_quat[0, k])
     return b.finalize(device), ee, grid
 
 
@@ -349,17 +359,20 @@ def simulate(object: str, material, *, script: str = "default", frames: int = 60
     if simulator not in SIMULATORS:
         raise ValueError(f"simulator must be one of {', '.join(SIMULATORS)}, got {simulator!r}")
     T = int(frames)
-    pos, grip, ee_kw, grid_box = _script(object, script, T, dx)
+    pos, grip, ee_kw, grid_box, quat = _script(object, script, T, dx)
     model, ee_cfgs, grid = _build(object, material, dx=dx, ppc=particles_per_cell, table_friction=table_friction,
                                   ee_friction=gripper_friction, seed=seed, device=device, controls_pos=pos,
                                   ee_kwargs=[dict(kw, gripper=bool(np.any(grip[:, k]))) for k, kw in enumerate(ee_kw)],
-                                  grid_box=grid_box)
+                                  grid_box=grid_box, controls_quat=quat)
     if simulator == "springmass":
-        return _simulate_springmass(model, material, pos, grip, ee_cfgs, grid, fps=fps, damping=springmass_damping,
-                                    table_friction=table_friction, device=device, progress=progress)
+        out = _simulate_springmass(model, material, pos, grip, ee_cfgs, grid, fps=fps, damping=springmass_damping,
+                                   table_friction=table_friction, device=device, progress=progress, quat=quat)
+        return {**out, "orientations": quat}
     solver = SolverMPM(model)
-    vel = np.diff(pos, axis=0) * fps
-    vmax = float(np.max(np.linalg.norm(vel, axis=-1))) if len(vel) else 0.0
+    vel = end_effector_velocities(pos, fps)
+    omega = quat_angular_velocity(quat, fps)
+    reach = np.array([c.reach for c in ee_cfgs])
+    vmax = float(np.max(np.linalg.norm(vel, axis=-1) + np.linalg.norm(omega, axis=-1) * reach)) if len(vel) else 0.0
     n_sub = int(math.ceil((1.0 / fps) / (0.9 * solver.max_stable_dt(vmax))))
     dt = 1.0 / (fps * n_sub)
     s0, s1 = model.state(), model.state()
@@ -368,17 +381,17 @@ def simulate(object: str, material, *, script: str = "default", frames: int = 60
     X[0] = s0.particle_x.numpy()
     for t in tqdm(range(T - 1), desc=f"simulate {object} ({model.particle_count} particles, {n_sub} substeps/frame)",
                   disable=not progress, leave=False):
-        ctrl.set(velocity=vel[t][None], grip=grip[t][None])
+        ctrl.set(velocity=vel[t][None], omega=omega[t][None], grip=grip[t][None])
         for _ in range(n_sub):
             solver.step(s0, s1, ctrl, dt)
             s0, s1 = s1, s0
         X[t + 1] = s0.particle_x.numpy()
-    return {"particles": X, "positions": pos, "grip": grip, "end_effectors": ee_cfgs, "grid": grid,
-            "model": model, "substeps": n_sub, "dt": dt, "volumes": model.particle_vol.numpy()}
+    return {"particles": X, "positions": pos, "orientations": quat, "grip": grip, "end_effectors": ee_cfgs,
+            "grid": grid, "model": model, "substeps": n_sub, "dt": dt, "volumes": model.particle_vol.numpy()}
 
 
 def _simulate_springmass(mpm_model, material, pos, grip, ee_cfgs, grid, *, fps: float, damping: float,
-                         table_friction: float, device, progress: bool) -> dict:
+                         table_friction: float, device, progress: bool, quat=None) -> dict:
     """:func:`simulate`'s spring-mass run: the MPM model's frame-0 particles and volumes become a network at half
     a grid cell (:func:`empm_gym.springmass.model.model_from_body`), stiffness E, dashpots ``damping``; the
     table friction is the material's where set; a stiffness field E exp(a . u) (u: the body's principal
@@ -406,8 +419,8 @@ def _simulate_springmass(mpm_model, material, pos, grip, ee_cfgs, grid, *, fps: 
         i, j = sm.springs_np[:, 0], sm.springs_np[:, 1]
         log_scale = 0.5 * (u[i] + u[j]) @ slope
         sm.set_params(float(material.E), float(damping), log_scale)
-    sim = SpringMassSim(sm, fps=fps, ee_configs=ee_cfgs, ee_positions=pos, ee_grip=grip, table_height=0.0,
-                        table_friction=table_friction)
+    sim = SpringMassSim(sm, fps=fps, ee_configs=ee_cfgs, ee_positions=pos, ee_orientations=quat, ee_grip=grip,
+                        table_height=0.0, table_friction=table_friction)
     T = len(pos)
     n_sub, dt = sim.substeps(float(material.E), float(damping), T,
                              log_scale_max=0.0 if log_scale is None else float(log_scale.max()))
@@ -856,6 +869,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
                    progress=progress, simulator=simulator, springmass_damping=springmass_damping)
     X, pos, grip, ee_cfgs, grid, model = (sim["particles"], sim["positions"], sim["grip"], sim["end_effectors"],
                                           sim["grid"], sim["model"])
+    quat = sim["orientations"]
     n_sub, dt = sim["substeps"], sim["dt"]
     t_sim = time.perf_counter() - t_start
 
@@ -893,7 +907,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
         P, N = emb.deform(X[t])
         ees = []
         for k, cfg in enumerate(ee_cfgs):
-            ees.append({"shape": cfg.shape, "pos": pos[t, k], "rot": np.eye(3), "radius": cfg.radius,
+            ees.append({"shape": cfg.shape, "pos": pos[t, k], "rot": _quat_to_matrix(quat[t, k]), "radius": cfg.radius,
                         "half_extents": cfg.half_extents})
         for c, view in enumerate(views):
             depth, color, label, cosv = render_view(view, P, N, albedo, splat_r, ees, tangent=tangent_splats)
@@ -917,14 +931,14 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
                           radius=np.array([c.radius for c in ee_cfgs]),
                           half_height=np.array([c.half_height for c in ee_cfgs]),
                           half_extents=np.array([c.half_extents for c in ee_cfgs]),
-                          orientations=np.tile([0.0, 0.0, 0.0, 1.0], (T, len(ee_cfgs), 1)))
+                          orientations=quat)
     for c in range(C):
         writer.write_tracks(c, tracks[c], vis[c])
     # debug only (never read by identification): the simulated particle trajectories [T, N, 3] (m) and
     # the end-effector centres per frame, to check that a replay of the recording reproduces them
     if debug_particles:
         np.savez_compressed(out / "ground_truth_particles.npz", positions=X, volumes=sim["volumes"],
-                            ee_positions=pos.astype(np.float32), grip=grip)
+                            ee_positions=pos.astype(np.float32), ee_orientations=quat.astype(np.float32), grip=grip)
     writer.write_ground_truth({
         "synthetic": True,
         "object": object,

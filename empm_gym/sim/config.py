@@ -274,6 +274,16 @@ class EndEffectorConfig:
             raise ValueError(f"EndEffectorConfig.gripper must be True or False, got {self.gripper!r}")
         object.__setattr__(self, "gripper", bool(self.gripper))
 
+    @property
+    def reach(self) -> float:
+        """Farthest distance [m] from the centre to the surface: what a turn at omega rad/s moves at up to
+        omega * reach m/s (a sphere turning about its centre moves its surface as fast as a box its corners)."""
+        if self.shape == "sphere":
+            return float(self.radius)
+        if self.shape == "capsule":
+            return float(self.half_height + self.radius)
+        return math.sqrt(sum(h * h for h in self.half_extents))
+
 
 @dataclass
 class SolverConfig:

@@ -100,7 +100,9 @@ class Control:
         self.ee_omega = wp.zeros(e, dtype=wp.vec3, device=d, requires_grad=requires_grad)
         self.ee_grip = wp.zeros(e, dtype=int, device=d)
         self.max_speed = 0.0
-        """Largest commanded end-effector speed [m/s] (host copy, for the CFL check)."""
+        """Largest commanded speed [m/s] of an end-effector's surface, its turn included (host copy, for the CFL
+        check)."""
+        self._v_speed = self._w_speed = np.zeros(max(model.world_count * model.ee_count, 0))
 
     def set(self, velocity=None, omega=None, grip=None) -> "Control":
         """Set end-effector commands from arrays shaped [worlds, ee_count, 3] (grip: [worlds, ee_count]).
@@ -111,10 +113,13 @@ class Control:
         if velocity is not None:
             v = _checked(velocity, (W, K, 3), "Control.velocity")
             self.ee_vel.assign(wp.array(v.reshape(-1, 3), dtype=wp.vec3, device=self.ee_vel.device))
-            self.max_speed = float(np.max(np.linalg.norm(v, axis=-1))) if v.size else 0.0
+            self._v_speed = np.linalg.norm(v, axis=-1).reshape(-1)
         if omega is not None:
             o = _checked(omega, (W, K, 3), "Control.omega")
             self.ee_omega.assign(wp.array(o.reshape(-1, 3), dtype=wp.vec3, device=self.ee_vel.device))
+            self._w_speed = np.linalg.norm(o, axis=-1).reshape(-1) * self.model.ee_reach[:W * K]
+        if velocity is not None or omega is not None:
+            self.max_speed = float(np.max(self._v_speed + self._w_speed)) if W * K else 0.0
         if grip is not None:
             g = _checked_grip(grip, (W, K))
             self.ee_grip.assign(wp.array(g.reshape(-1).astype(np.int32), dtype=int, device=self.ee_vel.device))
@@ -135,7 +140,9 @@ class Control:
                                velocity=wp.array(v.reshape(-1, 3), dtype=wp.vec3, device=d),
                                omega=wp.array(o.reshape(-1, 3), dtype=wp.vec3, device=d),
                                grip=wp.array(g.reshape(-1).astype(np.int32), dtype=int, device=d),
-                               max_speed=np.max(np.linalg.norm(v, axis=-1), axis=(1, 2)) if v.size else np.zeros(T))
+                               max_speed=np.max(np.linalg.norm(v, axis=-1) + np.linalg.norm(o, axis=-1)
+                                                * self.model.ee_reach[:W * K].reshape(W, K), axis=(1, 2))
+                               if v.size else np.zeros(T))
 
     def set_step(self, seq: "ControlSequence", t: int) -> "Control":
         """Set the commands of step ``t`` of ``seq`` (:meth:`sequence`), copied on the device on the current
@@ -396,6 +403,8 @@ class Model:
         he = np.zeros((n, 3), np.float32)
         fr = np.zeros(n, np.float32)
         jaws = np.zeros(n, np.int32)
+        self.ee_reach = np.zeros(n)
+        """Host copy: each end-effector's :attr:`EndEffectorConfig.reach` [m] (worlds x ee_count)."""
         self._ee_pos0 = np.zeros((n, 3), np.float32)
         self._ee_rot0 = np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1))
         self.ee_configs: List[List[EndEffectorConfig]] = []
@@ -409,6 +418,7 @@ class Model:
                 he[s] = cfg.half_extents
                 fr[s] = cfg.friction
                 jaws[s] = int(cfg.gripper)
+                self.ee_reach[s] = cfg.reach
                 self._ee_pos0[s] = p
                 self._ee_rot0[s] = q
         self.ee_shape = _arr(shape, int, d)

@@ -298,3 +298,73 @@ def test_controls_delayed_to_the_images_clock_read_no_lag():
     assert np.array_equal(delayed_positions(ee, 1.0)[1:], ee[:-1]) and np.array_equal(delayed_positions(ee, 1.0)[0], ee[0])
     assert np.allclose(delayed_positions(ee, 0.5)[1:], 0.5 * (ee[1:] + ee[:-1]))
     assert np.array_equal(delayed_positions(ee, -2.0)[:-2], ee[2:])
+
+
+def _turned_block(lag=0.0, seed=0, T=40, M=40, noise=1.5e-3):
+    """:func:`_held_block`'s gripper that, once it has lifted the block, turns it by 90 degrees about x (a wrist
+    roll about its own centre, frames 16-30) and holds it there; the tracked points are carried rigidly,
+    ``lag`` frames late. Returns (tracks, visible, ee [T, 1, 3], grip, size, points, quaternions [T, 1, 4])."""
+    from empm_gym.perception.scripts import axis_angle_quaternions
+
+    rng = np.random.default_rng(seed)
+    frames = np.arange(T, dtype=float)
+    z_of = lambda t: np.interp(t, [0, 6, 14, T - 1], [0.03, 0.03, 0.11, 0.11])
+    th_of = lambda t: np.interp(t, [0, 16, 30, T - 1], [0.0, 0.0, np.pi / 2, np.pi / 2])
+    ee = np.zeros((T, 1, 3))
+    ee[:, 0, 2] = z_of(frames)
+    q = axis_angle_quaternions((1.0, 0.0, 0.0), th_of(frames))[:, None, :]
+    size = np.array([[0.02, 0.03, 0.02]])
+    offs = np.column_stack([rng.uniform(0.021, 0.03, M) * rng.choice([-1, 1], M), rng.uniform(-0.03, 0.03, M),
+                            rng.uniform(-0.02, 0.02, M)])
+    late = frames - lag
+    c, s = np.cos(th_of(late)), np.sin(th_of(late))
+    tracks = np.empty((T, M, 3))
+    tracks[:, :, 0] = offs[:, 0]
+    tracks[:, :, 1] = c[:, None] * offs[:, 1] - s[:, None] * offs[:, 2]
+    tracks[:, :, 2] = s[:, None] * offs[:, 1] + c[:, None] * offs[:, 2] + z_of(late)[:, None]
+    tracks = tracks + rng.normal(0, noise, tracks.shape)
+    return tracks, np.ones((T, M), bool), ee, np.ones((T, 1)), size, [tracks[t] for t in range(T)], q
+
+
+@pytest.mark.parametrize("lag", [0.0, 1.0])
+def test_the_lag_is_read_in_a_turning_grippers_own_frame(lag):
+    """Material a gripper carries round as it turns is still carried: in the gripper's frame it stays put, and a
+    lag is its trailing the carried motion. Taken in the world's axes, the turn reads as the material moving on
+    its own."""
+    from empm_gym.identification.doctor.features import control_lag
+
+    tracks, vis, ee, grip, size, pts, q = _turned_block(lag=lag)
+    r = control_lag(tracks, vis, ee, grip, [size[0]], pts, contact_dist_m=0.015, ee_orientations=q)
+    assert abs(r["lag_frames"] - lag) < 0.15 and r["followers"] == 40, r
+    blind = control_lag(tracks, vis, ee, grip, [size[0]], pts, contact_dist_m=0.015)
+    assert not (abs(blind["lag_frames"] - lag) < 0.15 and blind["followers"] == 40), blind
+
+
+def test_a_turned_box_is_measured_along_its_own_axes():
+    from empm_gym.identification.doctor.phases import contact_distances, surface_gap
+    from empm_gym.perception.scripts import axis_angle_quaternions
+
+    size = np.array([0.01, 0.05, 0.01])               # a long, thin jaw along y
+    p = np.array([[0.0, 0.0, 0.04]])                  # 4 cm above its centre
+    assert surface_gap(p, np.zeros(3), size)[0] == pytest.approx(0.03)
+    q = axis_angle_quaternions((1, 0, 0), [np.pi / 2])    # turned about x: the jaw now stands along z
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_quat(q).as_matrix()[0]
+    assert surface_gap(p, np.zeros(3), size, R)[0] == pytest.approx(-0.01)     # inside it
+    d = contact_distances(np.zeros((1, 1, 3)), [tuple(size)], [p], q[None])
+    assert d[0, 0] == pytest.approx(-0.01)
+
+
+def test_a_gripper_turning_in_place_moves_the_object():
+    """A closed gripper that turns without travelling drives the object: its frames are ``moving``, not
+    ``holding``, once the controls' orientations say so."""
+    from empm_gym.identification.doctor.phases import segment_phases
+
+    tracks, vis, ee, grip, size, pts, q = _turned_block()
+    ee[:] = ee[14]                                   # lifted already (from frame 14 on), it only turns
+    still = segment_phases(ee, grip, FPS, pts, [size[0]], contact_dist_m=0.015)
+    turning = segment_phases(ee, grip, FPS, pts, [size[0]], contact_dist_m=0.015, ee_orientations=q)
+    lab = lambda ph, t: next(p.name for p in ph if p.start <= t < p.stop)
+    assert lab(still, 22) == "holding"
+    assert lab(turning, 22) == "moving" and lab(turning, 36) == "holding"

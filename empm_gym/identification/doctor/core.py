@@ -368,17 +368,39 @@ def _ee_sizes(scene: Scene) -> list:
 
 def _driven_m(scene: Scene, obs: Observations, T: int, contact_m: float = CONTACT_GAP_M) -> float:
     """Largest distance [m] an end-effector travels while it touches the observed object (its surface within
-    ``contact_m`` of the nearest observed point), from where that contact began.
+    ``contact_m`` of the nearest observed point), from where that contact began; a turn counts by how far it
+    carries the end-effector's farthest surface point (its angle times its reach).
 
-    A body pulled apart symmetrically, pressed in one place, or left behind by grippers that slip off it keeps
-    its centroid nearly still; the controls still act on it, and the base model must explain what they did."""
+    A body pulled apart symmetrically, pressed in one place, twisted, or left behind by grippers that slip off
+    it keeps its centroid nearly still; the controls still act on it, and the base model must explain what they
+    did."""
     from .features import _segments
-    from .phases import contact_distances
+    from .phases import contact_distances, ee_reach, ee_rotations, ee_sizes
 
     ee = np.asarray(scene.ee_positions[:T], np.float64)
-    touching = contact_distances(ee, _ee_sizes(scene), obs.points[:T]) <= contact_m
-    return max((float(np.linalg.norm(ee[s:e, k] - ee[s, k], axis=1).max())
-                for k in range(ee.shape[1]) for s, e in _segments(touching[:, k])), default=0.0)
+    K = ee.shape[1]
+    touching = contact_distances(ee, _ee_sizes(scene), obs.points[:T], _ee_orientations(scene, T)) <= contact_m
+    rot = ee_rotations(_ee_orientations(scene, T), len(ee), K)
+    reach = ee_reach(ee_sizes(_ee_sizes(scene), K))
+
+    def moved(s, e, k):
+        d = np.linalg.norm(ee[s:e, k] - ee[s, k], axis=1)
+        if rot is not None:  # the angle of the turn since s: trace(R_t R_s^T) = 1 + 2 cos(angle)
+            c = (np.einsum("tij,ij->t", rot[s:e, k], rot[s, k]) - 1.0) / 2.0
+            d = d + reach[k] * np.arccos(np.clip(c, -1.0, 1.0))
+        return float(d.max())
+
+    return max((moved(s, e, k) for k in range(K) for s, e in _segments(touching[:, k])), default=0.0)
+
+
+def _ee_orientations(scene: Scene, T: int) -> Optional[np.ndarray]:
+    """The controls' orientations ``[T, K, 4]`` (x, y, z, w), None where every end-effector keeps the world's axes
+    throughout (the features then take them as axis-aligned, and nothing is turned)."""
+    q = scene.ee_orientations
+    if q is None or not len(scene.ee_configs):
+        return None
+    q = np.asarray(q[:T], np.float64)
+    return None if np.allclose(np.abs(q[..., 3]), 1.0, atol=1e-9) else q
 
 
 def _per_frame_losses(objective: Objective, X: np.ndarray) -> Dict[str, np.ndarray]:
@@ -1662,8 +1684,9 @@ class _Features:
 
         self.scene, self.obs, self.objective, self.T = scene, obs, objective, T
         self.radius = _ee_sizes(scene)
+        self.orientations = _ee_orientations(scene, T)
         self.phases = segment_phases(scene.ee_positions[:T], scene.ee_grip[:T], obs.fps, obs.points[:T], self.radius,
-                                     contact_dist_m=CONTACT_GAP_M)
+                                     contact_dist_m=CONTACT_GAP_M, ee_orientations=self.orientations)
         self.table_z = float(scene.table.height) if scene.table is not None else 0.0
 
     def points(self, X_sim: np.ndarray) -> np.ndarray:
@@ -1680,7 +1703,7 @@ class _Features:
             kw = dict(tracks=o.tracks, visible=o.visible, sim_tracks=np.concatenate(
                 [o.tracks[:1], o._predicted_tracks(np.asarray(X_sim[:T], np.float64))]))
         f = summary_features(self.phases, o.points[:T], P_sim, sc.ee_positions[:T], sc.ee_grip[:T], self.radius,
-                             self.obs.fps, table_z=self.table_z, **kw)
+                             self.obs.fps, table_z=self.table_z, ee_orientations=self.orientations, **kw)
         return {k: _finite_or_none(v) for k, v in f.items()}
 
 
@@ -1689,7 +1712,7 @@ def _control_lag(scene: Scene, obs: Observations, T: int) -> dict:
     from .features import control_lag
 
     return control_lag(obs.tracks, obs.visibility, scene.ee_positions[:T], scene.ee_grip[:T], _ee_sizes(scene),
-                       obs.points[:T], contact_dist_m=CONTACT_GAP_M)
+                       obs.points[:T], contact_dist_m=CONTACT_GAP_M, ee_orientations=_ee_orientations(scene, T))
 
 
 #: A lag of the tracked material behind the grippers' controls (:func:`~.features.control_lag`) of at least this
@@ -1743,7 +1766,7 @@ def _localise(feats: _Features, X_base: np.ndarray, X_best, features: dict, feat
     P_base = feats.points(X_base)
     P_best = None if X_best is None else feats.points(X_best)
     where = localise(feats.phases, feats.objective.points[:T], P_base, sc.ee_positions[:T], feats.radius,
-                     table_z=feats.table_z)
+                     table_z=feats.table_z, ee_orientations=feats.orientations)
     if X_best is not None and features_best is None:
         features_best = feats(X_best, P_best)
     return {"phases": feats.phases, "features": features, "where": _jsonable(where), "P_base": P_base,

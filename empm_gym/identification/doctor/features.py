@@ -18,7 +18,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .phases import (CONTACT_PHASES, FREE_PHASES, Phase, contact_distances, ee_sizes,
+from .phases import (CONTACT_PHASES, FREE_PHASES, Phase, contact_distances, ee_rotations, ee_sizes,
                      object_speed, phase_of_frames, surface_gap)
 
 __all__ = [
@@ -123,12 +123,13 @@ def track_errors(tracks: np.ndarray, visible: np.ndarray, sim_tracks: np.ndarray
 
 
 def regions(points: np.ndarray, ee_positions: np.ndarray, ee_radius, table_z: float = 0.0,
-            near_m: float = 0.03, table_band_m: float = 0.005) -> np.ndarray:
+            near_m: float = 0.03, table_band_m: float = 0.005, ee_rot: Optional[np.ndarray] = None) -> np.ndarray:
     """``[n]`` region label of each point: ``"near_ee_k"``, ``"on_table"`` or ``"free"``.
 
     ``near_ee_k``: within ``near_m`` of end-effector ``k``'s surface (centre distance minus radius; the
     nearest end-effector wins); otherwise ``on_table`` when ``z - table_z <= table_band_m``; otherwise
-    ``free``.
+    ``free``. ``ee_rot`` ``[K, 3, 3]``: the end-effectors' axes (:func:`~.phases.ee_rotations` of one frame; None:
+    the world's).
     """
     p = _pts(points)
     ee = np.asarray(ee_positions, dtype=float).reshape(-1, 3)
@@ -136,7 +137,8 @@ def regions(points: np.ndarray, ee_positions: np.ndarray, ee_radius, table_z: fl
     lab[p[:, 2] - table_z <= table_band_m] = "on_table"
     if len(ee) and len(p):
         size = ee_sizes(ee_radius, len(ee))
-        gap = np.stack([surface_gap(p, ee[k], size[k]) for k in range(len(ee))], axis=1)
+        gap = np.stack([surface_gap(p, ee[k], size[k], None if ee_rot is None else ee_rot[k])
+                        for k in range(len(ee))], axis=1)
         k = np.argmin(gap, axis=1)
         near = gap[np.arange(len(p)), k] <= near_m
         lab[near] = np.array([f"near_ee_{i}" for i in k[near]], dtype=object)
@@ -288,6 +290,7 @@ def summary_features(
     floor_mps: float = 0.005,
     frame_res: Optional[np.ndarray] = None,
     point_res: Optional[List[np.ndarray]] = None,
+    ee_orientations: Optional[np.ndarray] = None,
 ) -> Dict[str, float]:
     """Named scalar features (see :data:`FEATURE_INFO` for units and meaning) from data alone.
 
@@ -304,6 +307,8 @@ def summary_features(
         edge_frames: displacements use medians over this many frames at both ends of a run.
         floor_mps: speed noise floor for the decay rates (m/s).
         frame_res, point_res: precomputed :func:`frame_residuals` / :func:`residuals_per_frame`.
+        ee_orientations: ``[T, K, 4]`` (x, y, z, w) from the controls, or None (they never turn): boxes turn
+            with them, and a tracked point's slip is its motion in its gripper's own frame.
     """
     sim = np.asarray(sim, dtype=float)
     ee = np.asarray(ee_positions, dtype=float)
@@ -312,6 +317,7 @@ def summary_features(
     T = min(len(obs_list), len(sim), len(ee))
     K = ee.shape[1]
     grip = np.asarray(ee_grip, dtype=float).reshape(len(ee), -1)[:T] > 0.5
+    rot = ee_rotations(ee_orientations, T, K)
     lab = phase_of_frames(phases, T)
     fr = frame_residuals(obs_list[:T], sim[:T]) if frame_res is None else np.asarray(frame_res)[:T]
     pr = residuals_per_frame(obs_list[:T], sim[:T]) if point_res is None else point_res
@@ -372,21 +378,26 @@ def summary_features(
         tr = np.asarray(tracks, dtype=float)[:T]
         st = np.asarray(sim_tracks, dtype=float)[:T]
         vis = (np.ones(tr.shape[:2]) if visible is None else np.asarray(visible))[:T] > 0.5
-        gap = contact_distances(ee[:T], ee_radius, obs_list[:T])
+        gap = contact_distances(ee[:T], ee_radius, obs_list[:T], ee_orientations)
         size = ee_sizes(ee_radius, K)
+        R = np.broadcast_to(np.eye(3), (T, K, 3, 3)) if rot is None else rot
+
+        def local(x, t, k):  # a position relative to gripper k at frame t, in the gripper's own frame
+            return (x - ee[t, k]) @ R[t, k]
+
         so, ss = [], []
         for k in range(K):
             for s, e in _segments(grip[:, k] & (gap[:, k] <= contact_dist_m)):
                 if e - s < 2:
                     continue
-                near = vis[s] & (surface_gap(tr[s], ee[s, k], size[k]) <= near_m)
+                near = vis[s] & (surface_gap(tr[s], ee[s, k], size[k], R[s, k]) <= near_m)
                 for m in np.flatnonzero(near):
                     vf = np.flatnonzero(vis[s:e, m])
                     if len(vf) < 2:
                         continue
                     a, b = s + vf[0], s + vf[-1]
-                    so.append(np.linalg.norm((tr[b, m] - ee[b, k]) - (tr[a, m] - ee[a, k])))
-                    ss.append(np.linalg.norm((st[b, m] - ee[b, k]) - (st[a, m] - ee[a, k])))
+                    so.append(np.linalg.norm(local(tr[b, m], b, k) - local(tr[a, m], a, k)))
+                    ss.append(np.linalg.norm(local(st[b, m], b, k) - local(st[a, m], a, k)))
         if so:
             f["track_slip_m"] = float(np.median(so) - np.median(ss))
 
@@ -416,7 +427,7 @@ def summary_features(
         o = _pts(obs_list[t])
         if len(o) == 0:
             continue
-        rl = regions(o, ee[t], ee_radius, table_z, near_m)
+        rl = regions(o, ee[t], ee_radius, table_z, near_m, ee_rot=None if rot is None else rot[t])
         near_r.append(pr[t][np.char.startswith(rl, "near_ee")])
         free_r.append(pr[t][rl == "free"])
     nm = _nanmean(np.concatenate(near_r)) if near_r else float("nan")
@@ -460,6 +471,7 @@ def control_lag(
     n_boot: int = 400,
     level: float = 0.95,
     seed: int = 0,
+    ee_orientations: Optional[np.ndarray] = None,
 ) -> Dict[str, float]:
     """How many frames the tracked material next to a closed gripper lags behind the gripper's controls,
     from data alone: the controls and the images out of sync.
@@ -473,7 +485,9 @@ def control_lag(
     leaves it behind by a share ``beta`` of the travel, which stays. Each point's own ``beta`` picks the points
     that move with their gripper (:data:`LAG_MAX_SLIP_SHARE`; material that stretches or slides moves by its own
     dynamics); ``beta`` and ``lag`` are then fitted by least squares over those points and their frames, and the
-    interval of ``lag`` is a bootstrap over them.
+    interval of ``lag`` is a bootstrap over them. With ``ee_orientations`` ``[T, K, 4]`` (x, y, z, w) a gripper
+    also turns: ``r``, ``D`` and ``v`` are then taken in the gripper's own frame, and ``v`` is the velocity of
+    the material point as the gripper would carry it (its centre's velocity plus its turn about the centre).
 
     Returns ``lag_frames``, ``lower``, ``upper`` (the ``level`` interval), ``slip_share`` (beta over all points
     near the grippers), ``samples`` (point-frames used), ``followers`` / ``points`` (points that move with their
@@ -499,25 +513,37 @@ def control_lag(
     vis = (np.ones(tr.shape[:2], bool) if visible is None else np.asarray(visible)[:T] > 0.5) & np.all(
         np.isfinite(tr), axis=-1)
     grip = np.asarray(ee_grip, dtype=float).reshape(len(ee_grip), -1)[:T] > 0.5
-    gap = contact_distances(ee, ee_radius, obs_list[:T])
+    gap = contact_distances(ee, ee_radius, obs_list[:T], ee_orientations)
     size = ee_sizes(ee_radius, K)
-    vel = np.gradient(ee, axis=0) if T > 1 else np.zeros_like(ee)  # [T, K, 3] m per frame
+    rot = ee_rotations(ee_orientations, T, K)
+    R = np.broadcast_to(np.eye(3), (T, K, 3, 3)) if rot is None else rot
+
+    def carried(x, ts, k):
+        """Velocity [m/frame] in gripper k's frame of points ``x`` [n, 3] at frames ``ts`` were the gripper
+        carrying them rigidly: central differences (one-sided at the ends) of where it would put them a frame
+        earlier and later (without turns: the gripper's own velocity, np.gradient of its centres)."""
+        off = np.einsum("ni,nij->nj", x - ee[ts, k], R[ts, k])          # in the gripper's frame
+        a, b = np.maximum(ts - 1, 0), np.minimum(ts + 1, T - 1)
+        pa = ee[a, k] + np.einsum("nij,nj->ni", R[a, k], off)
+        pb = ee[b, k] + np.einsum("nij,nj->ni", R[b, k], off)
+        u = (pb - pa) / np.maximum(b - a, 1)[:, None]
+        return np.einsum("ni,nij->nj", u, R[ts, k])
     groups: List[Tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # per tracked point: (r, D, v) demeaned
     speeds = []
     for k in range(K):
         for s, e in _segments(grip[:, k] & (gap[:, k] <= contact_dist_m)):
             if e - s < min_frames:
                 continue
-            near = vis[s] & (surface_gap(tr[s], ee[s, k], size[k]) <= near_m)
+            near = vis[s] & (surface_gap(tr[s], ee[s, k], size[k], R[s, k]) <= near_m)
             for m in np.flatnonzero(near):
                 ts = s + np.flatnonzero(vis[s:e, m])
                 if len(ts) < min_frames:
                     continue
-                r = tr[ts, m] - ee[ts, k]
-                D = ee[ts, k] - ee[s, k]
-                v = vel[ts, k]
+                r = np.einsum("ni,nij->nj", tr[ts, m] - ee[ts, k], R[ts, k])
+                D = np.einsum("ni,nij->nj", ee[ts, k] - ee[s, k], R[ts, k])
+                v = carried(tr[ts, m], ts, k)
                 groups.append((r - r.mean(0), D - D.mean(0), v - v.mean(0)))
-                speeds.append(np.linalg.norm(vel[ts, k], axis=-1))
+                speeds.append(np.linalg.norm(v, axis=-1))
     if not groups:
         return nan
     n = sum(len(g[0]) for g in groups)
@@ -565,6 +591,7 @@ def localise(
     min_points: int = 20,
     frame_res: Optional[np.ndarray] = None,
     point_res: Optional[List[np.ndarray]] = None,
+    ee_orientations: Optional[np.ndarray] = None,
 ) -> dict:
     """Where the disagreement is: mean observed-point residual per (phase, region), worst cell, worst frames.
 
@@ -575,6 +602,7 @@ def localise(
       ``by_phase`` / ``by_region``: marginal means (m); ``halves``: ``{"positive", "negative"}`` mean
       residual on the two body halves of :func:`body_halves` plus ``axis``;
       ``frame_residuals``: ``[T]`` list (m); ``worst_frames``: the ``top_k`` frames by frame residual.
+    ``ee_orientations`` ``[T, K, 4]`` (x, y, z, w) turn the boxes of the regions (None: axis-aligned).
     """
     sim = np.asarray(sim, dtype=float)
     ee = np.asarray(ee_positions, dtype=float)
@@ -582,6 +610,7 @@ def localise(
         ee = ee[:, None, :]
     T = min(len(obs_list), len(sim), len(ee))
     lab = phase_of_frames(phases, T)
+    rot = ee_rotations(ee_orientations, T, ee.shape[1])
     fr = frame_residuals(obs_list[:T], sim[:T]) if frame_res is None else np.asarray(frame_res)[:T]
     pr = residuals_per_frame(obs_list[:T], sim[:T]) if point_res is None else point_res
     sums: Dict[Tuple[str, str], float] = {}
@@ -593,7 +622,7 @@ def localise(
         if len(o) == 0:
             continue
         r = pr[t]
-        rl = regions(o, ee[t], ee_radius, table_z, near_m, table_band_m)
+        rl = regions(o, ee[t], ee_radius, table_z, near_m, table_band_m, None if rot is None else rot[t])
         for reg in np.unique(rl):
             m = rl == reg
             key = (str(lab[t]), str(reg))

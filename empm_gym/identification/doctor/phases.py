@@ -80,32 +80,56 @@ def ee_sizes(ee_radius, K: int) -> np.ndarray:
     return out
 
 
-def surface_gap(points: np.ndarray, centre: np.ndarray, size: np.ndarray) -> np.ndarray:
+def ee_rotations(ee_orientations, T: int, K: int) -> Optional[np.ndarray]:
+    """``[T, K, 3, 3]`` rotation matrices (the end-effector's axes in world coordinates, as columns) of the
+    controls' ``orientations`` ``[T, K, 4]`` (x, y, z, w); None when the controls give none (they never turn)."""
+    if ee_orientations is None:
+        return None
+    from scipy.spatial.transform import Rotation
+
+    q = np.asarray(ee_orientations, dtype=float)[:T].reshape(-1, K, 4)
+    return Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(len(q), K, 3, 3)
+
+
+def surface_gap(points: np.ndarray, centre: np.ndarray, size: np.ndarray,
+                rot: Optional[np.ndarray] = None) -> np.ndarray:
     """``[n]`` signed distance (m) of points to an end-effector's surface (a sphere of radius size[0] when
-    size[2] < 0, else an axis-aligned box of half extents ``size``)."""
+    size[2] < 0, else a box of half extents ``size`` along its own axes: the columns of ``rot`` [3, 3], the
+    world's where None)."""
     d = np.asarray(points, float).reshape(-1, 3) - np.asarray(centre, float)
     if size[2] < 0:
         return np.linalg.norm(d, axis=1) - size[0]
+    if rot is not None:
+        d = d @ np.asarray(rot, float)                 # into the box's frame
     q = np.abs(d) - size
     return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
 
 
-def contact_distances(ee_positions: np.ndarray, ee_radius, obj_points: Sequence[np.ndarray]) -> np.ndarray:
+def ee_reach(size: np.ndarray) -> np.ndarray:
+    """``[K]`` farthest distance (m) from each end-effector's centre to its surface, from :func:`ee_sizes`."""
+    size = np.asarray(size, float).reshape(-1, 3)
+    return np.where(size[:, 2] < 0, size[:, 0], np.linalg.norm(np.abs(size), axis=1))
+
+
+def contact_distances(ee_positions: np.ndarray, ee_radius, obj_points: Sequence[np.ndarray],
+                      ee_orientations: Optional[np.ndarray] = None) -> np.ndarray:
     """``[T, K]`` gap (m) between each end-effector's surface and the nearest observed object point.
 
-    ``ee_radius``: per end-effector a radius (sphere) or half extents (axis-aligned box), see :func:`ee_sizes`.
+    ``ee_radius``: per end-effector a radius (sphere) or half extents (a box), see :func:`ee_sizes`;
+    ``ee_orientations`` ``[T, K, 4]`` (x, y, z, w) turn the boxes (None: axis-aligned).
     Negative when points lie inside; ``inf`` where a frame has no observed points.
     """
     ee = np.asarray(ee_positions, dtype=float)
     T, K = ee.shape[:2]
     size = ee_sizes(ee_radius, K)
+    rot = ee_rotations(ee_orientations, T, K)
     out = np.full((T, K), np.inf)
     for t in range(min(T, len(obj_points))):
         p = np.asarray(obj_points[t], dtype=float).reshape(-1, 3)
         if len(p) == 0:
             continue
         for k in range(K):
-            out[t, k] = surface_gap(p, ee[t, k], size[k]).min()
+            out[t, k] = surface_gap(p, ee[t, k], size[k], None if rot is None else rot[t, k]).min()
     return out
 
 
@@ -198,6 +222,7 @@ def segment_phases(
     obj_still_speed: float = 0.02,
     smooth_frames: int = 3,
     min_phase_frames: int = 2,
+    ee_orientations: Optional[np.ndarray] = None,
 ) -> List[Phase]:
     """Split frames ``0..T-1`` into consecutive :class:`Phase` runs named from :data:`PHASES`.
 
@@ -216,6 +241,9 @@ def segment_phases(
             speed (m/s). Default 2 cm/s: above the centroid jitter of a few-mm depth noise at 30 fps.
         smooth_frames: median-filter window (frames) for the object speed.
         min_phase_frames: runs shorter than this are absorbed into the previous run (1: keep all).
+        ee_orientations: ``[T, K, 4]`` (x, y, z, w) from the controls, or None (they never turn): a box's
+            faces turn with it, and an end-effector that turns in place moves its surface (by its angular speed
+            times its reach), which counts as motion.
 
     Returns:
         Runs covering ``0..T-1`` in order; ``stop`` is exclusive.
@@ -227,12 +255,18 @@ def segment_phases(
     if T == 0:
         return []
     grip = np.asarray(ee_grip, dtype=float).reshape(T, -1) > 0.5
-    gap = contact_distances(ee, ee_radius, obj_points)
+    gap = contact_distances(ee, ee_radius, obj_points, ee_orientations)
     for t in range(1, T):  # a frame where the object is wholly hidden keeps the contact it was last seen in
         if t < len(obj_points) and not len(np.asarray(obj_points[t]).reshape(-1, 3)):
             gap[t] = gap[t - 1]
     touch = gap <= contact_dist_m  # [T, K]
     v_back = backward_speed(ee, fps)  # [T, K]
+    if ee_orientations is not None and T > 1:  # the surface of a turning end-effector moves by omega * reach
+        from empm_gym.perception.recording import quat_angular_velocity
+
+        w = np.linalg.norm(quat_angular_velocity(np.asarray(ee_orientations, float)[:T].reshape(T, K, 4), fps), axis=-1)
+        v_back[1:] += w * ee_reach(ee_sizes(ee_radius, K))
+        v_back[0] = v_back[1]
     v_fwd = np.concatenate([v_back[1:], v_back[-1:]], axis=0)
     ee_moving = np.minimum(v_back, v_fwd) > still_speed  # moves into and out of frame t
     obj_moving = object_speed(observed_centroids(obj_points, T), fps, smooth_frames) > obj_still_speed
