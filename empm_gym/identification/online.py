@@ -32,7 +32,7 @@ from . import render as R
 from .evaluate import _camera_ious
 from .losses import chamfer_distance, chamfer_numpy, soft_mask_loss
 from .offline import _initial_values, _sim_kwargs, default_bounds
-from .problem import ParamSpace, Scene, substeps_for
+from .problem import ParamSpace, Scene, quat_angular_velocity, substeps_for
 
 __all__ = ["OnlineFrame", "OnlineIdentifier", "replay"]
 
@@ -140,8 +140,14 @@ class OnlineIdentifier:
         speed = 0.0
         if self.t > 0:
             vel = (f.ee_positions - self.prev.ee_positions) * self.scene.fps
-            speed = float(np.max(np.linalg.norm(vel, axis=1))) if K else 0.0
-            self._advance(vel, self.prev.ee_grip)
+            omega = np.zeros_like(vel)
+            if K and f.ee_orientations is not None and self.prev.ee_orientations is not None:
+                omega = quat_angular_velocity(np.stack([self.prev.ee_orientations, f.ee_orientations]),
+                                              self.scene.fps)[0]
+            reach = np.array([c.reach for c in self.scene.ee_configs])
+            # the surface's speed, a turn's included: a gripper turning in place is no quasi-static moment
+            speed = float(np.max(np.linalg.norm(vel, axis=1) + np.linalg.norm(omega, axis=1) * reach)) if K else 0.0
+            self._advance(vel, omega, speed, self.prev.ee_grip)
         x = self.state.particle_x.numpy()
         if not len(f.points):  # the object wholly hidden (a hand over it): the twin moves on, nothing is scored
             rec = {"frame": self.t, "ee_speed": speed, "obs_motion": float("nan"), "chamfer": float("nan"),
@@ -197,14 +203,14 @@ class OnlineIdentifier:
             terms.append(soft_mask_loss(pts, [cam], [m], self.radius, self.ds))
         return torch.stack(terms).mean()
 
-    def _advance(self, vel, grip):
-        """Advance the twin by one frame interval under the streamed end-effector velocity."""
+    def _advance(self, vel, omega, speed, grip):
+        """Advance the twin by one frame interval under the streamed end-effector velocity and turn (``speed``:
+        the fastest end-effector surface's, m/s)."""
         self._apply()
         K = self.model.ee_count
-        speed = float(np.max(np.linalg.norm(vel, axis=1))) if K else 0.0
         sub, dt = substeps_for(self.scene, self.model.materials, speed)
         if K:
-            self.ctrl.set(velocity=vel[None], omega=np.zeros((1, K, 3)), grip=grip[None])
+            self.ctrl.set(velocity=vel[None], omega=omega[None], grip=grip[None])
         a, b = self.state, self._tmp
         for _ in range(sub):
             self.solver.step(a, b, self.ctrl, dt, guards=False)

@@ -66,3 +66,26 @@ def test_a_frame_where_the_object_is_wholly_hidden_moves_the_twin_and_scores_not
     np.testing.assert_array_equal(blind.state.particle_x.numpy(), seen.state.particle_x.numpy())
     with pytest.raises(ValueError, match="non-empty on the first frame"):
         OnlineIdentifier(rope.scene).step(OnlineFrame(np.zeros((0, 3)), frames[0].ee_positions))
+
+
+def test_the_twin_turns_its_grippers_with_the_streamed_orientations(rope):
+    """A gripper that turns while it holds (the streamed frames' ``ee_orientations``) turns the twin's grip as
+    the offline simulation of the same controls does; ignoring the turn leaves the twin centimetres off."""
+    import dataclasses
+
+    from empm_gym.identification.problem import simulate_frames
+    from empm_gym.perception.scripts import axis_angle_quaternions
+
+    T = 20
+    q = axis_angle_quaternions((0.0, 1.0, 0.0), np.linspace(0.0, np.pi / 3, T))[:, None, :]
+    turned = dataclasses.replace(rope.scene, ee_orientations=q, ee_positions=rope.scene.ee_positions[:T],
+                                 ee_grip=rope.scene.ee_grip[:T])
+    ident = OnlineIdentifier(turned, update=False)
+    for t in range(T):
+        ident.step(OnlineFrame(rope.obs.points[t], turned.ee_positions[t], turned.ee_grip[t], None, q[t]))
+    online = ident.state.particle_x.numpy()
+    offline = simulate_frames(turned, [ident._material()[0]])[-1, 0]
+    plain = simulate_frames(dataclasses.replace(turned, ee_orientations=None), [ident._material()[0]])[-1, 0]
+    off = np.linalg.norm(online - offline, axis=1).mean()
+    assert off < 1e-3, off
+    assert np.linalg.norm(plain - offline, axis=1).mean() > 10 * max(off, 1e-4)
