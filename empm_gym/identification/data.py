@@ -410,9 +410,26 @@ def delayed_positions(positions: np.ndarray, frames: float) -> np.ndarray:
     return (1.0 - w) * p[i0] + w * p[i1]
 
 
+def delayed_orientations(orientations: np.ndarray, frames: float) -> np.ndarray:
+    """End-effector orientations ``[T, K, 4]`` (x, y, z, w) delayed by ``frames`` as :func:`delayed_positions`
+    delays the positions: row ``t`` is the orientation at time ``t - frames``, turned between the recorded frames
+    at a constant rate (spherical interpolation), held at the first and last."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    q = np.asarray(orientations, np.float64)
+    T = len(q)
+    t = np.clip(np.arange(T) - float(frames), 0.0, T - 1.0)
+    if T < 2:
+        return q.copy()
+    out = np.empty_like(q)
+    for k in range(q.shape[1]):
+        out[:, k] = Slerp(np.arange(T, dtype=float), Rotation.from_quat(q[:, k]))(t).as_quat()
+    return out
+
+
 def delayed_controls(scene: Scene, frames: float) -> Scene:
-    """``scene`` with its end-effector controls delayed by ``frames`` (:func:`delayed_positions`; grips and
-    orientations from the nearest frame): for a recording whose images show the end-effectors' effect ``frames``
+    """``scene`` with its end-effector controls delayed by ``frames`` (:func:`delayed_positions`,
+    :func:`delayed_orientations`; grips from the nearest frame): for a recording whose images show the end-effectors' effect ``frames``
     after the controls say it happened (the doctor's ``control_lag``), so that both run on one clock. Raises
     ``ValueError`` for a delay that is not finite or not shorter than the recording, or a scene without
     controls."""
@@ -430,7 +447,7 @@ def delayed_controls(scene: Scene, frames: float) -> Scene:
     near = np.clip(np.rint(np.arange(T) - d).astype(int), 0, T - 1)
     kw = {"ee_positions": delayed_positions(scene.ee_positions, d), "ee_grip": np.asarray(scene.ee_grip)[near]}
     if scene.ee_orientations is not None:
-        kw["ee_orientations"] = np.asarray(scene.ee_orientations)[near]
+        kw["ee_orientations"] = delayed_orientations(scene.ee_orientations, d)
     return dataclasses.replace(scene, **kw)
 
 

@@ -45,6 +45,21 @@ def test_controls_are_delayed_whole_and_checked():
             delayed_controls(scene, bad)
 
 
+def test_a_turn_is_delayed_with_the_positions():
+    """A gripper turning at a constant rate, delayed by 1.5 frames, is where it was 1.5 frames earlier: its angle
+    interpolated at that rate (not the nearest frame's), held at the first frame."""
+    from scipy.spatial.transform import Rotation
+
+    from empm_gym.identification.data import delayed_controls
+    from empm_gym.perception.scripts import axis_angle_quaternions
+
+    scene, _ = _still_scene(T=10)
+    q = axis_angle_quaternions((0, 0, 1), 0.1 * np.arange(10))[:, None, :]
+    d = delayed_controls(dataclasses.replace(scene, ee_orientations=q), 1.5)
+    angle = Rotation.from_quat(d.ee_orientations[:, 0]).as_rotvec()[:, 2]
+    np.testing.assert_allclose(angle, 0.1 * np.clip(np.arange(10) - 1.5, 0, None), atol=1e-9)
+
+
 def test_too_short_recording_is_refused():
     scene, obs = _still_scene(T=8)
     with pytest.raises(DoctorError, match="too few"):
