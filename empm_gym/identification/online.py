@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from empm_gym.sim import Rollout, SimulationDiverged, SolverConfig, SolverMPM
+from empm_gym.sim.config import end_effector_speed
 
 from . import render as R
 from .evaluate import _camera_ious
@@ -144,9 +145,8 @@ class OnlineIdentifier:
             if K and f.ee_orientations is not None and self.prev.ee_orientations is not None:
                 omega = quat_angular_velocity(np.stack([self.prev.ee_orientations, f.ee_orientations]),
                                               self.scene.fps)[0]
-            reach = np.array([c.reach for c in self.scene.ee_configs])
             # the surface's speed, a turn's included: a gripper turning in place is no quasi-static moment
-            speed = float(np.max(np.linalg.norm(vel, axis=1) + np.linalg.norm(omega, axis=1) * reach)) if K else 0.0
+            speed = end_effector_speed(vel, omega, self.scene.ee_configs) if K else 0.0
             self._advance(vel, omega, speed, self.prev.ee_grip)
         x = self.state.particle_x.numpy()
         if not len(f.points):  # the object wholly hidden (a hand over it): the twin moves on, nothing is scored

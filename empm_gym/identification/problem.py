@@ -21,6 +21,7 @@ import warp as wp
 
 from empm_gym.sim import (EndEffectorConfig, GridConfig, MaterialConfig, ModelBuilder, SimulationDiverged,
                           SolverConfig, SolverMPM, TableConfig, stable_dt)
+from empm_gym.sim.config import end_effector_speed
 from empm_gym.perception.recording import quat_angular_velocity
 from empm_gym.sim.effects import BASE_PARAMETERS, PARAMETERS, parameter
 
@@ -153,13 +154,10 @@ class Scene:
     def ee_max_speed(self, frames: int, start_frame: int = 0) -> float:
         """Largest speed [m/s] of an end-effector's surface over the intervals of frames ``start_frame`` to
         ``frames - 1``: its centre's speed plus its turn's (angular speed times its reach), for the time step."""
-        K = len(self.ee_configs)
-        if not K or frames - start_frame < 2:
+        if not len(self.ee_configs) or frames - start_frame < 2:
             return 0.0
-        v = np.linalg.norm(self.ee_velocities(frames)[start_frame:], axis=-1)
-        w = np.linalg.norm(self.ee_omegas(frames)[start_frame:], axis=-1)
-        reach = np.array([c.reach for c in self.ee_configs])
-        return float(np.max(v + w * reach)) if v.size else 0.0
+        return end_effector_speed(self.ee_velocities(frames)[start_frame:], self.ee_omegas(frames)[start_frame:],
+                                  self.ee_configs)
 
     def _check_frames(self, frames):
         if self.num_frames is not None and frames > self.num_frames:
@@ -439,11 +437,7 @@ class _ForwardSim:
         vel = sc.ee_velocities(end)[start_frame:] if velocities is None else np.asarray(velocities)
         om = sc.ee_omegas(end)[start_frame:] if omegas is None else np.asarray(omegas)
         grip = (sc.ee_grip[start_frame:end - 1] if K else None) if grips is None else np.asarray(grips)
-        speed = sc.ee_max_speed(end, start_frame)
-        if velocities is not None or omegas is not None:   # the commands given, with the scene's reach
-            reach = np.array([c.reach for c in sc.ee_configs])
-            speed = float(np.max(np.linalg.norm(vel, axis=-1) + np.linalg.norm(om, axis=-1) * reach)) \
-                if vel.size else 0.0
+        speed = end_effector_speed(vel, om, sc.ee_configs)
         sub, dt = substeps_for(sc, m.materials, speed)
         a = state if state is not None else m.state()
         b = m.state()

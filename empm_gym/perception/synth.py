@@ -354,6 +354,7 @@ def simulate(object: str, material, *, script: str = "default", frames: int = 60
     from tqdm.auto import tqdm
 
     from empm_gym.sim import SolverMPM
+    from empm_gym.sim.config import end_effector_speed
 
     _check_scene_args(object, script, frames)
     if simulator not in SIMULATORS:
@@ -371,8 +372,7 @@ def simulate(object: str, material, *, script: str = "default", frames: int = 60
     solver = SolverMPM(model)
     vel = end_effector_velocities(pos, fps)
     omega = quat_angular_velocity(quat, fps)
-    reach = np.array([c.reach for c in ee_cfgs])
-    vmax = float(np.max(np.linalg.norm(vel, axis=-1) + np.linalg.norm(omega, axis=-1) * reach)) if len(vel) else 0.0
+    vmax = end_effector_speed(vel, omega, ee_cfgs)
     n_sub = int(math.ceil((1.0 / fps) / (0.9 * solver.max_stable_dt(vmax))))
     dt = 1.0 / (fps * n_sub)
     s0, s1 = model.state(), model.state()

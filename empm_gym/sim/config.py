@@ -18,6 +18,7 @@ __all__ = [
     "EndEffectorConfig",
     "SolverConfig",
     "SHAPE_IDS",
+    "end_effector_speed",
     "stable_dt",
 ]
 
@@ -283,6 +284,20 @@ class EndEffectorConfig:
         if self.shape == "capsule":
             return float(self.half_height + self.radius)
         return math.sqrt(sum(h * h for h in self.half_extents))
+
+
+def end_effector_speed(velocity, omega, configs) -> float:
+    """Largest speed [m/s] of a point on an end-effector's surface, for the time step: over every leading index
+    of ``velocity`` [..., K, 3] (m/s) and ``omega`` [..., K, 3] (rad/s), its centre's speed plus its turn's
+    (angular speed times :attr:`EndEffectorConfig.reach`). ``configs``: the K end-effectors, or an array of
+    their reaches (m) that broadcasts against ``velocity[..., 0]``. 0 without any command."""
+    import numpy as np
+
+    v, w = np.asarray(velocity, float), np.asarray(omega, float)
+    if not v.size:
+        return 0.0
+    reach = configs if isinstance(configs, np.ndarray) else np.array([c.reach for c in configs], float)
+    return float(np.max(np.linalg.norm(v, axis=-1) + np.linalg.norm(w, axis=-1) * reach))
 
 
 @dataclass

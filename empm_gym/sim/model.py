@@ -9,7 +9,8 @@ import numpy as np
 import warp as wp
 
 from . import kernels as _kernels
-from .config import SHAPE_IDS, EndEffectorConfig, GridConfig, MaterialConfig, TableConfig, as_vec3
+from .config import (SHAPE_IDS, EndEffectorConfig, GridConfig, MaterialConfig, TableConfig, as_vec3,
+                     end_effector_speed)
 from .effects import PARAMETERS as _EFFECT_PARAMS
 
 __all__ = ["Model", "ModelBuilder", "State", "StateBlock", "Control"]
@@ -102,7 +103,8 @@ class Control:
         self.max_speed = 0.0
         """Largest commanded speed [m/s] of an end-effector's surface, its turn included (host copy, for the CFL
         check)."""
-        self._v_speed = self._w_speed = np.zeros(max(model.world_count * model.ee_count, 0))
+        shape = (model.world_count, model.ee_count, 3)
+        self._vel, self._omega = np.zeros(shape), np.zeros(shape)   # host copies, for max_speed
 
     def set(self, velocity=None, omega=None, grip=None) -> "Control":
         """Set end-effector commands from arrays shaped [worlds, ee_count, 3] (grip: [worlds, ee_count]).
@@ -113,13 +115,13 @@ class Control:
         if velocity is not None:
             v = _checked(velocity, (W, K, 3), "Control.velocity")
             self.ee_vel.assign(wp.array(v.reshape(-1, 3), dtype=wp.vec3, device=self.ee_vel.device))
-            self._v_speed = np.linalg.norm(v, axis=-1).reshape(-1)
+            self._vel = v
         if omega is not None:
             o = _checked(omega, (W, K, 3), "Control.omega")
             self.ee_omega.assign(wp.array(o.reshape(-1, 3), dtype=wp.vec3, device=self.ee_vel.device))
-            self._w_speed = np.linalg.norm(o, axis=-1).reshape(-1) * self.model.ee_reach[:W * K]
+            self._omega = o
         if velocity is not None or omega is not None:
-            self.max_speed = float(np.max(self._v_speed + self._w_speed)) if W * K else 0.0
+            self.max_speed = end_effector_speed(self._vel, self._omega, self.model.ee_reach[:W * K].reshape(W, K))
         if grip is not None:
             g = _checked_grip(grip, (W, K))
             self.ee_grip.assign(wp.array(g.reshape(-1).astype(np.int32), dtype=int, device=self.ee_vel.device))
@@ -135,14 +137,13 @@ class Control:
         v = _checked(velocity, (T, W, K, 3), "Control.velocity")
         o = _checked(omega, (T, W, K, 3), "Control.omega")
         g = _checked_grip(grip, (T, W, K))
+        reach = self.model.ee_reach[:W * K].reshape(W, K)
         d = self.ee_vel.device
         return ControlSequence(steps=T, per_step=W * K,
                                velocity=wp.array(v.reshape(-1, 3), dtype=wp.vec3, device=d),
                                omega=wp.array(o.reshape(-1, 3), dtype=wp.vec3, device=d),
                                grip=wp.array(g.reshape(-1).astype(np.int32), dtype=int, device=d),
-                               max_speed=np.max(np.linalg.norm(v, axis=-1) + np.linalg.norm(o, axis=-1)
-                                                * self.model.ee_reach[:W * K].reshape(W, K), axis=(1, 2))
-                               if v.size else np.zeros(T))
+                               max_speed=np.array([end_effector_speed(v[t], o[t], reach) for t in range(T)]))
 
     def set_step(self, seq: "ControlSequence", t: int) -> "Control":
         """Set the commands of step ``t`` of ``seq`` (:meth:`sequence`), copied on the device on the current

@@ -375,13 +375,13 @@ def _driven_m(scene: Scene, obs: Observations, T: int, contact_m: float = CONTAC
     it keeps its centroid nearly still; the controls still act on it, and the base model must explain what they
     did."""
     from .features import _segments
-    from .phases import contact_distances, ee_reach, ee_rotations, ee_sizes
+    from .phases import contact_distances, ee_rotations
 
     ee = np.asarray(scene.ee_positions[:T], np.float64)
     K = ee.shape[1]
     touching = contact_distances(ee, _ee_sizes(scene), obs.points[:T], _ee_orientations(scene, T)) <= contact_m
     rot = ee_rotations(_ee_orientations(scene, T), len(ee), K)
-    reach = ee_reach(ee_sizes(_ee_sizes(scene), K))
+    reach = [c.reach for c in scene.ee_configs]
 
     def moved(s, e, k):
         d = np.linalg.norm(ee[s:e, k] - ee[s, k], axis=1)

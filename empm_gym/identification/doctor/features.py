@@ -317,7 +317,7 @@ def summary_features(
     T = min(len(obs_list), len(sim), len(ee))
     K = ee.shape[1]
     grip = np.asarray(ee_grip, dtype=float).reshape(len(ee), -1)[:T] > 0.5
-    rot = ee_rotations(ee_orientations, T, K)
+    rot = ee_rotations(ee_orientations, T, K, identity=True)
     lab = phase_of_frames(phases, T)
     fr = frame_residuals(obs_list[:T], sim[:T]) if frame_res is None else np.asarray(frame_res)[:T]
     pr = residuals_per_frame(obs_list[:T], sim[:T]) if point_res is None else point_res
@@ -380,17 +380,16 @@ def summary_features(
         vis = (np.ones(tr.shape[:2]) if visible is None else np.asarray(visible))[:T] > 0.5
         gap = contact_distances(ee[:T], ee_radius, obs_list[:T], ee_orientations)
         size = ee_sizes(ee_radius, K)
-        R = np.broadcast_to(np.eye(3), (T, K, 3, 3)) if rot is None else rot
 
         def local(x, t, k):  # a position relative to gripper k at frame t, in the gripper's own frame
-            return (x - ee[t, k]) @ R[t, k]
+            return (x - ee[t, k]) @ rot[t, k]
 
         so, ss = [], []
         for k in range(K):
             for s, e in _segments(grip[:, k] & (gap[:, k] <= contact_dist_m)):
                 if e - s < 2:
                     continue
-                near = vis[s] & (surface_gap(tr[s], ee[s, k], size[k], R[s, k]) <= near_m)
+                near = vis[s] & (surface_gap(tr[s], ee[s, k], size[k], rot[s, k]) <= near_m)
                 for m in np.flatnonzero(near):
                     vf = np.flatnonzero(vis[s:e, m])
                     if len(vf) < 2:
@@ -427,7 +426,7 @@ def summary_features(
         o = _pts(obs_list[t])
         if len(o) == 0:
             continue
-        rl = regions(o, ee[t], ee_radius, table_z, near_m, ee_rot=None if rot is None else rot[t])
+        rl = regions(o, ee[t], ee_radius, table_z, near_m, ee_rot=rot[t])
         near_r.append(pr[t][np.char.startswith(rl, "near_ee")])
         free_r.append(pr[t][rl == "free"])
     nm = _nanmean(np.concatenate(near_r)) if near_r else float("nan")
@@ -515,8 +514,7 @@ def control_lag(
     grip = np.asarray(ee_grip, dtype=float).reshape(len(ee_grip), -1)[:T] > 0.5
     gap = contact_distances(ee, ee_radius, obs_list[:T], ee_orientations)
     size = ee_sizes(ee_radius, K)
-    rot = ee_rotations(ee_orientations, T, K)
-    R = np.broadcast_to(np.eye(3), (T, K, 3, 3)) if rot is None else rot
+    R = ee_rotations(ee_orientations, T, K, identity=True)
 
     def carried(x, ts, k):
         """Velocity [m/frame] in gripper k's frame of points ``x`` [n, 3] at frames ``ts`` were the gripper

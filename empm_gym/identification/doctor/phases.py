@@ -80,11 +80,12 @@ def ee_sizes(ee_radius, K: int) -> np.ndarray:
     return out
 
 
-def ee_rotations(ee_orientations, T: int, K: int) -> Optional[np.ndarray]:
+def ee_rotations(ee_orientations, T: int, K: int, identity: bool = False) -> Optional[np.ndarray]:
     """``[T, K, 3, 3]`` rotation matrices (the end-effector's axes in world coordinates, as columns) of the
-    controls' ``orientations`` ``[T, K, 4]`` (x, y, z, w); None when the controls give none (they never turn)."""
+    controls' ``orientations`` ``[T, K, 4]`` (x, y, z, w); when the controls give none (they never turn), None, or
+    with ``identity`` the world's axes."""
     if ee_orientations is None:
-        return None
+        return np.broadcast_to(np.eye(3), (T, K, 3, 3)) if identity else None
     from scipy.spatial.transform import Rotation
 
     q = np.asarray(ee_orientations, dtype=float)[:T].reshape(-1, K, 4)
