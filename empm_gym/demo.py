@@ -117,14 +117,16 @@ def log_rerun(path: Path, runs):
 
     rec = rr.RecordingStream("empm_gym_demo")
     rec.save(str(path))
+    from .viz.rerun_log import log_end_effectors
+
     for name, (xs, ees, frame_dt, model, key) in runs.items():
-        radii = [max(c.radius, max(c.half_extents)) if c.shape != "sphere" else c.radius for c in model.ee_configs[0]]
         for f in range(len(xs)):
             rec.set_time("sim_time", duration=f * frame_dt)
             z = xs[f][:, 2]
             col = np.stack([0.9 * np.ones_like(z), 0.5 + 4 * z.clip(0, 0.1), 0.2 * np.ones_like(z)], 1)
             rec.log(f"{key}/particles", rr.Points3D(xs[f], radii=model.dx * 0.3, colors=col))
-            rec.log(f"{key}/end_effectors", rr.Points3D(ees[f], radii=radii, colors=[60, 120, 230]))
+            log_end_effectors(rec, f"{key}/end_effectors", model.ee_configs[0], ees[f],
+                              colors=[[60, 120, 230]] * len(model.ee_configs[0]))
     rec.flush()
 
 

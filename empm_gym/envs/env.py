@@ -128,10 +128,10 @@ class EMPMEnv(gym.Env):
         if self._rerun is None:
             return
         c = self.core
-        radii = [cfg.radius if cfg.shape != "box" else min(cfg.half_extents) for cfg in c.model.ee_configs[0]]
         self._rerun.log(c.state.particle_x.numpy()[c.model.world_slice(0)], c.targets[0],
-                        c.state.ee_pos.numpy()[: c.K], radii, c.grip[0],
-                        {k: float(v) for k, v in info.items()}, step=int(c.elapsed[0]))
+                        c.state.ee_pos.numpy()[: c.K], c.model.ee_configs[0], c.grip[0],
+                        {k: float(v) for k, v in info.items()}, step=int(c.elapsed[0]),
+                        ee_rot=c.state.ee_rot.numpy()[: c.K])
 
     def get_state(self) -> dict:
         """An exact copy of the simulation state and episode bookkeeping (for planners)."""

@@ -225,7 +225,8 @@ def _identify(args) -> int:
 
         X = simulate_frames(scene, [res.material], [res.friction], frames=T)[:, 0]
         save_rrd(f"{stem}.rrd", X, obs.points, obs.fps, ee_positions=scene.ee_positions,
-                 ee_radius=[c.radius for c in scene.ee_configs], particle_radius=scene.particle_radius)
+                 ee_configs=scene.ee_configs, ee_orientations=scene.ee_orientations,
+                 particle_radius=scene.particle_radius)
     print(f"{args.method}: {', '.join(f'{k}={v:.5g}' for k, v in res.params.items())}  loss {res.loss:.5g}  "
           f"({res.wall_time_s:.1f} s, {len(res.loss_history)} iterations"
           + (", converged" if res.extra.get("converged_at") is not None else "") + f", frames 0-{F - 1} of {T})")
@@ -501,7 +502,8 @@ def _identify_spring_mass(args) -> int:
     if not args.no_rrd:
         X = simulate_frames_spring_mass(scene, res.config, frames=T)
         save_rrd(f"{stem}.rrd", X, obs.points, obs.fps, ee_positions=scene.ee_positions,
-                 ee_radius=[c.radius for c in scene.ee_configs], particle_radius=0.5 * res.extra["spacing_m"])
+                 ee_configs=scene.ee_configs, ee_orientations=scene.ee_orientations,
+                 particle_radius=0.5 * res.extra["spacing_m"])
     print(f"spring-mass: {', '.join(f'{k}={v:.5g}' for k, v in res.params.items())}  loss {res.loss:.5g}  "
           f"({res.wall_time_s:.1f} s, {len(res.loss_history)} iterations, {res.extra['particles']} particles, "
           f"{res.extra['springs']} springs, frames 0-{F - 1} of {T})")

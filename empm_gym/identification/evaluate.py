@@ -223,7 +223,8 @@ def evaluate(scene: Scene, material, friction: Optional[float], obs: Observation
             for t, val in zip(frames, v):
                 full[k][t] = val
         save_rrd(d / f"{name}.rrd", X, obs.points[: len(X)], obs.fps, ee_positions=scene.ee_positions,
-                 ee_radius=[c.radius for c in scene.ee_configs], particle_radius=radius, scalars=full,
+                 ee_configs=scene.ee_configs, ee_orientations=scene.ee_orientations,
+                 particle_radius=radius, scalars=full,
                  particle_colors=cols)
         out["files"] = [str(d / f"{name}.json"), str(d / f"{name}_metrics.png"), str(d / f"{name}.rrd")]
     return out

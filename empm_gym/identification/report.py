@@ -123,17 +123,21 @@ def plot_online(result: dict, path) -> Path:
 
 
 def save_rrd(path, sim_positions: np.ndarray, obs_points: Sequence[np.ndarray], fps: float, *,
-             ee_positions: Optional[np.ndarray] = None, ee_radius: Optional[Sequence[float]] = None,
-             particle_radius: float = 0.003, scalars: Optional[Dict[str, Sequence[float]]] = None,
+             ee_positions: Optional[np.ndarray] = None, ee_configs: Optional[Sequence] = None,
+             ee_orientations: Optional[np.ndarray] = None, particle_radius: float = 0.003, scalars: Optional[Dict[str, Sequence[float]]] = None,
              app_id: str = "empm_identification", particle_colors: Optional[np.ndarray] = None,
              second_sim: Optional[np.ndarray] = None, second_name: str = "simulated_2") -> Path:
     """Write a rerun recording: simulated particles ``sim`` [T, N, 3] over measured points per frame.
 
-    Entities: ``world/simulated``, ``world/measured``, ``world/ee``, ``world/<second_name>`` (a second
+    Entities: ``world/simulated``, ``world/measured``, ``world/ee`` (the end-effectors at ``ee_positions``
+    [T, K, 3]: each drawn as its shape from ``ee_configs``, turned by ``ee_orientations`` [T, K, 4] (x, y, z, w);
+    as 1 cm points without configs), ``world/<second_name>`` (a second
     simulation [T, N, 3] to compare, e.g. the model with an added effect) and scalars ``metrics/<name>``;
     the timeline ``frame`` (sequence) and ``time`` (seconds).
     """
     import rerun as rr
+
+    from ..viz.rerun_log import log_end_effectors
 
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
@@ -156,9 +160,12 @@ def save_rrd(path, sim_positions: np.ndarray, obs_points: Sequence[np.ndarray], 
         rec.log("world/measured", rr.Points3D(np.asarray(obs_points[t], np.float32), radii=particle_radius * 0.5,
                                               colors=[235, 120, 40]))
         if ee_positions is not None and t < len(ee_positions) and len(ee_positions[t]):
-            r = ee_radius if ee_radius is not None else [0.01] * len(ee_positions[t])
-            rec.log("world/ee", rr.Points3D(np.asarray(ee_positions[t], np.float32), radii=list(r),
-                                            colors=[90, 200, 90]))
+            if ee_configs is not None:
+                log_end_effectors(rec, "world/ee", ee_configs, ee_positions[t],
+                                  None if ee_orientations is None else ee_orientations[t])
+            else:
+                rec.log("world/ee", rr.Points3D(np.asarray(ee_positions[t], np.float32), radii=0.01,
+                                                colors=[90, 200, 90]))
         for k, v in (scalars or {}).items():
             if t < len(v) and v[t] is not None and np.isfinite(v[t]):
                 rec.log(f"metrics/{k}", rr.Scalars(float(v[t])))

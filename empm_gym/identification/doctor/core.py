@@ -1849,7 +1849,8 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
         [c["heldout"]["chamfer_m"] for c in cands], None, d / "candidate_gains.png",
         title="held-out Chamfer with each candidate effect").name
     save_rrd(d / "doctor.rrd", X[:, 0], obs.points[:T], obs.fps, ee_positions=scene.ee_positions,
-             ee_radius=[c.radius for c in scene.ee_configs], particle_radius=scene.particle_radius,
+             ee_configs=scene.ee_configs, ee_orientations=scene.ee_orientations,
+             particle_radius=scene.particle_radius,
              app_id="empm_doctor", scalars={"chamfer_base": per[0]["chamfer"].tolist(),
                                             **({f"chamfer_{effect}": per[best_w]["chamfer"].tolist()} if best_w else {})},
              second_sim=None if best_w is None else X[:, best_w], second_name=f"simulated_{effect}")
