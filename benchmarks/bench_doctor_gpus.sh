@@ -38,7 +38,8 @@ wait
 python3 - <<'PY'
 import json, glob, os
 keys = ["base", "candidates", "confidence", "effect", "effect_before_variants", "first_elsewhere", "first_on", "grid",
-        "implausible", "indistinguishable_from", "noise_sigma_m", "not_ruled_out", "notes", "reason", "recording", "schema", "script", "signature_m",
+        "implausible", "indistinguishable_from", "noise_sigma_m", "not_ruled_out", "notes", "parted", "reason", "recording", "schema",
+        "script", "signature_m",
         "stage_wall_s",
         "truth", "variants", "wall_s"]
 with open(os.environ["OUT"] + "/slim.jsonl", "w") as f:

@@ -257,3 +257,20 @@ def test_the_gap_closed_is_measured_above_the_recordings_own_simulation(bench, t
     (tmp_path / "oracle.jsonl").write_text("".join(json.dumps(r) + "\n" for r in oracle))
     assert bench.main(["--summarise", str(tmp_path / "rows.jsonl"), "--floors", str(tmp_path / "oracle.jsonl")]) == 0
     assert "its two halves, dough (1): observed points to the simulation (noise) 3.00 mm" in capsys.readouterr().out
+
+
+def test_a_none_recording_the_synthesiser_tore_may_be_called_fracture_against_what_it_shows(bench, tmp_path,
+                                                                                           capsys):
+    """A `none` recording whose body the synthesiser tore (ground_truth.json's parted) shows a fracture: called
+    fracture, it is wrong as made but right against what it shows; called gripper slip, wrong either way. A torn
+    recording of the fracture itself is no such recording."""
+    torn = {"pieces": 2, "from_frame": 18, "link_m": 0.01}
+    rows = [dict(_row("a-0-none", "none", "fracture", "lift-end", 0.01), parted=torn),
+            dict(_row("b-0-none", "none", "gripper_slip", "lift-end", 0.01), parted=torn),
+            dict(_row("c-0-none", "none", "none", "drag", 0.01), parted=None),
+            dict(_row("d-0-fracture", "fracture", "fracture", "lift-end", 0.01), parted=torn)]
+    (tmp_path / "rows.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert bench.main(["--summarise", str(tmp_path / "rows.jsonl")]) == 0
+    out = capsys.readouterr().out
+    assert "naming accuracy 50.0 %" in out
+    assert "fracture: 2 such, 1 called fracture): accuracy 75.0 % of 4" in out

@@ -53,6 +53,7 @@ import json
 import math
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
@@ -336,6 +337,32 @@ SIMULATORS = ("mpm", "springmass")
 #: Effects the spring-mass simulator can carry (its springs have no yield, rate term beyond their dashpots,
 #: damage or gripper slip): the table's friction and a stiffness field (per-spring multipliers).
 SPRINGMASS_EFFECTS = ("table_friction", "heterogeneous_stiffness")
+
+
+#: Particles closer than this many grid cells belong to one piece of the simulated body (:func:`body_parts`):
+#: a gap of two cells with no particle in it is one that no MPM interaction bridges and that the cameras see.
+PARTED_LINK_CELLS = 2.0
+
+
+def body_parts(particles: np.ndarray, dx: float, min_frac: float = 0.02) -> Optional[dict]:
+    """Whether a simulated body ``particles`` [T, N, 3] (m) comes apart: ``{"pieces": n, "from_frame": t,
+    "link_m": l}``, the most connected pieces it is in at any frame (particles closer than
+    :data:`PARTED_LINK_CELLS` cells ``dx`` linked; a piece of under ``min_frac`` of the particles is not
+    counted) and the first frame in that many, when that is more than at frame 0; None when it never parts.
+
+    The synthesiser's MPM tears a body that a script stretches faster or further than its grid holds together,
+    with no fracture in the material: the rope lifted by one end (``lift-end``, dx = 5 mm, 30 frames) parts at
+    its lifted gripper from frame 17 on, on each of seeds 10-18 (benchmarks/RESULTS.md, session 52). Such a
+    recording shows a tear that its ground truth does not name."""
+    from empm_gym.identification.doctor.features import count_pieces
+
+    X = np.asarray(particles, np.float64)
+    link = PARTED_LINK_CELLS * float(dx)
+    counts = [count_pieces(x, link_m=link, min_frac=min_frac) for x in X]
+    most = max(counts)
+    if most <= counts[0]:
+        return None
+    return {"pieces": int(most), "from_frame": int(counts.index(most)), "link_m": link}
 
 
 def simulate(object: str, material, *, script: str = "default", frames: int = 60, fps: float = 30.0,
@@ -872,6 +899,13 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
     quat = sim["orientations"]
     n_sub, dt = sim["substeps"], sim["dt"]
     t_sim = time.perf_counter() - t_start
+    parted = body_parts(X, dx)
+    if parted is not None and not any(e["name"] == "fracture" for e in effects):
+        warnings.warn(f"synthesize: the simulated {object} parts into {parted['pieces']} pieces from frame "
+                      f"{parted['from_frame']} on without a fracture in its material: script {script!r} stretches "
+                      f"it further or faster than a grid of dx = {dx:g} m holds together. The recording shows a "
+                      f"tear that its ground truth does not name (ground_truth.json: parted); a finer dx or more "
+                      f"frames may keep the body whole", stacklevel=2)
 
     cams = camera_ring(C, width=width, height=height, fx=fx, fy=fy,
                        target=(0.0, 0.0, 0.03 if object == "rope" else 0.02))
@@ -952,6 +986,8 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
         "grip": ("rigid" if material.get("grip_friction") is None else
                  f"friction {material.get('grip_friction'):g}"),
         "effects": effects,
+        # the simulated body came apart (body_parts; None: it stayed whole), fracture or not
+        "parted": parted,
         "simulator": ({"name": "mpm"} if simulator == "mpm" else
                       {"name": "springmass", "stiffness_Pa": float(material.E), "damping_Pa_s": float(springmass_damping),
                        "spacing_m": float(model.spacing), "springs": int(model.spring_count)}),
