@@ -24,7 +24,7 @@ Scripts (phases as fractions of the recording; "long axis" = x, the object's lon
   height, holds, then snaps 8 cm up within one frame interval, so the body springs back, hops and rings
   (viscosity: the rebound loses energy, a lower hop and damped ringing).
 * ``lift-end``: one end gripper holds its end where it lies, the other lifts its end by half the length and
-  draws it outwards, held there to the end (fracture: the body tears).
+  (a compact object) draws it outwards, held there to the end (fracture: the body tears).
 * ``drag``: one closed gripper on the -x end drags the object 4 cm along +x, stops, opens and moves away; the
   object slides on by itself (table friction: how far it slides).
 * ``lift-twist``: the end grippers lift the object by 4 cm; then the +x gripper turns by 60 degrees about the
@@ -220,17 +220,21 @@ def _pull_apart(T: int, g: ObjectGeometry) -> ScriptResult:
 def _lift_end(T: int, g: ObjectGeometry) -> ScriptResult:
     sx, sy, sz = g.size
     start, ees, _ = _end_grippers(g)
-    # one end held where it lies; the other lifted by half the length and drawn outwards by a fifth of it,
-    # held there to the end: the body stretches and bends over the held end while its underside slides
-    # along the table towards the lifted end (as far as the table's friction lets it)
+    # one end held where it lies; the other lifted by half the length and, on a compact object, drawn outwards
+    # by a fifth of it, held there to the end: the body stretches and bends over the held end while its
+    # underside slides along the table towards the lifted end (as far as the table's friction lets it). A rope
+    # is only lifted: drawn out as well, its ends 1.3 lengths apart, it stretched by a third and the
+    # synthesiser's grid (dx = 5 mm, 30 frames) tore it at the lifted gripper with no fracture in its material,
+    # on every seed (benchmarks/RESULTS.md, session 52); lifted alone it stays whole, and a fracture tears it
+    draw = 0.0 if g.elongated else 0.2
     _, a, b, _ = _phases(T, [0.06, 0.4, 0.54])
     t = np.arange(T, dtype=np.float64)
     s = _ramp(t, a, b)
     pos = np.repeat(start[None], T, axis=0)
     pos[:, 1, 2] += 0.5 * sx * s
-    pos[:, 1, 0] += 0.2 * sx * s
+    pos[:, 1, 0] += draw * sx * s
     grip = np.ones((T, 2), np.int32)
-    lo, hi = (-sx / 2, -sy / 2, 0.0), (sx / 2 + 0.2 * sx + 0.01, sy / 2, sz + 0.5 * sx)
+    lo, hi = (-sx / 2, -sy / 2, 0.0), (sx / 2 + draw * sx + 0.01, sy / 2, sz + 0.5 * sx)
     return ScriptResult(pos, grip, ees, (lo, hi))
 
 

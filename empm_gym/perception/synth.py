@@ -351,9 +351,9 @@ def body_parts(particles: np.ndarray, dx: float, min_frac: float = 0.02) -> Opti
     counted) and the first frame in that many, when that is more than at frame 0; None when it never parts.
 
     The synthesiser's MPM tears a body that a script stretches faster or further than its grid holds together,
-    with no fracture in the material: the rope lifted by one end (``lift-end``, dx = 5 mm, 30 frames) parts at
-    its lifted gripper from frame 17 on, on each of seeds 10-18 (benchmarks/RESULTS.md, session 52). Such a
-    recording shows a tear that its ground truth does not name."""
+    with no fracture in the material: the rope lifted by one end and drawn out (``lift-end`` before session 52,
+    dx = 5 mm, 30 frames) parted at its lifted gripper from frame 17 on, on each of seeds 10-18
+    (benchmarks/RESULTS.md, session 52). Such a recording shows a tear that its ground truth does not name."""
     from empm_gym.identification.doctor.features import count_pieces
 
     X = np.asarray(particles, np.float64)
