@@ -154,6 +154,27 @@ def test_pieces():
     assert count_pieces(np.zeros((0, 3))) == 0
 
 
+def test_pieces_parted_only_by_an_end_effector_that_hides_the_gap_are_one():
+    """A rope seen as two stretches with a 6 cm gap: one piece where a plate (a box turned by 30 degrees about z)
+    covers the gap and each stretch reaches its surface, as a pressing plate hides what it presses; two where
+    the plate sits beside the gap or is too small to reach both stretches; two without end-effectors."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(2)
+    x = np.concatenate([rng.uniform(-0.15, -0.03, 600), rng.uniform(0.03, 0.15, 600)])
+    rope = np.stack([x, rng.normal(0, 0.004, len(x)), 0.01 + rng.normal(0, 0.004, len(x))], 1)
+    rot = Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    plate = (np.array([0.0, 0.0, 0.03]), np.array([0.04, 0.02, 0.01]), rot)
+    assert count_pieces(rope) == 2
+    assert count_pieces(rope, occluders=[plate]) == 1
+    assert count_pieces(rope, occluders=[(plate[0] + [0, 0.2, 0], plate[1], rot)]) == 2   # beside the gap
+    assert count_pieces(rope, occluders=[(plate[0], np.array([0.01, 0.01, 0.005]), rot)]) == 2  # too small
+    # a sphere hides it as well (size (r, r, -1)); with a contact gap large enough to reach the stretches
+    sphere = (np.array([0.0, 0.0, 0.05]), np.array([0.02, 0.02, -1.0]), None)
+    assert count_pieces(rope, occluders=[sphere]) == 2
+    assert count_pieces(rope, occluders=[sphere], occluder_gap_m=0.045) == 1
+
+
 def test_features_on_scenario_and_slip():
     ee, grip, obs, r, block, c = _scenario(noise=0.0005)
     T = len(obs)

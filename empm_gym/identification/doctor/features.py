@@ -48,8 +48,10 @@ FEATURE_INFO: Dict[str, Tuple[str, str]] = {
         "-", "(r+ - r-)/(r+ + r-): mean observed-point residual on the two halves of the body split along "
         "its principal axis at the first frame (axis oriented so its largest component is positive); "
         "0 = symmetric, +-1 = all on one half (heterogeneous stiffness, one-sided slip)"),
-    "pieces_observed": ("count", "connected pieces of the observed points at the last frame"),
-    "pieces_observed_max": ("count", "most connected pieces of the observed points over frames"),
+    "pieces_observed": ("count", "connected pieces of the observed points at the last frame (joined through an "
+                                 "end-effector that may hide what lies between them)"),
+    "pieces_observed_max": ("count", "most connected pieces of the observed points over frames (joined through an "
+                                     "end-effector that may hide what lies between them)"),
     "pieces_simulated": ("count", "connected pieces of the simulated particles at the last frame"),
     "pieces_simulated_max": ("count", "most connected pieces of the simulated particles over frames"),
     "track_slip_m": (
@@ -185,12 +187,20 @@ def particle_residual_map(obs_list: Sequence[np.ndarray], sim: np.ndarray,
 
 
 def count_pieces(points: np.ndarray, link_m: Optional[float] = None, min_frac: float = 0.05,
-                 link_factor: float = 4.0, max_points: int = 4000, seed: int = 0) -> int:
+                 link_factor: float = 4.0, max_points: int = 4000, seed: int = 0,
+                 occluders: Sequence[Tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]] = (),
+                 occluder_gap_m: float = 0.0) -> int:
     """Connected pieces of a point set: points closer than ``link_m`` are linked (radius graph).
 
     ``link_m=None``: ``link_factor`` times the median nearest-neighbour spacing of the set.
     Components with fewer than ``min_frac`` of the points are ignored (noise, flying pixels).
     Sets above ``max_points`` are subsampled (fixed seed). 0 for an empty set.
+
+    ``occluders``: end-effectors ``(centre, size, rot)`` as :func:`~.phases.surface_gap` takes them. The points
+    within ``max(link_m, occluder_gap_m)`` of one's surface are linked through it, since what lies between
+    them may be hidden behind it. Observed points part at a plate that presses a rope, or at a clamp that
+    holds a body, where the cameras cannot see (the rope pressed and released, the dough rolled in
+    lift-twist: 2 pieces without the end-effectors, 1 with them; benchmarks/RESULTS.md, session 52).
     """
     p = _pts(points)
     if len(p) == 0:
@@ -205,12 +215,17 @@ def count_pieces(points: np.ndarray, link_m: Optional[float] = None, min_frac: f
         link_m = link_factor * float(np.median(d[:, 1]))
         if link_m <= 0:
             link_m = 1e-9
-    pairs = tree.query_pairs(link_m, output_type="ndarray")
+    pairs = tree.query_pairs(link_m, output_type="ndarray").reshape(-1, 2)
     n = len(p)
-    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else \
-        coo_matrix((n, n))
-    _, lab = connected_components(g, directed=False)
-    sizes = np.bincount(lab)
+    rows, cols = [pairs[:, 0]], [pairs[:, 1]]
+    for k, (centre, size, rot) in enumerate(occluders):  # node n + k: the end-effector
+        near = np.flatnonzero(surface_gap(p, centre, size, rot) <= max(link_m, occluder_gap_m))
+        rows.append(np.full(len(near), n + k))
+        cols.append(near)
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    m = n + len(occluders)
+    _, lab = connected_components(coo_matrix((np.ones(len(r)), (r, c)), shape=(m, m)), directed=False)
+    sizes = np.bincount(lab[:n])
     return int(np.sum(sizes >= max(1, min_frac * n)))
 
 
@@ -359,14 +374,20 @@ def summary_features(
     mn = _nanmean(np.concatenate(rn)) if rn else float("nan")
     f["residual_asymmetry"] = _nanratio(mp - mn, mp + mn) if np.isfinite(mp) and np.isfinite(mn) else float("nan")
 
-    # pieces
+    # pieces: the observed points joined through the end-effectors that may hide what lies between them
+    size = ee_sizes(ee_radius, K)
     shown = [t for t in range(T) if len(_pts(obs_list[t]))]  # a frame where the object is wholly hidden shows none
+
+    def observed_pieces(t: int) -> int:
+        return count_pieces(obs_list[t], link_m, min_piece_frac, occluder_gap_m=contact_dist_m,
+                            occluders=[(ee[t, k], size[k], rot[t, k]) for k in range(K)])
+
     if shown:
         last = shown[-1]  # the last frame that sees the object, for both
-        f["pieces_observed"] = float(count_pieces(obs_list[last], link_m, min_piece_frac))
+        f["pieces_observed"] = float(observed_pieces(last))
         f["pieces_simulated"] = float(count_pieces(sim[last], link_m, min_piece_frac))
         idx = shown[::max(1, piece_stride)]
-        f["pieces_observed_max"] = float(max(count_pieces(obs_list[t], link_m, min_piece_frac) for t in idx))
+        f["pieces_observed_max"] = float(max(observed_pieces(t) for t in idx))
         f["pieces_simulated_max"] = float(max(count_pieces(sim[t], link_m, min_piece_frac) for t in idx))
     else:
         for k in ("pieces_observed", "pieces_simulated", "pieces_observed_max", "pieces_simulated_max"):
