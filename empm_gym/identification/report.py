@@ -124,7 +124,8 @@ def plot_online(result: dict, path) -> Path:
 
 def save_rrd(path, sim_positions: np.ndarray, obs_points: Sequence[np.ndarray], fps: float, *,
              ee_positions: Optional[np.ndarray] = None, ee_configs: Optional[Sequence] = None,
-             ee_orientations: Optional[np.ndarray] = None, particle_radius: float = 0.003, scalars: Optional[Dict[str, Sequence[float]]] = None,
+             ee_orientations: Optional[np.ndarray] = None, particle_radius: float = 0.003,
+             scalars: Optional[Dict[str, Sequence[float]]] = None,
              app_id: str = "empm_identification", particle_colors: Optional[np.ndarray] = None,
              second_sim: Optional[np.ndarray] = None, second_name: str = "simulated_2") -> Path:
     """Write a rerun recording: simulated particles ``sim`` [T, N, 3] over measured points per frame.

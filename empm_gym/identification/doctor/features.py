@@ -375,7 +375,7 @@ def summary_features(
     f["residual_asymmetry"] = _nanratio(mp - mn, mp + mn) if np.isfinite(mp) and np.isfinite(mn) else float("nan")
 
     # pieces: the observed points joined through the end-effectors that may hide what lies between them
-    size = ee_sizes(ee_radius, K)
+    size = ee_sizes(ee_radius, K)  # [K, 3], as surface_gap takes them (also for the track slip below)
     shown = [t for t in range(T) if len(_pts(obs_list[t]))]  # a frame where the object is wholly hidden shows none
 
     def observed_pieces(t: int) -> int:
@@ -400,7 +400,6 @@ def summary_features(
         st = np.asarray(sim_tracks, dtype=float)[:T]
         vis = (np.ones(tr.shape[:2]) if visible is None else np.asarray(visible))[:T] > 0.5
         gap = contact_distances(ee[:T], ee_radius, obs_list[:T], ee_orientations)
-        size = ee_sizes(ee_radius, K)
 
         def local(x, t, k):  # a position relative to gripper k at frame t, in the gripper's own frame
             return (x - ee[t, k]) @ rot[t, k]
