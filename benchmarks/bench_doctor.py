@@ -281,7 +281,9 @@ def rescore(paths):
     on the same fits. A recording found in several files is scored from the last of them (a run of a few
     recordings again, given after the run it completes)."""
     from empm_gym.identification.doctor import DoctorConfig
-    from empm_gym.identification.doctor.core import SIGNATURE_FEATURES, _friction_equivalent, select_verdict
+    from empm_gym.identification.doctor.core import (SIGNATURE_FEATURES, _friction_equivalent, select_verdict,
+                                                     toward_absence)
+    from empm_gym.sim.effects import PARAMETERS
 
     factor = DoctorConfig().friction_equivalence
     rows = {}
@@ -296,6 +298,12 @@ def rescore(paths):
                 cands = [c if "equivalent_to_base" in c else
                          {**c, "equivalent_to_base": _friction_equivalent(c.get("params", {}).get("friction"), base_mu,
                                                                          factor)} for c in res["candidates"]]
+                # dumps older than session 53 lack the fits that end where their effect vanishes: taken from the
+                # fitted values and the registry's boxes (the side where an effect vanishes is never capped)
+                cands = [c if "toward_absence" in c else
+                         {**c, "toward_absence": toward_absence(c.get("params", {}), {
+                             k: PARAMETERS[k].search for k in c.get("params", {}) if k in PARAMETERS})}
+                         for c in cands]
                 # dumps older than the signature veto (session 44) hold the check for their verdict alone: that
                 # candidate is marked as the doctor now marks every significant one (older than session 40, the
                 # check's "unsupported", a discrepancy under the depth noise, is taken from the values it holds)

@@ -89,6 +89,23 @@ def test_rescore_applies_the_signature_veto_to_dumps_that_hold_the_check_for_the
     assert got == {"torn": "fracture", "torn-old": "fracture", "quiet-old": "gripper_slip", "explained": "gripper_slip"}
 
 
+def test_rescore_sets_aside_old_dumps_fits_that_end_where_their_effect_vanishes(bench, tmp_path):
+    """Dumps older than session 53 lack ``toward_absence``: rescored, it is taken from the fitted values and the
+    registry's boxes, so a fracture named at a strain at the top of its box (dough lifted by one end without any
+    effect) goes to ``none``; the same fit at a strain inside the box stays named."""
+    def res(name, strain):
+        return {"recording": name, "script": "lift-end", "truth": "none", "effect": "fracture", "confidence": 0.6,
+                "wall_s": 1.0, "base": {"heldout": {"chamfer_m": 2e-3, "loss": 5e-3}, "params": {"E": 2.3e4}},
+                "candidates": [{"effect": "fracture", "params": {"E": 2.7e4, "fracture_strain": strain},
+                                "heldout": {"chamfer_m": 1.9e-3, "loss": 4.7e-3},
+                                "gain": {"gain": 0.061, "lower": 0.044, "upper": 0.102, "threshold": 0.04,
+                                         "significant": True}}]}
+
+    (tmp_path / "dump.jsonl").write_text(json.dumps(res("at-top", 1.5)) + "\n" + json.dumps(res("inside", 1.3)) + "\n")
+    got = {r["recording"]: r["verdict"] for r in bench.rescore([tmp_path / "dump.jsonl"])}
+    assert got == {"at-top": "none", "inside": "fracture"}
+
+
 def test_make_with_effect_params_synthesises_them_and_keeps_them_for_scoring(bench, tmp_path):
     """``--make --effect-params viscosity=80 --base-params E=3e4,density=900``: the recording is made with that
     viscosity on that base material (its ground truth says so), its problem's name ends with them, and the pickle

@@ -34,7 +34,9 @@ Pipeline (:func:`diagnose`):
    them; a gain the effect earns does (:func:`_check_variants`); a stiffness field must moreover vary the
    stiffness by more than the base model's E varies between the discretisations
    (:func:`_within_discretisation`). A table friction fitted within ``friction_equivalence`` of the base
-   model's is the base's table, not a missing effect, and is not checked or named. The verdict is the candidate with
+   model's is the base's table, not a missing effect, and is not checked or named; nor is a candidate whose
+   effect parameter ends at the bound of its box where the effect vanishes (:func:`toward_absence`: the least of
+   the effect the box allows, its optimum toward the base model). The verdict is the candidate with
    the largest median held-out gain over the doctor's discretisation and the variants among those whose gain
    is significant and holds on the variants, else ``none``; its confidence is the fraction of bootstrap
    resamples in which it stays the best and significant (candidates the variants refuted are no rivals), times
@@ -326,6 +328,8 @@ class _Fit:
     """:func:`signature_check` of its effect's own feature against the base model's (significant candidates)."""
     contradicted: bool = False
     """Its fit moves its own trusted signature away from the measurement (``DoctorConfig.signature_veto``)."""
+    absent: List[str] = field(default_factory=list)
+    """Its effect parameters that end where the effect vanishes (:func:`toward_absence`): not named."""
 
 
 def _check_inputs(scene: Scene, obs: Observations, cfg: DoctorConfig) -> Tuple[int, int]:
@@ -637,6 +641,40 @@ def _params_at_bound(f: "_Fit") -> List[str]:
         if (_at_bound(v, (lo, hi)) if log and lo > 0 else min(v - lo, hi - v) <= 0.025 * (hi - lo)):
             out.append(k)
     return out
+
+
+def toward_absence(params: Dict[str, float], bounds: Dict[str, Tuple[float, float]]) -> List[str]:
+    """The effect parameters of a candidate's fit (``params``, searched in ``bounds``) that end at the bound of
+    their box on the side where the effect vanishes (:data:`_ABSENT`: a fracture strain or yield stress at the
+    top, a viscosity at the bottom, a grip at its firmest); at the bound as in :func:`_params_at_bound`.
+
+    Such a fit is the least of its effect that the box allows, and its optimum lies toward no effect at all:
+    the base model, which the candidate contains in that limit. What it gains held out comes from a trace of
+    the effect acting only where the model is strained most (the particles an end-effector drags), not from the
+    effect, and it is not named. On every stored diagnosis of the benchmark (benchmarks/RESULTS.md, session 53)
+    three verdicts were such fits, all three on recordings without any effect: a fracture at a strain of
+    1.49-1.50 (box top 1.5) on dough lifted by one end (seeds 11 and 15) and a viscosity of 0.52 Pa s (box
+    bottom 0.5) on dough squeezed in a ring (seed 14); no right verdict was."""
+    out = []
+    for k, v in params.items():
+        if k == "E" or k not in bounds or k not in _ABSENT:
+            continue
+        lo, hi = bounds[k]
+        log = PARAMETERS[k].transform == "log" and lo > 0
+        low = v < lo * _EDGE_FACTOR if log else v - lo <= 0.025 * (hi - lo)
+        high = v > hi / _EDGE_FACTOR if log else hi - v <= 0.025 * (hi - lo)
+        if (high and _ABSENT[k] >= hi) or (low and _ABSENT[k] <= lo):
+            out.append(k)
+    return out
+
+
+def set_aside(c: dict) -> bool:
+    """A candidate (``doctor.json``'s ``candidates`` entry) that is no missing effect whatever its gain: the base
+    model's table (``equivalent_to_base``), a fit that moves its own trusted signature away from the
+    measurement (``contradicted_by_signature``) or one that ends where its effect vanishes
+    (``toward_absence``, :func:`toward_absence`)."""
+    return bool(c.get("equivalent_to_base", False) or c.get("contradicted_by_signature", False)
+                or c.get("toward_absence"))
 
 
 def implausible_params(params: Dict[str, float]) -> Dict[str, Tuple[float, float]]:
@@ -967,6 +1005,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
             f.test = paired_gain_test(base_loss, pf["loss"][heldout], added_params=f.added,
                                       penalty_per_param=cfg.penalty_per_param, level=cfg.level, seed=cfg.seed)
             f.equivalent = _friction_equivalent(f.params.get("friction"), base_friction, cfg.friction_equivalence)
+            f.absent = toward_absence(f.params, f.bounds)
 
     # -- 4. verdict -------------------------------------------------------------------------------------------
     cands = fits[1:]
@@ -984,11 +1023,20 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     features = {0: feats(X[:, 0])}  # by fit index: the base model's and each checked candidate's
     noise_m = noise if np.isfinite(noise) else None
     for w, f in enumerate(fits):
-        if f is not base_fit and f.name in SIGNATURE_FEATURES and gain_is_significant(f.test) and not f.equivalent:
+        if (f is not base_fit and f.name in SIGNATURE_FEATURES and gain_is_significant(f.test) and not f.equivalent
+                and not f.absent):
             features[w] = feats(X[:, w])
             f.signature = signature_check(f.name, features[0], features[w], noise_m=noise_m)
             f.contradicted = bool(cfg.signature_veto and f.signature["trusted"] and f.signature["explained"] is False)
     for f in cands:
+        if f.absent and gain_is_significant(f.test):
+            where = ", ".join(f"{k} = {f.params[k]:.4g}, box {f.bounds[k][0]:.4g} to {f.bounds[k][1]:.4g}"
+                              for k in f.absent)
+            warnings.append(
+                f"{f.name} lowers the held-out loss by {100 * f.test['gain']:.1f} %, but its fit ends at the bound of "
+                f"its search box where the effect vanishes ({where}): the least {f.name} the box allows, its optimum "
+                f"toward none at all (the base model); the gain comes from a trace of the effect where the model is "
+                f"strained most, and it is not named")
         if f.contradicted:
             warnings.append(
                 f"{f.name} lowers the held-out loss by {100 * f.test['gain']:.1f} %, but its fit moves its own signature "
@@ -997,7 +1045,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                 f"from elsewhere in the recording and it is not named")
     by_name = {f.name: f for f in cands}
     as_dicts = [{"effect": f.name, "params": f.params, "heldout": f.heldout, "gain": f.test,
-                 "equivalent_to_base": f.equivalent, "contradicted_by_signature": f.contradicted}
+                 "equivalent_to_base": f.equivalent, "contradicted_by_signature": f.contradicted,
+                 "toward_absence": f.absent}
                 for f in cands]
     to_check = [by_name[n] for n in select_verdict(as_dicts, None)[2][:cfg.variant_top]]
     clock["held-out scores"] = time.perf_counter() - t_start - sum(clock.values())
@@ -1111,7 +1160,10 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                               f"{cfg.friction_equivalence:g} of the assumed {base_friction:g}: the base model's table"
                               for f in base_table)
                     + "".join(f"; {f.name} does, but its fit moves its own signature ({f.signature['feature']}) away "
-                              f"from the measurement" for f in cands if f.contradicted))),
+                              f"from the measurement" for f in cands if f.contradicted)
+                    + "".join(f"; {f.name} does, but its fit ends where its effect vanishes "
+                              f"({', '.join(f.absent)} at its bound)" for f in cands
+                              if f.absent and gain_is_significant(f.test)))),
         "effect_before_variants": unchecked.name if unchecked else "none",
         "indistinguishable_from": rivals,
         "not_ruled_out": undecided,
@@ -1415,7 +1467,8 @@ def select_verdict(candidates: Sequence[dict], variants: Optional[dict]) -> Tupl
     first)``. A candidate passes when its held-out gain is significant (:func:`gain_is_significant`: the whole
     interval above its penalty), its fit is not the base model's table (``equivalent_to_base``: a table friction
     within ``DoctorConfig.friction_equivalence`` of the base's), its fit does not move its own trusted signature
-    away from the measurement (``contradicted_by_signature``, ``DoctorConfig.signature_veto``) and, with variants,
+    away from the measurement (``contradicted_by_signature``, ``DoctorConfig.signature_veto``), its fit does not
+    end where its effect vanishes (``toward_absence``, :func:`toward_absence`) and, with variants,
     it holds on them
     (:func:`_robust`) and, a stiffness field, its contrast exceeds what the discretisation alone does to the
     stiffness (:func:`_within_discretisation`); a significant candidate the variants did not check does not pass.
@@ -1511,10 +1564,9 @@ def _contenders(candidates: Sequence[dict], variants: dict) -> List[str]:
 
 def _significant(candidates: Sequence[dict]) -> List[str]:
     """Names of the candidates (``doctor.json``'s ``candidates``) whose held-out gain is significant
-    (:func:`gain_is_significant`) and that are not the base model's table, lowest held-out loss first."""
+    (:func:`gain_is_significant`) and that are not set aside (:func:`set_aside`), lowest held-out loss first."""
     return [c["effect"] for c in sorted(candidates, key=lambda c: c["heldout"]["loss"])
-            if c.get("gain") and gain_is_significant(c["gain"]) and not c.get("equivalent_to_base", False)
-            and not c.get("contradicted_by_signature", False)]
+            if c.get("gain") and gain_is_significant(c["gain"]) and not set_aside(c)]
 
 
 def _discretisation_gain(gain, variant_gains: Sequence[float]):
@@ -1571,7 +1623,7 @@ def _friction_equivalent(mu: Optional[float], base_friction: float, factor: floa
 def _fit_dict(f: _Fit) -> dict:
     return {"effect": f.name, "params": f.params, "added_params": f.added, "fit_loss": f.fit_loss,
             "heldout": f.heldout, "gain": f.test or None, "equivalent_to_base": f.equivalent,
-            "signature_check": f.signature, "contradicted_by_signature": f.contradicted,
+            "signature_check": f.signature, "contradicted_by_signature": f.contradicted, "toward_absence": f.absent,
             "fit_wall_time_s": round(f.wall_s, 2),
             "material": f.material.to_dict(), "table_friction": f.friction,
             "E_window": list(f.bounds["E"]) if "E" in f.bounds else None, "at_search_bound": _params_at_bound(f)}
@@ -1585,8 +1637,8 @@ def not_ruled_out(candidates: Sequence[dict], verdict: Optional[str] = None) -> 
     resamples in which one of them clears its penalty), and a reader of a ``none`` needs their names: on seed 17's
     rope squeezed in a ring with a hidden viscosity (``none``, confidence 0.38) viscosity gained 5.0 % held out,
     its interval -2.3 to 9.0 % about a 4 % penalty, while plasticity's and the stiffness field's intervals lay
-    wholly below theirs. The base model's table (``equivalent_to_base``), a fit that moves its own signature away
-    from the measurement (``contradicted_by_signature``) and ``verdict`` itself are left out; largest upper end
+    wholly below theirs. Candidates set aside (:func:`set_aside`: the base model's table, a fit that moves its own
+    signature away from the measurement or ends where its effect vanishes) and ``verdict`` itself are left out; largest upper end
     first. Each entry: ``effect``, ``gain``, ``lower``, ``upper``, ``threshold`` (fractions of the base model's
     held-out loss) and ``signature`` (how the effect would show, :data:`~empm_gym.sim.effects.EFFECTS`)."""
     out = []
@@ -1595,8 +1647,7 @@ def not_ruled_out(candidates: Sequence[dict], verdict: Optional[str] = None) -> 
         v = {k: _finite_or_none(float("nan") if t.get(k) is None else float(t[k]))
              for k in ("gain", "lower", "upper", "threshold")}
         if (c["effect"] == verdict or v["upper"] is None or v["threshold"] is None or v["upper"] <= v["threshold"]
-                or gain_is_significant(t) or c.get("equivalent_to_base", False)
-                or c.get("contradicted_by_signature", False)):
+                or gain_is_significant(t) or set_aside(c)):
             continue
         out.append({"effect": c["effect"], **v,
                     "signature": EFFECTS[c["effect"]].signature if c["effect"] in EFFECTS else None})
@@ -1617,12 +1668,11 @@ def not_ruled_out_text(entries: Sequence[dict]) -> str:
 
 def no_rivals(candidates: Sequence[dict], variants: Optional[dict]) -> List[str]:
     """Names of the candidates (``doctor.json``'s ``candidates``) that are out of the verdict on every resample of
-    the held-out frames (:func:`_confidence`'s ``refuted``): the base model's table (``equivalent_to_base``) and
-    those the variants refuted (``variants``: :func:`_check_variants`' result, None without that check). A
+    the held-out frames (:func:`_confidence`'s ``refuted``): those set aside (:func:`set_aside`) and those the
+    variants refuted (``variants``: :func:`_check_variants`' result, None without that check). A
     candidate the variants did not check stays a rival: it was not refuted."""
     checked = (variants or {}).get("candidates", {}) if (variants or {}).get("variants") else {}
-    return [c["effect"] for c in candidates if c.get("equivalent_to_base", False)
-            or c.get("contradicted_by_signature", False) or not checked.get(c["effect"], {}).get("robust", True)]
+    return [c["effect"] for c in candidates if set_aside(c) or not checked.get(c["effect"], {}).get("robust", True)]
 
 
 def _confidence(base, cands: List[np.ndarray], added: List[int], cfg: DoctorConfig, winner: Optional[int],
