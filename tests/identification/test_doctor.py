@@ -697,14 +697,17 @@ def doctor_names_the_hidden_effect(tmp_path, effect, script, obj="dough"):
         assert sig["explained"] is not False or not SIGNATURE_FEATURES[effect][2], sig
         assert "signature check" in (tmp_path / "doctor" / "report.md").read_text()
         assert res["evidence"]["features_with_effect"][sig["feature"]] == sig["with_effect"]
-    # every significant candidate with a signature feature carries its own check; none named is contradicted
+    # every significant candidate with a signature feature carries its own check (not one set aside as ending where
+    # its effect vanishes); none named is contradicted or set aside
     for c in res["candidates"]:
-        checked = c["effect"] in SIGNATURE_FEATURES and c["gain"]["significant"] and not c["equivalent_to_base"]
+        checked = (c["effect"] in SIGNATURE_FEATURES and c["gain"]["significant"] and not c["equivalent_to_base"]
+                   and not c["toward_absence"])
         assert (c["signature_check"] is not None) == checked, c
         assert c["contradicted_by_signature"] == bool(checked and c["signature_check"]["trusted"]
                                                       and c["signature_check"]["explained"] is False), c
         if c["effect"] == res["effect"]:
             assert c["signature_check"] == res["evidence"]["signature_check"] and not c["contradicted_by_signature"]
+            assert not c["toward_absence"], c
     # what a none could not exclude: every candidate whose interval reaches above its penalty without being
     # significant, each named in a none's reason
     from empm_gym.identification.doctor.core import not_ruled_out
@@ -713,7 +716,8 @@ def doctor_names_the_hidden_effect(tmp_path, effect, script, obj="dough"):
     for c in res["candidates"]:
         listed = c["effect"] in [e["effect"] for e in res["not_ruled_out"]]
         assert listed == (c["effect"] != res["effect"] and not c["gain"]["significant"] and not c["equivalent_to_base"]
-                          and not c["contradicted_by_signature"] and c["gain"]["upper"] > c["gain"]["threshold"]), c
+                          and not c["contradicted_by_signature"] and not c["toward_absence"]
+                          and c["gain"]["upper"] > c["gain"]["threshold"]), c
         assert (f"not ruled out: {c['effect']}" in res["reason"] or f"; {c['effect']} (held-out gain" in res["reason"]) \
             == (listed and res["effect"] == "none"), res["reason"]
     # the held-out gap before and after, as the candidates' table and the verdict score it, with the mask IoU
@@ -1029,6 +1033,37 @@ def test_a_fit_that_ends_where_its_effect_vanishes_is_not_named():
     assert no_rivals(cands(True), None) == ["fracture", "viscosity"] and no_rivals(cands(False), None) == []
     assert [e["effect"] for e in not_ruled_out(cands(False), "fracture")] == ["viscosity"]
     assert not_ruled_out(cands(True), "heterogeneous_stiffness") == []
+
+
+def test_a_diagnosis_sets_aside_a_fit_that_ends_where_its_effect_vanishes(monkeypatch):
+    """End to end on a block pushed by a sphere with a low yield stress: plasticity gains nearly all the held-out
+    loss and is named, its fit inside its box (``toward_absence`` empty). Were its yield stress at the top of the
+    box (the rule's answer replaced, the fits and scores real), it is not named: the verdict is ``none``, the
+    candidate says why in ``doctor.json``, a note and the reason, and its signature is not checked."""
+    from empm_gym.identification.doctor import core
+    from empm_gym.sim import MaterialConfig
+
+    scene, obs = _pushed_block(MaterialConfig(E=3.0e4, nu=0.3, density=1000.0, yield_stress=300.0))
+    cfg = DoctorConfig(base_iters=4, candidate_iters=3, popsize=6, variants=0, base_E=1.5e4)
+    res = diagnose(scene, obs, effects=["plasticity"], config=cfg, progress=False)
+    (cand,) = res["candidates"]
+    assert res["effect"] == "plasticity" and cand["gain"]["significant"] and cand["toward_absence"] == []
+    assert cand["params"]["yield_stress"] < 1e3
+
+    seen = []
+
+    def at_top(params, bounds):
+        seen.append(bounds["yield_stress"])
+        return ["yield_stress"]
+
+    monkeypatch.setattr(core, "toward_absence", at_top)
+    res = diagnose(scene, obs, effects=["plasticity"], config=cfg, progress=False)
+    (cand,) = res["candidates"]
+    assert seen and all(b == core._search_box("yield_stress", scene.material, scene.dx) for b in seen)
+    assert cand["gain"]["significant"] and cand["toward_absence"] == ["yield_stress"]
+    assert res["effect"] == "none" and cand["signature_check"] is None and res["not_ruled_out"] == []
+    assert "ends where its effect vanishes (yield_stress at its bound)" in res["reason"], res["reason"]
+    assert any("where the effect vanishes (yield_stress = " in n for n in res["notes"]), res["notes"]
 
 
 def test_two_effects_that_both_hold_are_ranked_over_every_discretisation():
