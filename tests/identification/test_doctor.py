@@ -1016,6 +1016,8 @@ def test_a_fit_that_ends_where_its_effect_vanishes_is_not_named():
     assert toward_absence({"yield_stress": 9.8e5}, box) == ["yield_stress"]
     assert toward_absence({"stiffness_slope_1": 0.0}, box) == [] and toward_absence({"friction": 0.5}, box) == []
     assert toward_absence({"stiffness_slope_1": 1.2, "friction": 3.0}, box) == []
+    assert toward_absence({"fracture_strain": 0.2, "fracture_softening": 0.005},
+                          {**box, "fracture_softening": (0.005, 0.5)}) == []  # abrupt damage is no absent fracture
 
     def test(gain, width=0.005):
         return {"gain": gain, "lower": gain - width, "upper": gain + width, "threshold": 0.04}

@@ -657,7 +657,8 @@ def toward_absence(params: Dict[str, float], bounds: Dict[str, Tuple[float, floa
     bottom 0.5) on dough squeezed in a ring (seed 14); no right verdict was."""
     out = []
     for k, v in params.items():
-        if k == "E" or k not in bounds or k not in _ABSENT:
+        # a fracture's softening is no measure of how much of it there is (the strain is): it has no such side
+        if k == "E" or k not in bounds or k not in _ABSENT or k == "fracture_softening":
             continue
         lo, hi = bounds[k]
         log = PARAMETERS[k].transform == "log" and lo > 0
