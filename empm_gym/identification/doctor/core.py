@@ -654,7 +654,9 @@ def toward_absence(params: Dict[str, float], bounds: Dict[str, Tuple[float, floa
     effect, and it is not named. On every stored diagnosis of the benchmark (benchmarks/RESULTS.md, session 53)
     three verdicts were such fits, all three on recordings without any effect: a fracture at a strain of
     1.49-1.50 (box top 1.5) on dough lifted by one end (seeds 11 and 15) and a viscosity of 0.52 Pa s (box
-    bottom 0.5) on dough squeezed in a ring (seed 14); no right verdict was."""
+    bottom 0.5) on dough squeezed in a ring (seed 14); no right verdict was. The limit: a material whose
+    effect lies beyond that bound (a tear only past a strain of 1.5, a viscosity under 0.5 Pa s) fits the same
+    way and is not named either; the note says so, and the reason of a ``none`` names the candidate."""
     out = []
     for k, v in params.items():
         # a fracture's softening is no measure of how much of it there is (the strain is): it has no such side
@@ -1035,9 +1037,10 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                               for k in f.absent)
             warnings.append(
                 f"{f.name} lowers the held-out loss by {100 * f.test['gain']:.1f} %, but its fit ends at the bound of "
-                f"its search box where the effect vanishes ({where}): the least {f.name} the box allows, its optimum "
-                f"toward none at all (the base model); the gain comes from a trace of the effect where the model is "
-                f"strained most, and it is not named")
+                f"its search box where the effect vanishes ({where}): the fit asks for less {f.name} than the box "
+                f"can express, toward none at all (the base model), and it is not named. A trace of an effect acting "
+                f"only where the model is strained most gains so on recordings without it; a material whose "
+                f"{f.name} lies beyond that bound looks the same here (to test one, widen the parameter's search box)")
         if f.contradicted:
             warnings.append(
                 f"{f.name} lowers the held-out loss by {100 * f.test['gain']:.1f} %, but its fit moves its own signature "
