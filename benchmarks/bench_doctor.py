@@ -319,6 +319,11 @@ def rescore(paths):
                 variants = res.get("variants")
                 if variants and "base_E" not in variants:  # dumps older than session 28: the base fit's E
                     variants = {**variants, "base_E": res["base"]["params"]["E"]}
+                if variants and variants.get("candidates"):  # and the variants' refits that end where it vanishes
+                    variants = {**variants, "candidates": {name: {**rec, "tests": [
+                        t if "toward_absence" in t else {**t, "toward_absence": toward_absence(t.get("params", {}), {
+                            k: PARAMETERS[k].search for k in t.get("params", {}) if k in PARAMETERS})}
+                        for t in rec.get("tests", [])]} for name, rec in variants["candidates"].items()}}
                 win, first, _ = select_verdict(cands, variants)
                 res = {**res, "candidates": cands, "effect": win or "none", "effect_before_variants": first or "none"}
             rows.pop(res["recording"], None)

@@ -105,6 +105,21 @@ def test_rescore_sets_aside_old_dumps_fits_that_end_where_their_effect_vanishes(
     got = {r["recording"]: r["verdict"] for r in bench.rescore([tmp_path / "dump.jsonl"])}
     assert got == {"at-top": "none", "inside": "fracture"}
 
+    # and the variants' refits: a fracture that holds on two shifted grids, one of them at the top of the box, does
+    # not hold there (with fewer than five variants it must hold on all)
+    def varied(name, strains):
+        r = res(name, 1.3)
+        r["variants"] = {"variants": ["grid 1", "grid 2"], "base": [], "base_E": 2.3e4, "candidates": {"fracture": {
+            "tests": [{"variant": f"grid shifted and particles resampled ({i + 1})", "kind": "discretisation",
+                       "params": {"E": 2.7e4, "fracture_strain": s}, "gain": 0.06, "threshold": 0.04}
+                      for i, s in enumerate(strains)]}}}
+        return r
+
+    (tmp_path / "dump.jsonl").write_text(json.dumps(varied("grid-at-top", [1.3, 1.5])) + "\n"
+                                         + json.dumps(varied("grids-inside", [1.3, 1.2])) + "\n")
+    got = {r["recording"]: r["verdict"] for r in bench.rescore([tmp_path / "dump.jsonl"])}
+    assert got == {"grid-at-top": "none", "grids-inside": "fracture"}
+
 
 def test_make_with_effect_params_synthesises_them_and_keeps_them_for_scoring(bench, tmp_path):
     """``--make --effect-params viscosity=80 --base-params E=3e4,density=900``: the recording is made with that
