@@ -773,7 +773,10 @@ def test_doctor_cli_marks_fits_at_their_search_bound(tmp_path, capsys, monkeypat
                            "at_search_bound": ["E", "fracture_strain"], "gain": {"gain": -0.12, "significant": False}},
                           {**fit, "effect": "viscosity", "params": {"E": 2100.0, "viscosity": 3.0}, "at_search_bound": [],
                            "gain": {"gain": 0.05, "lower": -0.023, "upper": 0.09, "threshold": 0.04,
-                                    "significant": False}}],
+                                    "significant": False}},
+                          {**fit, "effect": "plasticity", "params": {"E": 2.3e4, "yield_stress": 9.9e5},
+                           "at_search_bound": ["yield_stress"], "toward_absence": ["yield_stress"],
+                           "gain": {"gain": 0.06, "significant": True}}],
            "not_ruled_out": [{"effect": "viscosity"}]}
     seen = {}
     monkeypatch.setattr(doctor, "diagnose_recording", lambda *a, **k: seen.update(k) or res)
@@ -786,6 +789,8 @@ def test_doctor_cli_marks_fits_at_their_search_bound(tmp_path, capsys, monkeypat
     # each gain with its interval and penalty; a candidate the frames cannot exclude says so
     assert "loss gain +5.0 % (95 % interval -2.3 to 9.0 %, penalty 4 %) (not ruled out); fitted E=2100" in out
     assert "loss gain -12.0 % ; fitted E=2003" in out  # no interval stored: none printed
+    # a fit at the bound where its effect vanishes says that it is not named
+    assert "fitted E=2.3e+04, yield_stress=9.9e+05 (at bound, where the effect vanishes: not named)" in out
 
 
 def test_variants_are_the_same_body_on_another_discretisation():

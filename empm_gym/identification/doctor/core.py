@@ -609,8 +609,11 @@ def _fit_candidate(name: str, scene: Scene, obs: Observations, base_material: Ma
 
 def fitted_text(fit: dict) -> str:
     """A fit's parameters as ``E=2.99e+04, grip_friction=0.8967``, each marked ``(at bound)`` where it lies
-    at its search bound (report.md's table and the CLI)."""
-    return ", ".join(f"{k}={v:.4g}" + (" (at bound)" if k in fit.get("at_search_bound", ()) else "")
+    at its search bound, ``(at bound, where the effect vanishes: not named)`` where it lies at the bound on the
+    side of no effect (:func:`toward_absence`; report.md's table and the CLI)."""
+    return ", ".join(f"{k}={v:.4g}" + (" (at bound, where the effect vanishes: not named)"
+                                       if k in (fit.get("toward_absence") or ()) else
+                                       " (at bound)" if k in fit.get("at_search_bound", ()) else "")
                      for k, v in fit["params"].items())
 
 
@@ -1935,7 +1938,8 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
               "Candidates (held-out frames)": rows}
     var = result.get("variants") or {}
     vrows = [{"candidate": name, "variant": t["variant"], "fitted": ", ".join(f"{k}={v:.4g}" for k, v in t["params"].items()),
-              "held-out loss gain [%]": 100 * t["gain"], "threshold [%]": 100 * t["threshold"], "holds": t["holds"]}
+              "held-out loss gain [%]": 100 * t["gain"], "threshold [%]": 100 * t["threshold"],
+              "holds": "no: ends where the effect vanishes" if t.get("toward_absence") else t["holds"]}
              for name, rec in var.get("candidates", {}).items() for t in rec["tests"]]
     if vrows:
         tables[f"The same candidates on other discretisations and bodies (named only if {var['rule']})"] = vrows
