@@ -286,6 +286,12 @@ def rescore(paths):
     from empm_gym.sim.effects import PARAMETERS
 
     factor = DoctorConfig().friction_equivalence
+
+    def vanishing(t):  # a fit or variant test of a dump older than session 53: the flag from the registry's boxes
+        ps = t.get("params", {})
+        return t if "toward_absence" in t else {**t, "toward_absence": toward_absence(
+            ps, {k: PARAMETERS[k].search for k in ps if k in PARAMETERS})}
+
     rows = {}
     for path in paths:
         for line in Path(path).read_text().splitlines():
@@ -300,10 +306,7 @@ def rescore(paths):
                                                                          factor)} for c in res["candidates"]]
                 # dumps older than session 53 lack the fits that end where their effect vanishes: taken from the
                 # fitted values and the registry's boxes (the side where an effect vanishes is never capped)
-                cands = [c if "toward_absence" in c else
-                         {**c, "toward_absence": toward_absence(c.get("params", {}), {
-                             k: PARAMETERS[k].search for k in c.get("params", {}) if k in PARAMETERS})}
-                         for c in cands]
+                cands = [vanishing(c) for c in cands]
                 # dumps older than the signature veto (session 44) hold the check for their verdict alone: that
                 # candidate is marked as the doctor now marks every significant one (older than session 40, the
                 # check's "unsupported", a discrepancy under the depth noise, is taken from the values it holds)
@@ -320,10 +323,9 @@ def rescore(paths):
                 if variants and "base_E" not in variants:  # dumps older than session 28: the base fit's E
                     variants = {**variants, "base_E": res["base"]["params"]["E"]}
                 if variants and variants.get("candidates"):  # and the variants' refits that end where it vanishes
-                    variants = {**variants, "candidates": {name: {**rec, "tests": [
-                        t if "toward_absence" in t else {**t, "toward_absence": toward_absence(t.get("params", {}), {
-                            k: PARAMETERS[k].search for k in t.get("params", {}) if k in PARAMETERS})}
-                        for t in rec.get("tests", [])]} for name, rec in variants["candidates"].items()}}
+                    variants = {**variants, "candidates": {
+                        name: {**rec, "tests": [vanishing(t) for t in rec.get("tests", [])]}
+                        for name, rec in variants["candidates"].items()}}
                 win, first, _ = select_verdict(cands, variants)
                 res = {**res, "candidates": cands, "effect": win or "none", "effect_before_variants": first or "none"}
             rows.pop(res["recording"], None)

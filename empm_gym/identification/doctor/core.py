@@ -630,20 +630,20 @@ def _at_bound(E: float, box: Tuple[float, float]) -> bool:
     return E < box[0] * _EDGE_FACTOR or E > box[1] / _EDGE_FACTOR
 
 
+def _bound_sides(name: str, value: float, box: Tuple[float, float]) -> Tuple[bool, bool]:
+    """Whether parameter ``name``'s ``value`` lies at the (lower, upper) bound of ``box``: within
+    :data:`_EDGE_FACTOR` of it for a parameter the optimiser sees in log space (E, yield stress, ...), within
+    2.5 % of the box's width for a linear one (friction, stiffness slopes)."""
+    lo, hi = box
+    if (name == "E" or PARAMETERS[name].transform == "log") and lo > 0:
+        return value < lo * _EDGE_FACTOR, value > hi / _EDGE_FACTOR
+    return value - lo <= 0.025 * (hi - lo), hi - value <= 0.025 * (hi - lo)
+
+
 def _params_at_bound(f: "_Fit") -> List[str]:
-    """Parameters of fit ``f`` that end at a bound of their search box: within :data:`_EDGE_FACTOR` of it for a
-    parameter the optimiser sees in log space (E, yield stress, ...), within 2.5 % of the box's width for a
-    linear one (friction, stiffness slopes). A fitted value there is no measurement: the optimum may lie
-    beyond the box."""
-    out = []
-    for k, v in f.params.items():
-        if k not in f.bounds:
-            continue
-        lo, hi = f.bounds[k]
-        log = k == "E" or PARAMETERS[k].transform == "log"
-        if (_at_bound(v, (lo, hi)) if log and lo > 0 else min(v - lo, hi - v) <= 0.025 * (hi - lo)):
-            out.append(k)
-    return out
+    """Parameters of fit ``f`` that end at a bound of their search box (:func:`_bound_sides`). A fitted value
+    there is no measurement: the optimum may lie beyond the box."""
+    return [k for k, v in f.params.items() if k in f.bounds and any(_bound_sides(k, v, f.bounds[k]))]
 
 
 def toward_absence(params: Dict[str, float], bounds: Dict[str, Tuple[float, float]]) -> List[str]:
@@ -665,11 +665,8 @@ def toward_absence(params: Dict[str, float], bounds: Dict[str, Tuple[float, floa
         # a fracture's softening is no measure of how much of it there is (the strain is): it has no such side
         if k == "E" or k not in bounds or k not in _ABSENT or k == "fracture_softening":
             continue
-        lo, hi = bounds[k]
-        log = PARAMETERS[k].transform == "log" and lo > 0
-        low = v < lo * _EDGE_FACTOR if log else v - lo <= 0.025 * (hi - lo)
-        high = v > hi / _EDGE_FACTOR if log else hi - v <= 0.025 * (hi - lo)
-        if (high and _ABSENT[k] >= hi) or (low and _ABSENT[k] <= lo):
+        low, high = _bound_sides(k, v, bounds[k])
+        if (high and _ABSENT[k] >= bounds[k][1]) or (low and _ABSENT[k] <= bounds[k][0]):
             out.append(k)
     return out
 
@@ -1034,8 +1031,10 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
             features[w] = feats(X[:, w])
             f.signature = signature_check(f.name, features[0], features[w], noise_m=noise_m)
             f.contradicted = bool(cfg.signature_veto and f.signature["trusted"] and f.signature["explained"] is False)
+    # significant candidates whose fit ends where their effect vanishes: not named, said in the notes and reason
+    vanished = [f for f in cands if f.absent and gain_is_significant(f.test)]
     for f in cands:
-        if f.absent and gain_is_significant(f.test):
+        if f in vanished:
             where = ", ".join(f"{k} = {f.params[k]:.4g}, box {f.bounds[k][0]:.4g} to {f.bounds[k][1]:.4g}"
                               for k in f.absent)
             warnings.append(
@@ -1169,8 +1168,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                     + "".join(f"; {f.name} does, but its fit moves its own signature ({f.signature['feature']}) away "
                               f"from the measurement" for f in cands if f.contradicted)
                     + "".join(f"; {f.name} does, but its fit ends where its effect vanishes "
-                              f"({', '.join(f.absent)} at its bound)" for f in cands
-                              if f.absent and gain_is_significant(f.test)))),
+                              f"({', '.join(f.absent)} at its bound)" for f in vanished))),
         "effect_before_variants": unchecked.name if unchecked else "none",
         "indistinguishable_from": rivals,
         "not_ruled_out": undecided,
