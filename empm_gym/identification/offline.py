@@ -954,6 +954,37 @@ class _CMAES:
                 "mean_history": self.gen_mean}
 
 
+def _losses_of(sim: "_ForwardSim", space: ParamSpace, base_mat: MaterialConfig, scene: Scene, objective: "Objective",
+               F: int, cand: Sequence[Dict[str, float]]) -> List[float]:
+    """``objective``'s loss of each of ``cand`` (values of ``space``'s parameters, SI), simulated for ``F`` frames
+    as the worlds of ``sim`` (one per candidate); a diverged world's loss is NaN."""
+    mats = [space.material(v, base_mat, scene.table_friction) for v in cand]
+    sim.set([m for m, _ in mats], [mu for _, mu in mats])
+    X, _, _ = sim.run(F)
+    return [objective.numpy(X[:, w]) for w in range(len(cand))]
+
+
+def fit_losses(observations: Observations, scene: Scene, values: Sequence[Dict[str, float]], **kw) -> List[float]:
+    """The loss that ``identify(observations, scene, params=..., **kw)`` minimises (its frames, weights, observed
+    points and seed: ``kw`` as given to it), at each of ``values`` ({parameter: SI value}, the same parameters in
+    each), simulated as the worlds of one batch: a fit's loss where its search did not sample (the doctor asks
+    whether a bound of the box fits at least as well as a fit that stopped short of it)."""
+    values = [dict(v) for v in values]
+    if not values or any(set(v) != set(values[0]) for v in values):
+        raise ValueError(f"fit_losses needs one or more values of the same parameters, got {values}")
+    params = tuple(values[0])
+    # the box only has to hold the values (it shapes no search here)
+    box = {p: (min([lo] + [v[p] for v in values]), max([hi] + [v[p] for v in values]))
+           for p, (lo, hi) in default_bounds(values[0]).items() if p in params}
+    kw = {k: v for k, v in kw.items() if k not in ("params", "init", "bounds", "iters", "popsize", "extra_starts",
+                                                    "method")}
+    prep = _prepare_fit(observations, scene, **{**_IDENTIFY_DEFAULTS, **kw, "params": params, "method": "cmaes",
+                                                "init": values[0], "bounds": box, "iters": 1,
+                                                "popsize": len(values) + 1, "extra_starts": ()})
+    sim = _ForwardSim(scene, [prep.base_mat] * len(values), [scene.table_friction] * len(values))
+    return _losses_of(sim, prep.space, prep.base_mat, scene, prep.objective, prep.F, values)
+
+
 def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sigma0, seed, progress, callback,
                stop=None, prior=None, starts=()):
     F = objective.frames
@@ -981,10 +1012,7 @@ def _fit_cmaes(scene, objective, space, init_vals, base_mat, iters, popsize, sig
     sim = _ForwardSim(scene, [base_mat] * popsize, [scene.table_friction] * popsize)
 
     def simulated(cand):
-        mats = [space.material(v, base_mat, scene.table_friction) for v in cand]
-        sim.set([m for m, _ in mats], [mu for _, mu in mats])
-        X, _, _ = sim.run(F)
-        return [objective.numpy(X[:, w]) for w in range(popsize)]
+        return _losses_of(sim, space, base_mat, scene, objective, F, cand)
 
     bar = _bar(iters, "identify (cmaes)", progress, initial=len(hist_l))
     for gen in _iterations(len(hist_l), iters, stop):

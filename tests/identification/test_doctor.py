@@ -445,6 +445,32 @@ def test_candidates_search_the_whole_box_when_the_base_fit_ends_at_its_bound():
             assert window[0] > box[0] and window[1] < box[1] and window[0] < 3.0e3 < window[1]
 
 
+def test_a_base_fit_that_stopped_short_of_a_bound_its_loss_falls_toward_is_at_that_bound():
+    """The base fit's E near a bound, its candidates' window reaching past it: the base model is simulated at the
+    bound and at the fitted E. The block (3 kPa) in a box from 6 kPa, fitted for one generation, ends well above
+    the floor; the floor fits better, so the candidates search the whole box and a note says why. In a box from
+    1.5 kPa the floor fits worse than the fit: the window is kept. Far from any bound nothing is simulated."""
+    from empm_gym.sim import MaterialConfig
+
+    scene, obs = _pushed_block(MaterialConfig(E=3.0e3, nu=0.3, density=1000.0))
+    for box, at_bound in (((6.0e3, 6.0e4), True), ((1.5e3, 6.0e4), False), ((3.0e2, 6.0e4), None)):
+        cfg = DoctorConfig(base_iters=1 if at_bound else 2, candidate_iters=1, popsize=5, variants=0, E_bounds=box,
+                           base_E=1.2e4)
+        res = diagnose(scene, obs, effects=["viscosity"], config=cfg, progress=False)
+        check, window = res["base_bound_check"], res["candidates"][0]["E_window"]
+        if at_bound is None:
+            assert check is None and window[0] > box[0]
+            continue
+        assert check["bound"] == box[0] and check["E"] > box[0] * 1.05  # not at the bound by _at_bound's measure
+        assert check["at_bound"] is at_bound
+        assert (check["loss_at_bound"] <= check["loss_at_fit"]) is at_bound
+        said = [n for n in res["notes"] if "fits the fitting frames at least as well at the bound" in n]
+        if at_bound:
+            assert window == pytest.approx(list(box)) and len(said) == 1
+        else:
+            assert window[0] == box[0] and window[1] < box[1] and not said
+
+
 def test_a_none_names_the_candidates_its_frames_can_neither_show_nor_exclude():
     """A candidate whose gain is not significant but whose interval reaches above its penalty is not ruled out: a
     ``none`` names it (seed 17's rope squeezed with a hidden viscosity: 5.0 %, interval -2.3 to 9.0 %, penalty

@@ -383,3 +383,28 @@ def test_a_frame_where_the_object_is_wholly_hidden_is_left_out_of_the_loss():
         Observations(30.0, [np.zeros((0, 3)), pts[1]])
     with pytest.raises(ValueError, match="none of frames 1..2 holds"):
         Observations(30.0, [pts[0], np.zeros((0, 3)), np.zeros((0, 3))])
+
+
+def test_fit_losses_are_the_fits_own_losses_where_it_sampled():
+    """fit_losses gives the loss identify minimises (the same frames, weights, observed points and seed) at any
+    values: at the members a CMA-ES fit sampled it gives their recorded losses to the last bit on the CPU (the
+    scene's dt_materials fix the substeps), the fit's best among them; bad values are refused."""
+    import dataclasses
+
+    from empm_gym.identification.offline import fit_losses
+    from empm_gym.sim import MaterialConfig
+
+    p = scenes.rope_lift(E=ROPE_E, frames=8, lift_frames=6)
+    sc = dataclasses.replace(p.scene, dt_materials=(MaterialConfig(E=2e5, nu=0.3, density=1000.0),))
+    kw = dict(iters=2, popsize=3, seed=4, max_points=300, l_trk=50.0, frames=7)
+    r = identify(p.obs, sc, params=("E",), method="cmaes", init={"E": ROPE_E / 3}, bounds={"E": (1e4, 2e5)},
+                 progress=False, **kw)
+    got = fit_losses(p.obs, sc, [r.param_history[0], r.params, {"E": 2e5}], **kw)
+    assert got[:2] == [r.loss_history[0], r.loss]
+    assert got[2] > r.loss  # a far stiffer rope fits worse
+    # another weight of the tracking term is another loss
+    assert fit_losses(p.obs, sc, [r.params], **{**kw, "l_trk": 500.0})[0] != r.loss
+    with pytest.raises(ValueError, match="same parameters"):
+        fit_losses(p.obs, sc, [{"E": 3e4}, {"E": 3e4, "viscosity": 1.0}])
+    with pytest.raises(ValueError, match="same parameters"):
+        fit_losses(p.obs, sc, [])
