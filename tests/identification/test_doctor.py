@@ -614,8 +614,9 @@ def test_fitted_values_at_their_search_bound_are_flagged():
 
 def test_a_fitted_value_real_contacts_do_not_show_is_flagged():
     """A table friction beyond 1.5 (a spring-mass rope pulled apart, whose grasp gives, gained 18.5 % with 2.6,
-    session 49) is flagged with its range, so that the verdict is doubted; the frictions the benchmark's true
-    table-friction recordings fit (0.04-0.07) and the assumed 0.5 are not, nor is any parameter without a range."""
+    session 49) or a grip friction beyond 15 is flagged with its range, so that the verdict is doubted; the
+    frictions the benchmark's true recordings fit (table 0.04-0.07, grip 0.1-11.2) and the assumed 0.5 are not,
+    nor is any parameter without a range."""
     from empm_gym.identification.doctor.core import implausible_params
     from empm_gym.sim.effects import PARAMETERS
 
@@ -623,9 +624,14 @@ def test_a_fitted_value_real_contacts_do_not_show_is_flagged():
     assert implausible_params({"E": 4.6e3, "friction": 1.62}) == {"friction": (0.0, 1.5)}
     for f in (0.013, 0.05, 0.5, 1.5):
         assert implausible_params({"E": 2e4, "friction": f}) == {}, f
-    # only the table's friction carries a range so far: the others' fits on true recordings span their boxes
-    assert [k for k, p in PARAMETERS.items() if p.plausible is not None] == ["friction"]
-    assert implausible_params({"E": 2e4, "grip_friction": 734.0, "yield_stress": 1e6, "viscosity": 500.0}) == {}
+    # a grip friction far above any pad's (a dough torn at the clamps fitted 148, session 54) is flagged; the
+    # benchmark's true slips fitted 0.1 to 11.2 and are not
+    assert implausible_params({"E": 2e4, "grip_friction": 148.0}) == {"grip_friction": (0.0, 15.0)}
+    for g in (0.1, 1.0, 11.2, 15.0):
+        assert implausible_params({"E": 2e4, "grip_friction": g}) == {}, g
+    # only the frictions carry a range so far: the others' fits on true recordings span their boxes
+    assert [k for k, p in PARAMETERS.items() if p.plausible is not None] == ["friction", "grip_friction"]
+    assert implausible_params({"E": 2e4, "yield_stress": 1e6, "viscosity": 500.0, "stiffness_slope_1": 1.5}) == {}
     assert implausible_params({"E": 2e4, "friction": float("nan")}) == {}
 
 

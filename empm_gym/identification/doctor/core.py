@@ -1159,7 +1159,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
             + ", ".join(f"{k} = {winner.params[k]:.3g}, outside the {lo:g} to {hi:g} that real objects and contacts "
                         f"usually show" for k, (lo, hi) in implausible.items())
             + f": the held-out gain is real, but {winner.name} may stand in for something the catalogue lacks (for a "
-              f"table friction: adhesion, a grasp that gives, a body that rolls; confidence halved); read the "
+              f"table friction: adhesion, a grasp that gives, a body that rolls; for a grip friction: a body that tears "
+              f"or gives at the grasp; confidence halved); read the "
               f"runner-up candidates")
     ranked = sorted(cands, key=lambda f: f.heldout["loss"])
     chosen = winner or base_fit
