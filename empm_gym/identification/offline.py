@@ -966,9 +966,10 @@ def _losses_of(sim: "_ForwardSim", space: ParamSpace, base_mat: MaterialConfig, 
 
 def fit_losses(observations: Observations, scene: Scene, values: Sequence[Dict[str, float]], **kw) -> List[float]:
     """The loss that ``identify(observations, scene, params=..., **kw)`` minimises (its frames, weights, observed
-    points and seed: ``kw`` as given to it), at each of ``values`` ({parameter: SI value}, the same parameters in
-    each), simulated as the worlds of one batch: a fit's loss where its search did not sample (the doctor asks
-    whether a bound of the box fits at least as well as a fit that stopped short of it)."""
+    points and seed: ``kw`` as given to it; its search settings, such as ``bounds`` or ``iters``, play no part), at
+    each of ``values`` ({parameter: SI value}, the same parameters in each), simulated as the worlds of one batch
+    (a diverged world's loss is NaN): a fit's loss where its search did not sample (the doctor asks whether a bound
+    of the box fits at least as well as a fit that stopped short of it)."""
     values = [dict(v) for v in values]
     if not values or any(set(v) != set(values[0]) for v in values):
         raise ValueError(f"fit_losses needs one or more values of the same parameters, got {values}")

@@ -656,8 +656,8 @@ def _bound_check(fit: "_Fit", scene: Scene, obs: Observations, base_mat: Materia
     bound = lo if E / cfg.E_refit_factor < lo else hi if E * cfg.E_refit_factor > hi else None
     if bound is None:
         return None
-    at_fit, at_bound = fit_losses(obs, _fit_scene(scene, base_mat, ("E",)), [{"E": E}, {"E": bound}], frames=F, l_trk=cfg.l_trk,
-                                  max_points=cfg.max_points, seed=cfg.seed)
+    at_fit, at_bound = fit_losses(obs, _fit_scene(scene, base_mat, ("E",)), [{"E": E}, {"E": bound}], frames=F,
+                                  l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed)
     return {"E": float(E), "bound": float(bound), "loss_at_fit": float(at_fit), "loss_at_bound": float(at_bound),
             "at_bound": bool(at_bound <= at_fit)}
 
@@ -1159,9 +1159,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
             + ", ".join(f"{k} = {winner.params[k]:.3g}, outside the {lo:g} to {hi:g} that real objects and contacts "
                         f"usually show" for k, (lo, hi) in implausible.items())
             + f": the held-out gain is real, but {winner.name} may stand in for something the catalogue lacks (for a "
-              f"table friction: adhesion, a grasp that gives, a body that rolls; for a grip friction: a body that tears "
-              f"or gives at the grasp; confidence halved); read the "
-              f"runner-up candidates")
+              f"table friction: adhesion, a grasp that gives, a body that rolls; for a grip friction: a body that "
+              f"tears or gives at the grasp; confidence halved); read the runner-up candidates")
     ranked = sorted(cands, key=lambda f: f.heldout["loss"])
     chosen = winner or base_fit
     left = unexplained_note(chosen.heldout.get("chamfer_m", float("nan")), noise,
