@@ -982,7 +982,6 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                     cfg.base_iters, starts=[{"E": E} for E in _scan_starts((lo, hi), cfg.popsize - 2)])
     E_base = base_fit.params["E"]
     warnings = []
-    clock = {"base fit": time.perf_counter() - t_start}
 
     # -- 2. candidates ----------------------------------------------------------------------------------------
     # Every candidate is fitted from the base fit's E, with E free within E_refit_factor of it; so is the null
@@ -996,13 +995,14 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     E_range = (max(lo, E_base / cfg.E_refit_factor), min(hi, E_base * cfg.E_refit_factor))
     spread: List[float] = []
     bound_check = _bound_check(base_fit, scene, obs, base_mat, (lo, hi), F, cfg)
-    clock["base fit"] = time.perf_counter() - t_start
-    if bound_check is not None and bound_check["at_bound"]:
+    stopped_short = bool(bound_check and bound_check["at_bound"])
+    clock = {"base fit": time.perf_counter() - t_start}
+    if stopped_short:
         warnings.append(f"the base fit ended at E = {E_base:.4g} Pa, and the base model fits the fitting frames at "
                         f"least as well at the bound {bound_check['bound']:g} Pa (loss "
                         f"{bound_check['loss_at_bound']:.5g} against {bound_check['loss_at_fit']:.5g}): its E is no "
                         f"measurement of the stiffness, and every candidate searches the whole box")
-    if _at_bound(E_base, (lo, hi)) or (bound_check is not None and bound_check["at_bound"]):
+    if _at_bound(E_base, (lo, hi)) or stopped_short:
         E_range = (lo, hi)
         spread = _scan_starts((lo, hi), min(3, cfg.popsize - 2))
 
@@ -1695,8 +1695,8 @@ def not_ruled_out(candidates: Sequence[dict], verdict: Optional[str] = None) -> 
     rope squeezed in a ring with a hidden viscosity (``none``, confidence 0.38) viscosity gained 5.0 % held out,
     its interval -2.3 to 9.0 % about a 4 % penalty, while plasticity's and the stiffness field's intervals lay
     wholly below theirs. Candidates set aside (:func:`set_aside`: the base model's table, a fit that moves its own
-    signature away from the measurement or ends where its effect vanishes) and ``verdict`` itself are left out; largest upper end
-    first. Each entry: ``effect``, ``gain``, ``lower``, ``upper``, ``threshold`` (fractions of the base model's
+    signature away from the measurement or ends where its effect vanishes) and ``verdict`` itself are left out;
+    largest upper end first. Each entry: ``effect``, ``gain``, ``lower``, ``upper``, ``threshold`` (fractions of the base model's
     held-out loss) and ``signature`` (how the effect would show, :data:`~empm_gym.sim.effects.EFFECTS`)."""
     out = []
     for c in candidates:
