@@ -306,3 +306,46 @@ def test_a_none_recording_the_synthesiser_tore_may_be_called_fracture_against_wh
     out = capsys.readouterr().out
     assert "naming accuracy 50.0 %" in out
     assert "fracture: 2 such, 1 called fracture): accuracy 75.0 % of 4" in out
+
+
+def test_the_second_script_is_the_objects_own_where_the_dough_s_does_not_show_on_it(bench, tmp_path, capsys):
+    """The rope's viscosity is benchmarked on squeeze-lift (push-slide shows it by under EXPRESSED_M on the rope);
+    the dough's stays on push-slide. A rope pushed across the table with viscosity falls among the other
+    recordings."""
+    assert bench.second_script("rope", "viscosity") == "squeeze-lift"
+    assert bench.second_script("dough", "viscosity") == "push-slide"
+    assert bench.second_script("rope", "fracture") == bench.OTHER["fracture"]
+    assert bench.object_of("sm_rope-drag-10-none") == "rope" and bench.object_of("dough-drag-1-none") == "dough"
+    rows = [_row("rope-squeeze-lift-0-viscosity", "viscosity", "viscosity", "squeeze-lift", 0.01),
+            _row("rope-push-slide-0-viscosity", "viscosity", "none", "push-slide", 0.01),
+            _row("dough-push-slide-0-viscosity", "viscosity", "viscosity", "push-slide", 0.01),
+            _row("dough-squeeze-lift-0-viscosity", "viscosity", "none", "squeeze-lift", 0.01)]
+    (tmp_path / "rows.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert bench.main(["--summarise", str(tmp_path / "rows.jsonl")]) == 0
+    out = capsys.readouterr().out
+    assert "none on every script (2 recordings)" in out
+    assert "push-slide with viscosity; 2 recordings)" in out
+    ours, others = out.split("=== other recordings")
+    assert "recordings 2; naming accuracy 100.0 %" in ours and "recordings 2; naming accuracy 0.0 %" in others
+
+
+def test_the_stored_tally_takes_each_recordings_last_run_in_session_order(tmp_path):
+    """tally_doctor.stored_rows: the run of a later session (by number: s12 after s3) replaces an earlier one,
+    an excluded experiment's file is not read, and recordings off the benchmark's scripts or seeds are left out."""
+    tally = load_benchmark("tally_doctor")
+
+    def write(name, rows):
+        (tmp_path / name).write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+    write("doctor_s3_first.jsonl", [_row("rope-squeeze-lift-10-viscosity", "viscosity", "none", "squeeze-lift", 0.01),
+                                    _row("dough-drag-11-none", "none", "none", "drag", 0.01),
+                                    _row("rope-push-slide-10-viscosity", "viscosity", "none", "push-slide", 0.01),
+                                    _row("dough-drag-9-none", "none", "none", "drag", 0.01)])
+    write("doctor_s12_again.jsonl", [_row("rope-squeeze-lift-10-viscosity", "viscosity", "viscosity", "squeeze-lift",
+                                          0.01)])
+    write("doctor_s20_probe_x.jsonl", [_row("dough-drag-11-none", "none", "table_friction", "drag", 0.01)])
+    rows = {r["recording"]: r for r in tally.stored_rows(10, 18, tmp_path)}
+    assert sorted(rows) == ["dough-drag-11-none", "rope-squeeze-lift-10-viscosity"]
+    assert rows["rope-squeeze-lift-10-viscosity"]["verdict"] == "viscosity"
+    assert rows["rope-squeeze-lift-10-viscosity"]["source"] == "doctor_s12_again.jsonl"
+    assert rows["dough-drag-11-none"]["verdict"] == "none"

@@ -1,0 +1,83 @@
+"""The doctor benchmark's standing from the stored rows: every recording of seeds FIRST..LAST (default 10-18) in
+the benchmark's set (each effect on its natural and its second script, ``none`` on every script), scored from the
+last stored run of it, then bench_doctor.py's tables over them.
+
+Rows come from ``benchmarks/data/doctor_s*.jsonl`` in session order: slim ``--dump`` lines are rescored with the
+doctor's current rule (``bench_doctor.rescore``), older result rows are taken as they are. Files of experiments that
+ran the doctor other than as shipped (a changed rule, a probe, an oracle, a floor) are left out by name (EXCLUDED).
+
+usage: python benchmarks/tally_doctor.py [--seeds 10-18] [--misses]
+"""
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_doctor as B  # noqa: E402
+
+DATA = Path(__file__).resolve().parent / "data"
+#: Parts of the names of stored runs that are not the doctor as shipped at their time: signature and floor
+#: measurements, oracles and probes, a rule's before/after comparisons, runs with a setting changed to compare.
+EXCLUDED = ("signatures", "oracle", "floors", "probe", "s52_yield", "s52_rope_lift_end_14", "code_742e6fc",
+            "world_axes", "before_change", "before_rule", "before_scan", "retry_reverted", "variants_side", "old_new",
+            "alone", "repeat", "contenders", "unscaled_start_only", "trimmed_bodies")
+NAME = re.compile(r"(dough|rope)-([a-z-]+)-(\d+)-([a-z_]+)$")
+
+
+def _session(path: Path) -> int:
+    m = re.search(r"doctor_s(\d+)_", path.name)
+    return int(m.group(1)) if m else 0
+
+
+def stored_rows(first: int, last: int, data: Path = DATA):
+    """The benchmark's rows of seeds ``first``..``last``, each from the last stored run of its recording, with the
+    file it came from under ``"source"``."""
+    files = sorted((p for p in data.glob("doctor_s*.jsonl") if not any(x in p.name for x in EXCLUDED)), key=_session)
+    rows = {}
+    for path in files:
+        lines = [json.loads(t) for t in path.read_text().splitlines() if t.strip()]
+        dumps = {r["recording"] for r in lines if r.get("candidates") and "effect" in r and "wall_s" in r}
+        scored = {r["recording"]: r for r in B.rescore([path])} if dumps else {}
+        for line in lines:
+            m = NAME.match(line.get("recording", ""))
+            if not m or not first <= int(m.group(3)) <= last:
+                continue
+            row = scored.get(line["recording"]) or (line if "verdict" in line else None)
+            if row is None:
+                continue
+            obj, script, truth = m.group(1), m.group(2), row.get("truth") or m.group(4)
+            if truth != "none" and script not in (B.NATURAL[truth], B.second_script(obj, truth)):
+                continue
+            rows.pop(line["recording"], None)
+            rows[line["recording"]] = {**row, "truth": truth, "script": script, "source": path.name}
+    return list(rows.values())
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--seeds", default="10-18", help="FIRST-LAST, inclusive (default 10-18)")
+    p.add_argument("--misses", action="store_true", help="list the wrong verdicts and the file each came from")
+    args = p.parse_args(argv)
+    try:
+        first, last = (int(x) for x in args.seeds.split("-"))
+    except ValueError:
+        raise SystemExit(f"--seeds: FIRST-LAST, two whole numbers, e.g. 10-18; got {args.seeds!r}")
+    rows = stored_rows(first, last)
+    if not rows:
+        raise SystemExit(f"no stored benchmark rows for seeds {first}-{last} in {DATA}")
+    ok = sum(r["truth"] == r["verdict"] for r in rows)
+    print(f"seeds {first}-{last}: {len(rows)} recordings, {ok} named right ({100 * ok / len(rows):.1f} %)")
+    B.summarise(rows)
+    if args.misses:
+        print("\nwrong verdicts (recording, verdict, stored in)")
+        for r in sorted(rows, key=lambda r: r["recording"]):
+            if r["truth"] != r["verdict"]:
+                print(f"  {r['recording']:45s} {r['verdict']:24s} {r['source']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
