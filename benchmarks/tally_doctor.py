@@ -28,16 +28,21 @@ NAME = re.compile(r"(dough|rope)-([a-z-]+)-(\d+)-([a-z_]+)$")
 
 
 def _session(path: Path) -> int:
-    m = re.search(r"doctor_s(\d+)_", path.name)
+    m = re.search(r"_s(\d+)_", path.name)  # doctor_s36_floors_..., doctor_floors_s29_...; undated by session: 0
     return int(m.group(1)) if m else 0
+
+
+def _stored(data: Path, pattern: str, excluded=EXCLUDED):
+    """The files of ``data`` matching ``pattern``, in session order, less those whose names hold a part of
+    ``excluded``."""
+    return sorted((p for p in data.glob(pattern) if not any(x in p.name for x in excluded)), key=_session)
 
 
 def stored_rows(first: int, last: int, data: Path = DATA):
     """The benchmark's rows of seeds ``first``..``last``, each from the last stored run of its recording, with the
     file it came from under ``"source"``."""
-    files = sorted((p for p in data.glob("doctor_s*.jsonl") if not any(x in p.name for x in EXCLUDED)), key=_session)
     rows = {}
-    for path in files:
+    for path in _stored(data, "doctor_s*.jsonl"):
         lines = [json.loads(t) for t in path.read_text().splitlines() if t.strip()]
         dumps = {r["recording"] for r in lines if r.get("candidates") and "effect" in r and "wall_s" in r}
         scored = {r["recording"]: r for r in B.rescore([path])} if dumps else {}
@@ -56,6 +61,22 @@ def stored_rows(first: int, last: int, data: Path = DATA):
     return list(rows.values())
 
 
+def stored_floors(data: Path = DATA):
+    """The stored ``--floor`` and ``--oracle`` rows (the true material on the doctor's body; the recording's own
+    simulation), the last of each kind per recording: what each recording lets any fit show (bench_doctor.floors).
+    A floor was measured on the doctor's body of its session; a later change to the body is not in it."""
+    rows = {}
+    for pattern in ("doctor_*floors*.jsonl", "doctor_*oracle*.jsonl"):
+        for path in _stored(data, pattern, excluded=("trimmed_bodies",)):  # a body changed to compare: left out
+            for t in path.read_text().splitlines():
+                if t.strip():
+                    r = json.loads(t)
+                    kind = "floor" if "floor_chamfer_m" in r else "oracle" if "oracle_chamfer_m" in r else None
+                    if kind and "recording" in r:
+                        rows[(kind, r["recording"])] = r
+    return list(rows.values())
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seeds", default="10-18", help="FIRST-LAST, inclusive (default 10-18)")
@@ -70,7 +91,7 @@ def main(argv=None):
         raise SystemExit(f"no stored benchmark rows for seeds {first}-{last} in {DATA}")
     ok = sum(r["truth"] == r["verdict"] for r in rows)
     print(f"seeds {first}-{last}: {len(rows)} recordings, {ok} named right ({100 * ok / len(rows):.1f} %)")
-    B.summarise(rows)
+    B.summarise(rows, stored_floors())
     if args.misses:
         print("\nwrong verdicts (recording, verdict, stored in)")
         for r in sorted(rows, key=lambda r: r["recording"]):

@@ -349,3 +349,20 @@ def test_the_stored_tally_takes_each_recordings_last_run_in_session_order(tmp_pa
     assert rows["rope-squeeze-lift-10-viscosity"]["verdict"] == "viscosity"
     assert rows["rope-squeeze-lift-10-viscosity"]["source"] == "doctor_s12_again.jsonl"
     assert rows["dough-drag-11-none"]["verdict"] == "none"
+
+
+def test_the_stored_floors_are_each_recordings_last_of_each_kind(tmp_path):
+    """tally_doctor.stored_floors: a floor (true material on the doctor's body) and an oracle (the recording's own
+    simulation) of one recording are both kept, a later session's floor replaces an earlier one, and a floor
+    measured on a body changed to compare (trimmed_bodies) is not read."""
+    tally = load_benchmark("tally_doctor")
+    rec = "rope-squeeze-ring-15-viscosity"
+    (tmp_path / "doctor_floors_s29_a.jsonl").write_text(json.dumps({"recording": rec, "floor_chamfer_m": 0.003}) + "\n")
+    (tmp_path / "doctor_s55_floors_b.jsonl").write_text(json.dumps({"recording": rec, "floor_chamfer_m": 0.0025}) + "\n")
+    (tmp_path / "doctor_s56_floors_trimmed_bodies.jsonl").write_text(
+        json.dumps({"recording": rec, "floor_chamfer_m": 0.001}) + "\n")
+    (tmp_path / "doctor_s42_oracle_c.jsonl").write_text(json.dumps({"recording": rec, "oracle_chamfer_m": 0.0016}) + "\n")
+    rows = tally.stored_floors(tmp_path)
+    assert len(rows) == 2
+    assert [r["floor_chamfer_m"] for r in rows if "floor_chamfer_m" in r] == [0.0025]
+    assert [r["oracle_chamfer_m"] for r in rows if "oracle_chamfer_m" in r] == [0.0016]
