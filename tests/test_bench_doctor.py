@@ -18,6 +18,13 @@ def _row(name, truth, verdict, script, base_loss):
             "before_variants": verdict, "signature_m": 0.01, "wall_s": 60.0}
 
 
+def _summarise(bench, tmp_path, capsys, rows) -> str:
+    """What ``bench_doctor.py --summarise`` prints for the result rows ``rows``."""
+    (tmp_path / "rows.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert bench.main(["--summarise", str(tmp_path / "rows.jsonl")]) == 0
+    return capsys.readouterr().out
+
+
 def test_accuracy_over_the_recordings_whose_true_material_beats_the_base_fit(bench, tmp_path, capsys):
     """An effect recording counts as shown on the doctor's body when the true material's held-out loss is below
     the base model's fit by more than the doctor's penalty (4 % for one parameter): a viscosity whose true material
@@ -55,9 +62,7 @@ def test_the_signature_checks_doubts_are_tallied_right_and_wrong(bench, tmp_path
             dict(_row("dough-press-release-0-plasticity", "plasticity", "plasticity", "press-release", 0.01),
                  signature_doubted=False),
             _row("dough-drag-0-none", "none", "none", "drag", 0.004)]
-    (tmp_path / "rows.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
-    assert bench.main(["--summarise", str(tmp_path / "rows.jsonl")]) == 0
-    out = capsys.readouterr().out
+    out = _summarise(bench, tmp_path, capsys, rows)
     assert "checked against their signature: 3 named verdicts" in out
     assert "doubted (the named effect's fit does not bring its trusted feature closer): 1, of them right 0" in out
     assert "not doubted and wrong: 1" in out
@@ -225,9 +230,8 @@ def test_accuracy_is_tallied_by_the_verdicts_confidence(bench, tmp_path, capsys)
     bins = bench._by_confidence(rows)
     assert [(lo, hi, ok) for lo, hi, ok in bins] == [(0.0, 0.5, [False, True]), (0.5, 0.9, [True]),
                                                      (0.9, 1.0, [True, False])]
-    (tmp_path / "rows.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
-    assert bench.main(["--summarise", str(tmp_path / "rows.jsonl")]) == 0
-    assert "0.0-0.5: 1 of 2 right; 0.5-0.9: 1 of 1 right; 0.9-1.0: 1 of 2 right" in capsys.readouterr().out
+    assert ("0.0-0.5: 1 of 2 right; 0.5-0.9: 1 of 1 right; 0.9-1.0: 1 of 2 right"
+            in _summarise(bench, tmp_path, capsys, rows))
 
 
 def test_the_recordings_own_simulation_reproduces_it_and_only_it(bench, tmp_path):
@@ -301,9 +305,7 @@ def test_a_none_recording_the_synthesiser_tore_may_be_called_fracture_against_wh
             dict(_row("b-0-none", "none", "gripper_slip", "lift-end", 0.01), parted=torn),
             dict(_row("c-0-none", "none", "none", "drag", 0.01), parted=None),
             dict(_row("d-0-fracture", "fracture", "fracture", "lift-end", 0.01), parted=torn)]
-    (tmp_path / "rows.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
-    assert bench.main(["--summarise", str(tmp_path / "rows.jsonl")]) == 0
-    out = capsys.readouterr().out
+    out = _summarise(bench, tmp_path, capsys, rows)
     assert "naming accuracy 50.0 %" in out
     assert "fracture: 2 such, 1 called fracture): accuracy 75.0 % of 4" in out
 
@@ -320,9 +322,7 @@ def test_the_second_script_is_the_objects_own_where_the_dough_s_does_not_show_on
             _row("rope-push-slide-0-viscosity", "viscosity", "none", "push-slide", 0.01),
             _row("dough-push-slide-0-viscosity", "viscosity", "viscosity", "push-slide", 0.01),
             _row("dough-squeeze-lift-0-viscosity", "viscosity", "none", "squeeze-lift", 0.01)]
-    (tmp_path / "rows.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
-    assert bench.main(["--summarise", str(tmp_path / "rows.jsonl")]) == 0
-    out = capsys.readouterr().out
+    out = _summarise(bench, tmp_path, capsys, rows)
     assert "none on every script (2 recordings)" in out
     assert "push-slide with viscosity; 2 recordings)" in out
     ours, others = out.split("=== other recordings")
