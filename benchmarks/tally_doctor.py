@@ -1,10 +1,12 @@
 """The doctor benchmark's standing from the stored rows: every recording of seeds FIRST..LAST (default 10-18) in
 the benchmark's set (each effect on its natural and its second script, ``none`` on every script), scored from the
-last stored run of it, then bench_doctor.py's tables over them.
+last stored run of it, then bench_doctor.py's tables over them, with every stored floor and oracle (what each
+recording lets a fit show).
 
 Rows come from ``benchmarks/data/doctor_s*.jsonl`` in session order: slim ``--dump`` lines are rescored with the
 doctor's current rule (``bench_doctor.rescore``), older result rows are taken as they are. Files of experiments that
-ran the doctor other than as shipped (a changed rule, a probe, an oracle, a floor) are left out by name (EXCLUDED).
+ran the doctor other than as shipped (a changed rule, a probe) are left out of the verdicts by name (EXCLUDED), and
+so are the floors' and oracles' files, which ``stored_floors`` reads.
 
 usage: python benchmarks/tally_doctor.py [--seeds 10-18] [--misses]
 """
@@ -35,7 +37,8 @@ def _session(path: Path) -> int:
 def _stored(data: Path, pattern: str, excluded=EXCLUDED):
     """The files of ``data`` matching ``pattern``, in session order, less those whose names hold a part of
     ``excluded``."""
-    return sorted((p for p in data.glob(pattern) if not any(x in p.name for x in excluded)), key=_session)
+    return sorted((p for p in data.glob(pattern) if not any(x in p.name for x in excluded)),
+                  key=lambda p: (_session(p), p.name))  # within a session, by name: the same order on any machine
 
 
 def stored_rows(first: int, last: int, data: Path = DATA):
