@@ -39,6 +39,16 @@ OTHER = {"none": "squeeze-lift", "plasticity": "squeeze-ring", "viscosity": "pus
 #: across the table shows its viscosity by 0.92 mm, under EXPRESSED_M (the dough's by more; OTHER was chosen on the
 #: dough), the rope squeezed and lifted by 5.2 mm (docs/EFFECTS.md, the rope's signature on every script; session 55).
 OTHER_ON = {("rope", "viscosity"): "squeeze-lift"}
+#: The second scripts of the first runs (2026-11-23); four of them do not express their effect (EXPRESSED_M):
+#: viscosity, table friction, the stiffness field and fracture. ``--scripts 3`` adds them as a third script.
+FIRST_OTHER = {"none": "squeeze-lift", "plasticity": "squeeze-ring", "viscosity": "press-release",
+               "table_friction": "press-release", "gripper_slip": "pull-apart",
+               "heterogeneous_stiffness": "squeeze-lift", "fracture": "squeeze-lift"}
+
+#: Held-out signature [m] below which a recording does not show its effect: the mean Chamfer, over the held-out
+#: frames, between the true object simulated with and without the effect (about the depth noise; every
+#: effect-script pair of the dough lies below 0.7 mm or above 1.5 mm, docs/EFFECTS.md).
+EXPRESSED_M = 1.0e-3
 
 
 def second_script(obj: str, effect: str) -> str:
@@ -50,16 +60,6 @@ def object_of(recording: str) -> str:
     """The object of a benchmark recording's name: "rope-drag-10-none" -> "rope"; a set's own prefix
     ("d5_dough-...", "sm_rope-...") left out."""
     return recording.split("-")[0].split("_")[-1]
-#: The second scripts of the first runs (2026-11-23); four of them do not express their effect (EXPRESSED_M):
-#: viscosity, table friction, the stiffness field and fracture. ``--scripts 3`` adds them as a third script.
-FIRST_OTHER = {"none": "squeeze-lift", "plasticity": "squeeze-ring", "viscosity": "press-release",
-               "table_friction": "press-release", "gripper_slip": "pull-apart",
-               "heterogeneous_stiffness": "squeeze-lift", "fracture": "squeeze-lift"}
-
-#: Held-out signature [m] below which a recording does not show its effect: the mean Chamfer, over the held-out
-#: frames, between the true object simulated with and without the effect (about the depth noise; every
-#: effect-script pair of the dough lies below 0.7 mm or above 1.5 mm, docs/EFFECTS.md).
-EXPRESSED_M = 1.0e-3
 
 
 def _name_values(text, flag, known, unknown_msg):
@@ -136,8 +136,8 @@ def make(args):
     if unknown:
         raise SystemExit(f"--only-scripts / --every-effect-on: unknown script(s) {unknown}; known: {', '.join(SCRIPTS)}")
     for effect in effects:
-        scripts = list(dict.fromkeys([NATURAL[effect], second_script(args.object, effect),
-                                           FIRST_OTHER[effect]]))[: args.scripts]
+        scripts = list(dict.fromkeys([NATURAL[effect], second_script(args.object, effect), FIRST_OTHER[effect]]))
+        scripts = scripts[: args.scripts]
         if effect == "none":
             scripts = list(SCRIPTS)  # an invented effect may hide on any script: none runs on all of them
         if only:

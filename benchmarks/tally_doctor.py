@@ -47,7 +47,7 @@ def stored_rows(first: int, last: int, data: Path = DATA):
     rows = {}
     for path in _stored(data, "doctor_s*.jsonl"):
         lines = [json.loads(t) for t in path.read_text().splitlines() if t.strip()]
-        dumps = {r["recording"] for r in lines if r.get("candidates") and "effect" in r and "wall_s" in r}
+        dumps = any(r.get("candidates") and "effect" in r and "wall_s" in r for r in lines)
         scored = {r["recording"]: r for r in B.rescore([path])} if dumps else {}
         for line in lines:
             m = NAME.match(line.get("recording", ""))
