@@ -15,6 +15,7 @@ import argparse
 import json
 import re
 import sys
+from collections import Counter
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -80,6 +81,12 @@ def stored_floors(data: Path = DATA):
     return list(rows.values())
 
 
+def by_session(rows) -> str:
+    """How many of ``rows`` (:func:`stored_rows`) come from the runs of each session: "s35 22, s37 42, ..."."""
+    n = Counter(_session(Path(r["source"])) for r in rows)
+    return ", ".join(f"s{k} {v}" for k, v in sorted(n.items()))
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seeds", default="10-18", help="FIRST-LAST, inclusive (default 10-18)")
@@ -89,11 +96,15 @@ def main(argv=None):
         first, last = (int(x) for x in args.seeds.split("-"))
     except ValueError:
         raise SystemExit(f"--seeds: FIRST-LAST, two whole numbers, e.g. 10-18; got {args.seeds!r}")
+    if first > last:
+        raise SystemExit(f"--seeds: FIRST must not exceed LAST; got {args.seeds!r}")
     rows = stored_rows(first, last)
     if not rows:
         raise SystemExit(f"no stored benchmark rows for seeds {first}-{last} in {DATA}")
     ok = sum(r["truth"] == r["verdict"] for r in rows)
     print(f"seeds {first}-{last}: {len(rows)} recordings, {ok} named right ({100 * ok / len(rows):.1f} %)")
+    # the code each verdict's run was made with: an old run's fits are not the current doctor's
+    print(f"  runs by session: {by_session(rows)}")
     B.summarise(rows, stored_floors())
     if args.misses:
         print("\nwrong verdicts (recording, verdict, stored in)")

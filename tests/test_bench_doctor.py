@@ -349,6 +349,9 @@ def test_the_stored_tally_takes_each_recordings_last_run_in_session_order(tmp_pa
     assert rows["rope-squeeze-lift-10-viscosity"]["verdict"] == "viscosity"
     assert rows["rope-squeeze-lift-10-viscosity"]["source"] == "doctor_s12_again.jsonl"
     assert rows["dough-drag-11-none"]["verdict"] == "none"
+    assert tally.by_session(rows.values()) == "s3 1, s12 1"
+    with pytest.raises(SystemExit, match="FIRST must not exceed LAST; got '18-10'"):
+        tally.main(["--seeds", "18-10"])
 
 
 def test_the_stored_floors_are_each_recordings_last_of_each_kind(tmp_path):
