@@ -401,44 +401,57 @@ def floors(problems: Path, args):
     return rows
 
 
+def _own_simulation(path: Path, prob: dict, mat, args) -> dict:
+    """The synthesiser run again for the effect problem ``prob`` (read from ``path``): ``ground_truth``'s material
+    ``mat``, the problem's script and seed, on the grid the recording was made on (the problem's ``synth_dx``, or
+    ``args.synth_dx`` for problems made before session 38); :func:`~empm_gym.perception.synth.simulate`'s result,
+    its particles in float64. Refused by name where the grid is unknown or disagrees, or where the run's frame-0
+    body does not lie where the recording's frame-0 points were seen (another object or script)."""
+    from scipy.spatial import cKDTree
+
+    from empm_gym.perception.synth import simulate
+
+    synth_dx = prob.get("synth_dx")
+    if synth_dx is None and args.synth_dx is None:
+        raise SystemExit(f"{path.name} does not say which grid its recording was made on (problems made before "
+                         f"session 38): give it as --synth-dx")
+    if synth_dx is not None and args.synth_dx is not None and abs(synth_dx - args.synth_dx) > 1e-12:
+        raise SystemExit(f"{path.name} was made on a {synth_dx:g} m grid, not --synth-dx {args.synth_dx:g}")
+    synth_dx = args.synth_dx if synth_dx is None else synth_dx
+    obs = prob["obs"]
+    out = simulate(args.object, mat, script=prob["script"], frames=obs.num_frames, dx=synth_dx, seed=prob["seed"],
+                   device=args.device)
+    out["particles"] = out["particles"].astype(np.float64)
+    d0 = float(np.median(cKDTree(out["particles"][0]).query(obs.points[0])[0]))
+    if d0 > synth_dx:
+        raise SystemExit(f"{path.name}: the synthesiser's frame-0 body lies {1e3 * d0:.1f} mm (median) from the "
+                         f"recording's frame-0 points: not the recording's simulation (--object {args.object}, "
+                         f"--synth-dx {synth_dx:g}?)")
+    return out
+
+
 def oracles(problems: Path, args):
     """The held-out Chamfer of each effect recording's own simulation: the synthesiser run again (``ground_truth``'s
-    material, the script and the seed, on the grid the recording was made on), its particles carrying the doctor's
-    frame-0 observed points as the doctor's fits carry them, scored as the doctor scores. A perfect body and a
-    perfect model: what is left is the depth noise of the frames compared and surface the cameras no longer see
-    (and, with ``DoctorConfig.unseen_surface`` off, the surface seen later that frame 0 did not see), which no
-    model removes. The reduction it
-    gives over the base model bounds what any model, on any body, can show on the recording (:func:`floors` bounds
-    what the doctor's own body allows)."""
+    material, the script and the seed, on the grid the recording was made on; :func:`_own_simulation`), its
+    particles carrying the doctor's frame-0 observed points as the doctor's fits carry them, scored as the doctor
+    scores. A perfect body and a perfect model: what is left is the depth noise of the frames compared and surface
+    the cameras no longer see (and, with ``DoctorConfig.unseen_surface`` off, the surface seen later that frame 0
+    did not see), which no model removes. The reduction it gives over the base model bounds what any model, on any
+    body, can show on the recording (:func:`floors` bounds what the doctor's own body allows)."""
     import dataclasses
-
-    from scipy.spatial import cKDTree
 
     from empm_gym.identification.doctor import DoctorConfig
     from empm_gym.identification.doctor.core import _per_frame_losses, heldout_objective
-    from empm_gym.perception.synth import simulate
 
     cfg = DoctorConfig()
     rows = []
     for path, prob, mat in _effect_problems(problems, args.object):
-        synth_dx = prob.get("synth_dx")
-        if synth_dx is None and args.synth_dx is None:
-            raise SystemExit(f"--oracle: {path.name} does not say which grid its recording was made on (problems made "
-                             f"before session 38): give it as --synth-dx")
-        if synth_dx is not None and args.synth_dx is not None and abs(synth_dx - args.synth_dx) > 1e-12:
-            raise SystemExit(f"--oracle: {path.name} was made on a {synth_dx:g} m grid, not --synth-dx "
-                             f"{args.synth_dx:g}")
-        synth_dx = args.synth_dx if synth_dx is None else synth_dx
+        try:
+            X = _own_simulation(path, prob, mat, args)["particles"]
+        except SystemExit as e:
+            raise SystemExit(f"--oracle: {e}") from None
         obs = prob["obs"]
         T = obs.num_frames
-        X = simulate(args.object, mat, script=prob["script"], frames=T, dx=synth_dx, seed=prob["seed"],
-                     device=args.device)["particles"].astype(np.float64)
-        # the recording's own body lies where its frame-0 points were seen (not, say, another object or script)
-        d0 = float(np.median(cKDTree(X[0]).query(obs.points[0])[0]))
-        if d0 > synth_dx:
-            raise SystemExit(f"--oracle: {path.name}: the synthesiser's frame-0 body lies {1e3 * d0:.1f} mm (median) "
-                             f"from the recording's frame-0 points: not the recording's simulation (--object "
-                             f"{args.object}, --synth-dx {synth_dx:g}?)")
         sc = dataclasses.replace(prob["scene"], particles=X[0], volumes=float(np.mean(prob["scene"].volumes)))
         F = int(round(cfg.train_fraction * T))
         objective = heldout_objective(sc, obs, T, cfg)
@@ -453,6 +466,92 @@ def oracles(problems: Path, args):
                **{f"oracle_{d}_m": float(np.mean(objective.chamfer(P, direction=d, unseen=U)[F:]))
                   for d in ("obs_to_pred", "pred_to_obs")}}
         _emit(row, f"its own simulation's held-out Chamfer {1e3 * row['oracle_chamfer_m']:.3f} mm", rows, args.jsonl)
+    return rows
+
+
+#: Offsets of the recording's grid that :func:`grid_offsets` tries by default, in cells along x, y, z.
+GRID_OFFSETS = ((0.0, 0.0, 0.0), (0.2, 0.0, 0.0), (0.4, 0.0, 0.0), (0.6, 0.0, 0.0), (0.8, 0.0, 0.0),
+                (0.0, 0.0, 0.4), (0.0, 0.0, 0.8), (0.5, 0.5, 0.5))
+
+
+def _grid_offsets_arg(text: str):
+    """``--grid-offsets`` entries ``X,Y,Z`` (cells, each in [0, 1)), separated by ``;``."""
+    out = []
+    for item in text.split(";"):
+        parts = item.split(",")
+        try:
+            off = tuple(float(v) for v in parts)
+        except ValueError:
+            off = ()
+        if len(off) != 3 or not all(0.0 <= v < 1.0 for v in off):
+            raise argparse.ArgumentTypeError(f"--grid-offsets wants X,Y,Z in cells, each in [0, 1), entries "
+                                             f"separated by ';'; got {item!r}")
+        out.append(off)
+    return tuple(out)
+
+
+def grid_offsets(problems: Path, args):
+    """How much of each effect recording is its grid's: the recording's own body and true material
+    (:func:`_own_simulation`, the benchmark's own use of ground truth) simulated by the doctor's simulator on the
+    recording's grid shifted by fractions of a cell (``args.grid_offsets``), scored as the doctor scores. Per
+    offset: the held-out loss and Chamfer, the largest distance of any particle from the recording's own
+    simulation, and the pieces the body is in (:func:`~empm_gym.identification.doctor.features.count_pieces`):
+    the first frame in more than one, and at the last frame. At offset 0 the doctor's simulator is the
+    synthesiser's, particle for particle; an effect whose outcome changes with the offset (a tear that opens on
+    one grid and not on another) is as much the discretisation's as the material's, and no fit on the doctor's own
+    grid can be expected to reproduce it."""
+    import dataclasses
+
+    from empm_gym.identification.doctor import DoctorConfig
+    from empm_gym.identification.doctor.core import _per_frame_losses, heldout_objective
+    from empm_gym.identification.doctor.features import count_pieces
+    from empm_gym.identification.problem import _ForwardSim
+
+    cfg = DoctorConfig()
+    rows = []
+    for path, prob, mat in _effect_problems(problems, args.object):
+        own = _own_simulation(path, prob, mat, args)
+        X0, grid = own["particles"], own["grid"]
+        obs = prob["obs"]
+        T = obs.num_frames
+        F = int(round(cfg.train_fraction * T))
+        mu = mat.get("friction")
+        own_pieces = [count_pieces(X0[t]) for t in range(T)]
+        for off in args.grid_offsets:
+            # the nodes move down by the offset, and a box so moved grows by a cell at the top: every particle
+            # keeps at least the room it had (a box whose usable part starts at the table stays there)
+            shift = tuple(o * grid.dx for o in off)
+            g = dataclasses.replace(grid, lower=tuple(a - s for a, s in zip(grid.lower, shift)),
+                                    upper=tuple(a - s + (grid.dx if s > 0 else 0.0)
+                                                for a, s in zip(grid.upper, shift)))
+            sc = dataclasses.replace(prob["scene"], particles=X0[0], volumes=np.asarray(own["volumes"], np.float64),
+                                     grid=g, device=args.device).with_material(mat, table_friction=mu)
+            X, _, _ = _ForwardSim(sc, [mat], [mu]).run(T)
+            X = X[:, 0].astype(np.float64)
+            if not np.all(np.isfinite(X)):
+                raise SystemExit(f"{path.name}: the simulation on the grid offset by {off} cells is not finite")
+            per = _per_frame_losses(heldout_objective(sc, obs, T, cfg), X)
+            pieces = [count_pieces(X[t]) for t in range(T)]
+            row = {"recording": path.stem, "truth": prob["truth"], "grid_offset_cells": list(off),
+                   "heldout_loss": float(np.mean(per["loss"][F:])),
+                   "heldout_chamfer_m": float(np.mean(per["chamfer"][F:])),
+                   "max_from_own_m": float(np.max(np.linalg.norm(X - X0, axis=-1))),
+                   "parts_from_frame": next((t for t, n in enumerate(pieces) if n > 1), None),
+                   "last_pieces": pieces[-1],
+                   "own_parts_from_frame": next((t for t, n in enumerate(own_pieces) if n > 1), None),
+                   "own_last_pieces": own_pieces[-1]}
+            parts = ("whole" if row["parts_from_frame"] is None else
+                     f"parts from frame {row['parts_from_frame']}, {row['last_pieces']} piece(s) at the last")
+            _emit(row, f"grid offset {off} cells: held-out loss {1e3 * row['heldout_loss']:.3f} mm, "
+                       f"{1e3 * row['max_from_own_m']:.1f} mm from its own simulation at most, {parts}", rows,
+                  args.jsonl)
+        mine = [r for r in rows if r["recording"] == path.stem]
+        parted = sum(r["parts_from_frame"] is not None for r in mine)
+        own_text = ("whole" if mine[0]["own_parts_from_frame"] is None
+                    else f"parted from frame {mine[0]['own_parts_from_frame']}")
+        print(f"{path.stem:48s} its own simulation {own_text}; parts on {parted} of {len(mine)} grid offsets; "
+              f"held-out loss {1e3 * min(r['heldout_loss'] for r in mine):.3f} to "
+              f"{1e3 * max(r['heldout_loss'] for r in mine):.3f} mm", flush=True)
     return rows
 
 
@@ -713,6 +812,11 @@ def _parser():
                    help="simulate each effect problem's recording again with the synthesiser (its ground truth, on "
                         "the grid it was made on; --synth-dx for problems that do not record it) and score its own "
                         "particles: what a perfect body and model reach, the rest depth noise (rows to --jsonl)")
+    p.add_argument("--grid-offsets", type=_grid_offsets_arg, nargs="?", const=GRID_OFFSETS, default=None,
+                   help="simulate each effect problem's recording again (as --oracle) with the doctor's simulator on "
+                        "the recording's grid shifted by these offsets ('X,Y,Z;...' in cells, each in [0, 1); "
+                        "without a value, 8 offsets along x, z and the diagonal): how much of what the recording "
+                        "shows is its grid's (rows to --jsonl)")
     p.add_argument("--floors", nargs="*", default=[],
                    help="--floor and --oracle rows to print beside --summarise / --rescore")
     return p
@@ -750,6 +854,9 @@ def main(argv=None):
         return 0
     if args.oracle:
         oracles(problems, args)
+        return 0
+    if args.grid_offsets is not None:
+        grid_offsets(problems, args)
         return 0
     diagnose_all(problems, args)
     return 0

@@ -234,23 +234,30 @@ def test_accuracy_is_tallied_by_the_verdicts_confidence(bench, tmp_path, capsys)
             in _summarise(bench, tmp_path, capsys, rows))
 
 
-def test_the_recordings_own_simulation_reproduces_it_and_only_it(bench, tmp_path):
+@pytest.fixture(scope="module")
+def slide_problems(bench, tmp_path_factory):
+    """A folder of one problem: a block pushed across a slippery table (friction 0.05), made on a 2-cm grid."""
+    out = tmp_path_factory.mktemp("slide")
+    rc = bench.main(["--object", "block", "--make", str(out / "rec"), "--problems", str(out / "prob"),
+                     "--effects", "table_friction", "--only-scripts", "push-slide", "--scripts", "1", "--seeds", "1",
+                     "--dx", "0.02", "--synth-dx", "0.02", "--frames", "8", "--cameras", "2", "--width", "160",
+                     "--height", "120", "--only-make"])
+    assert rc == 0
+    return out / "prob"
+
+
+def test_the_recordings_own_simulation_reproduces_it_and_only_it(bench, slide_problems, tmp_path):
     """``--oracle`` runs the synthesiser again with the recording's ground truth on the grid the problem says it was
     made on and scores its own particles as the doctor scores a fit: a block pushed across a slippery table
     (friction 0.05) scores at the depth noise's level, and the same run with the table's friction at 0.5 tens of
     millimetres away. A grid other than the recording's, or none known, is refused by name."""
     import pickle
 
-    rc = bench.main(["--object", "block", "--make", str(tmp_path / "rec"), "--problems", str(tmp_path / "prob"),
-                     "--effects", "table_friction", "--only-scripts", "push-slide", "--scripts", "1", "--seeds", "1",
-                     "--dx", "0.02", "--synth-dx", "0.02", "--frames", "8", "--cameras", "2", "--width", "160",
-                     "--height", "120", "--only-make"])
-    assert rc == 0
-    (pkl,) = (tmp_path / "prob").glob("*.pkl")
+    (pkl,) = slide_problems.glob("*.pkl")
     with open(pkl, "rb") as f:
         prob = pickle.load(f)
     assert prob["synth_dx"] == 0.02
-    own = bench.oracles(tmp_path / "prob", bench.parse_args(["--object", "block"]))
+    own = bench.oracles(slide_problems, bench.parse_args(["--object", "block"]))
     for friction, d in ((0.5, "slow"), (None, "unknown")):
         (tmp_path / d).mkdir()
         with open(tmp_path / d / pkl.name, "wb") as f:
@@ -262,9 +269,31 @@ def test_the_recordings_own_simulation_reproduces_it_and_only_it(bench, tmp_path
     assert mine["oracle_chamfer_m"] == pytest.approx(0.5 * (mine["oracle_obs_to_pred_m"] + mine["oracle_pred_to_obs_m"]))
     assert mine["unseen_surface"] is True  # scored as the doctor scores by default
     with pytest.raises(SystemExit, match="made on a 0.02 m grid, not --synth-dx 0.01"):
-        bench.oracles(tmp_path / "prob", bench.parse_args(["--object", "block", "--synth-dx", "0.01"]))
+        bench.oracles(slide_problems, bench.parse_args(["--object", "block", "--synth-dx", "0.01"]))
     with pytest.raises(SystemExit, match="does not say which grid"):
         bench.oracles(tmp_path / "unknown", bench.parse_args(["--object", "block"]))
+
+
+def test_the_doctors_simulator_is_the_synthesisers_on_its_grid_and_another_offset_moves_it(bench, slide_problems,
+                                                                                         capsys):
+    """``--grid-offsets``: on the recording's own grid (offset 0) the doctor's simulator, given the synthesiser's
+    body and the true material, reproduces the recording's own simulation particle for particle and scores at the
+    depth noise's level; on the grid shifted by half a cell along x the coarse block (50 particles, 2-cm cells)
+    slides on another discretisation, ends elsewhere and scores worse. An offset outside [0, 1) cells, or not
+    three numbers, is refused by name."""
+    rows = bench.grid_offsets(slide_problems, bench.parse_args(["--object", "block",
+                                                                "--grid-offsets", "0,0,0;0.5,0,0"]))
+    assert [r["grid_offset_cells"] for r in rows] == [[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]
+    same, moved = rows
+    assert same["max_from_own_m"] < 1e-5, same
+    assert moved["max_from_own_m"] > 1e-4, moved
+    assert same["heldout_chamfer_m"] < 8e-3 and same["heldout_loss"] < 0.8 * moved["heldout_loss"], rows
+    assert same["parts_from_frame"] is None and same["own_parts_from_frame"] is None and same["last_pieces"] == 1
+    assert "parts on 0 of 2 grid offsets" in capsys.readouterr().out
+    for bad in ("1,0,0", "0.5,0", "a,0,0"):
+        with pytest.raises(SystemExit):
+            bench.parse_args(["--object", "block", "--grid-offsets", bad])
+        assert "--grid-offsets wants X,Y,Z in cells" in capsys.readouterr().err
 
 
 def test_the_gap_closed_is_measured_above_the_recordings_own_simulation(bench, tmp_path, capsys):
