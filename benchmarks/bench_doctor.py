@@ -494,8 +494,8 @@ def grid_offsets(problems: Path, args):
     """How much of each effect recording is its grid's: the recording's own body and true material
     (:func:`_own_simulation`, the benchmark's own use of ground truth) simulated by the doctor's simulator on the
     recording's grid shifted by fractions of a cell (``args.grid_offsets``), scored as the doctor scores. Per
-    offset: the held-out loss and Chamfer, the largest distance of any particle from the recording's own
-    simulation, and the pieces the body is in (:func:`~empm_gym.identification.doctor.features.count_pieces`):
+    offset: the held-out loss and Chamfer, the distance of the particles from the recording's own simulation (the
+    median at the last frame, and the largest over all frames), and the pieces the body is in (:func:`~empm_gym.identification.doctor.features.count_pieces`):
     the first frame in more than one, and at the last frame. At offset 0 the doctor's simulator is the
     synthesiser's, particle for particle; an effect whose outcome changes with the offset (a tear that opens on
     one grid and not on another) is as much the discretisation's as the material's, and no fit on the doctor's own
@@ -536,15 +536,16 @@ def grid_offsets(problems: Path, args):
                    "heldout_loss": float(np.mean(per["loss"][F:])),
                    "heldout_chamfer_m": float(np.mean(per["chamfer"][F:])),
                    "max_from_own_m": float(np.max(np.linalg.norm(X - X0, axis=-1))),
+                   "median_from_own_last_m": float(np.median(np.linalg.norm(X[-1] - X0[-1], axis=-1))),
                    "parts_from_frame": next((t for t, n in enumerate(pieces) if n > 1), None),
                    "last_pieces": pieces[-1],
                    "own_parts_from_frame": next((t for t, n in enumerate(own_pieces) if n > 1), None),
                    "own_last_pieces": own_pieces[-1]}
             parts = ("whole" if row["parts_from_frame"] is None else
                      f"parts from frame {row['parts_from_frame']}, {row['last_pieces']} piece(s) at the last")
-            _emit(row, f"grid offset {off} cells: held-out loss {1e3 * row['heldout_loss']:.3f} mm, "
-                       f"{1e3 * row['max_from_own_m']:.1f} mm from its own simulation at most, {parts}", rows,
-                  args.jsonl)
+            _emit(row, f"grid offset {off} cells: held-out loss {1e3 * row['heldout_loss']:.3f} mm; from its own "
+                       f"simulation {1e3 * row['median_from_own_last_m']:.1f} mm (median, last frame), "
+                       f"{1e3 * row['max_from_own_m']:.1f} mm at most; {parts}", rows, args.jsonl)
         mine = [r for r in rows if r["recording"] == path.stem]
         parted = sum(r["parts_from_frame"] is not None for r in mine)
         own_text = ("whole" if mine[0]["own_parts_from_frame"] is None

@@ -26,7 +26,7 @@ DATA = Path(__file__).resolve().parent / "data"
 #: measurements, oracles and probes, a rule's before/after comparisons, runs with a setting changed to compare.
 EXCLUDED = ("signatures", "oracle", "floors", "probe", "s52_yield", "s52_rope_lift_end_14", "code_742e6fc",
             "world_axes", "before_change", "before_rule", "before_scan", "retry_reverted", "variants_side", "old_new",
-            "alone", "repeat", "contenders", "unscaled_start_only", "trimmed_bodies")
+            "alone", "repeat", "contenders", "unscaled_start_only", "trimmed_bodies", "grid_offsets")
 NAME = re.compile(r"(dough|rope)-([a-z-]+)-(\d+)-([a-z_]+)$")
 
 
@@ -87,6 +87,21 @@ def by_session(rows) -> str:
     return ", ".join(f"s{k} {v}" for k, v in sorted(n.items()))
 
 
+def by_simulation(rows) -> dict:
+    """``rows`` (:func:`stored_rows`) grouped by the simulation they render: ``{(object, script, truth): (named
+    right, recordings)}``. The synthesiser samples every seed's body on one lattice with the same material and
+    controls, so the seeds of one object, script and effect are one simulation seen through different depth noise
+    (benchmarks/RESULTS.md, session 56): the benchmark's independent physical cases are these, not its
+    recordings."""
+    out = {}
+    for r in rows:
+        m = NAME.match(r["recording"])
+        key = (m.group(1), r["script"], r["truth"])
+        right, n = out.get(key, (0, 0))
+        out[key] = (right + (r["verdict"] == r["truth"]), n + 1)
+    return out
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seeds", default="10-18", help="FIRST-LAST, inclusive (default 10-18)")
@@ -105,8 +120,17 @@ def main(argv=None):
     print(f"seeds {first}-{last}: {len(rows)} recordings, {ok} named right ({100 * ok / len(rows):.1f} %)")
     # the code each verdict's run was made with: an old run's fits are not the current doctor's
     print(f"  runs by session: {by_session(rows)}")
+    sims = by_simulation(rows)
+    every = sum(right == n for right, n in sims.values())
+    most = sum(2 * right > n for right, n in sims.values())
+    print(f"  {len(sims)} simulations (object, script, truth: its seeds render one simulation): named right "
+          f"on every seed {every}, on most seeds {most}")
     B.summarise(rows, stored_floors())
     if args.misses:
+        print("\nsimulations not named right on every seed (named right / recordings)")
+        for (obj, script, truth), (right, n) in sorted(sims.items()):
+            if right < n:
+                print(f"  {obj:6s} {script:14s} {truth:24s} {right} / {n}")
         print("\nwrong verdicts (recording, verdict, stored in)")
         for r in sorted(rows, key=lambda r: r["recording"]):
             if r["truth"] != r["verdict"]:

@@ -383,6 +383,20 @@ def test_the_stored_tally_takes_each_recordings_last_run_in_session_order(tmp_pa
         tally.main(["--seeds", "18-10"])
 
 
+def test_the_tally_counts_each_simulation_once_over_its_seeds():
+    """tally_doctor.by_simulation: the seeds of one object, script and truth are one simulation; its count is of
+    the right verdicts among them, and another script or object is another simulation."""
+    tally = load_benchmark("tally_doctor")
+    rows = [_row("dough-pull-apart-10-fracture", "fracture", "gripper_slip", "pull-apart", 0.01),
+            _row("dough-pull-apart-11-fracture", "fracture", "fracture", "pull-apart", 0.01),
+            _row("dough-pull-apart-12-fracture", "fracture", "gripper_slip", "pull-apart", 0.01),
+            _row("rope-pull-apart-10-fracture", "fracture", "fracture", "pull-apart", 0.01),
+            _row("dough-lift-end-10-fracture", "fracture", "fracture", "lift-end", 0.01)]
+    assert tally.by_simulation(rows) == {("dough", "pull-apart", "fracture"): (1, 3),
+                                         ("rope", "pull-apart", "fracture"): (1, 1),
+                                         ("dough", "lift-end", "fracture"): (1, 1)}
+
+
 def test_the_stored_floors_are_each_recordings_last_of_each_kind(tmp_path):
     """tally_doctor.stored_floors: a floor (true material on the doctor's body) and an oracle (the recording's own
     simulation) of one recording are both kept, a later session's floor replaces an earlier one, and a floor
