@@ -56,6 +56,45 @@ def second_script(obj: str, effect: str) -> str:
     return OTHER_ON.get((obj, effect), OTHER[effect])
 
 
+#: What ``--make --vary-physics`` draws per seed: log-uniform factors on the value each parameter would have (the
+#: object's default or ``--base-params``; the effect's default or ``--effect-params``), the grid's offset (uniform
+#: in [0, 1) cells per axis) and the body's particles jittered by up to +-VARY_JITTER/2 of their spacing. The
+#: stiffness slope stays within the doctor's cap (1.2 at the default 1.0) and the fracture strain at or above
+#: 0.15 (the pull-apart stretches to 80 %).
+VARY_FACTORS = {"E": (0.5, 2.0), "yield_stress": (0.5, 2.0), "viscosity": (0.5, 2.0), "friction": (0.5, 2.0),
+                "grip_friction": (0.5, 2.0), "stiffness_slope_1": (0.6, 1.2), "fracture_strain": (0.75, 1.5)}
+VARY_JITTER = 0.5
+
+
+def varied_physics(seed: int, obj: str, effect: str, base: dict, eparams: dict):
+    """``(base params, effect params, simulate kwargs)`` of seed ``seed`` under ``--vary-physics``: E, the
+    effect's parameters of :data:`VARY_FACTORS`, the grid offset and the particle jitter drawn from the seed alone
+    (the same E, offset and jitter for every effect and script of a seed: its ``none`` is the effect's recording
+    without the effect). Without it every seed of one object, script and effect is one simulation, seen through
+    other noise (benchmarks/RESULTS.md, session 56)."""
+    from empm_gym.perception.synth import OBJECT_DEFAULTS, default_effect_params
+    from empm_gym.sim import MaterialConfig
+    from empm_gym.sim.effects import EFFECTS
+
+    rng = np.random.default_rng([int(seed), 56])
+    lo, hi = VARY_FACTORS["E"]
+    E = float(base.get("E", OBJECT_DEFAULTS[obj]["E"])) * float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+    offset = [float(v) for v in rng.uniform(0.0, 1.0, 3)]
+    out_base = {**base, "E": E}
+    out_eff = {}
+    if effect != "none":
+        erng = np.random.default_rng([int(seed), 56, 1])
+        material = MaterialConfig(E=E, nu=float(base.get("nu", 0.3)), density=float(base.get("density", 1000.0)))
+        values = {**default_effect_params(effect, material), **eparams}
+        for name in EFFECTS[effect].param_names:
+            if name in VARY_FACTORS:
+                lo, hi = VARY_FACTORS[name]
+                out_eff[name] = float(values[name]) * float(np.exp(erng.uniform(np.log(lo), np.log(hi))))
+            elif name in eparams:
+                out_eff[name] = float(eparams[name])
+    return out_base, out_eff, {"grid_offset": offset, "jitter": VARY_JITTER}
+
+
 def object_of(recording: str) -> str:
     """The object of a benchmark recording's name: "rope-drag-10-none" -> "rope"; a set's own prefix
     ("d5_dough-...", "sm_rope-...") left out."""
@@ -147,8 +186,13 @@ def make(args):
         for script in scripts:
             for seed in range(args.first_seed, args.first_seed + args.seeds):
                 eparams = {k: v for k, v in params.items() if effect != "none" and k in EFFECTS[effect].param_names}
-                name = ("sm_" if sm else "") + f"{args.object}-{script}-{seed}-{effect}" + "".join(f"-{k}{v:g}" for k, v in
-                                                                             {**base, **eparams}.items())
+                name = (("sm_" if sm else "") + ("v_" if args.vary_physics else "")
+                        + f"{args.object}-{script}-{seed}-{effect}"
+                        + "".join(f"-{k}{v:g}" for k, v in {**base, **eparams}.items()))
+                seed_base, seed_kw = base, sim_kw
+                if args.vary_physics:  # this seed's material and discretisation (its name keeps the flags' values)
+                    seed_base, eparams, drawn_kw = varied_physics(seed, args.object, effect, base, eparams)
+                    seed_kw = {**sim_kw, **drawn_kw}
                 rec = Path(args.make) / name
                 t0 = time.perf_counter()
                 if (out / f"{name}.pkl").exists() and args.keep_existing:
@@ -167,8 +211,8 @@ def make(args):
                         changed = True
                     if "signature_m" not in prob:
                         prob["signature_m"] = effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
-                                                               effect_params=eparams or None, base_params=base,
-                                                               dx=synth_dx, **sim_kw)
+                                                               effect_params=eparams or None, base_params=seed_base,
+                                                               dx=synth_dx, **seed_kw)
                         changed = True
                     if args.view_bodies and "view_bodies" not in prob and rec.exists():
                         prob["view_bodies"] = view_jackknife_bodies(rec, prob["scene"], particles_per_cell=args.ppc)
@@ -178,9 +222,9 @@ def make(args):
                     print(f"{name}: kept, held-out signature {1e3 * prob['signature_m']:.2f} mm", flush=True)
                     continue
                 synthesize(rec, args.object, script=script, effect=effect, effect_params=eparams or None,
-                           **base, frames=args.frames, cameras=args.cameras, dx=synth_dx,
+                           **seed_base, frames=args.frames, cameras=args.cameras, dx=synth_dx,
                            width=args.width, height=args.height, seed=seed, overwrite=True, progress=False,
-                           tangent_splats=args.tangent_splats, **sim_kw)
+                           tangent_splats=args.tangent_splats, **seed_kw)
                 gt = json.loads((rec / "ground_truth.json").read_text())
                 truth = [e["name"] for e in gt["effects"]]
                 try:
@@ -191,15 +235,16 @@ def make(args):
                     continue
                 obs = _subsample(obs, seed, args.max_points)
                 prob = {"scene": scene, "obs": obs, "truth": truth[0] if truth else "none", "script": script,
-                        "seed": seed, "truth_params": eparams, "body_notes": notes, "base_params": base,
+                        "seed": seed, "truth_params": eparams, "body_notes": notes, "base_params": seed_base,
                         "synth_dx": synth_dx, "trim_to_surface": args.trim_bodies, "simulator": args.simulator,
                         "parted": gt.get("parted"),
+                        "synth_kw": {k: v for k, v in seed_kw.items() if k in ("grid_offset", "jitter")},
                         **({"view_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc,
                                                                  trim_to_surface=args.trim_bodies)}
                            if args.view_bodies else {}),
                         "signature_m": effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
-                                                        effect_params=eparams or None, base_params=base,
-                                                        dx=synth_dx, **sim_kw)}
+                                                        effect_params=eparams or None, base_params=seed_base,
+                                                        dx=synth_dx, **seed_kw)}
                 _write_problem(out / f"{name}.pkl", prob)
                 print(f"{name}: {len(scene.particles)} particles, {obs.num_frames} frames "
                       f"({time.perf_counter() - t0:.1f} s)", flush=True)
@@ -404,7 +449,8 @@ def floors(problems: Path, args):
 def _own_simulation(path: Path, prob: dict, mat, args) -> dict:
     """The synthesiser run again for the effect problem ``prob`` (read from ``path``): ``ground_truth``'s material
     ``mat``, the problem's script and seed, on the grid the recording was made on (the problem's ``synth_dx``, or
-    ``args.synth_dx`` for problems made before session 38); :func:`~empm_gym.perception.synth.simulate`'s result,
+    ``args.synth_dx`` for problems made before session 38; its grid offset and particle jitter, ``--vary-physics``);
+    :func:`~empm_gym.perception.synth.simulate`'s result,
     its particles in float64. Refused by name where the grid is unknown or disagrees, or where the run's frame-0
     body does not lie where the recording's frame-0 points were seen (another object or script)."""
     from scipy.spatial import cKDTree
@@ -420,7 +466,7 @@ def _own_simulation(path: Path, prob: dict, mat, args) -> dict:
     synth_dx = args.synth_dx if synth_dx is None else synth_dx
     obs = prob["obs"]
     out = simulate(args.object, mat, script=prob["script"], frames=obs.num_frames, dx=synth_dx, seed=prob["seed"],
-                   device=args.device)
+                   device=args.device, **prob.get("synth_kw", {}))
     out["particles"] = out["particles"].astype(np.float64)
     d0 = float(np.median(cKDTree(out["particles"][0]).query(obs.points[0])[0]))
     if d0 > synth_dx:
@@ -518,14 +564,8 @@ def grid_offsets(problems: Path, args):
         mu = mat.get("friction")
         own_pieces = [count_pieces(X0[t]) for t in range(T)]
         for off in args.grid_offsets:
-            # the nodes move down by the offset, and a box so moved grows by a cell at the top: every particle
-            # keeps at least the room it had (a box whose usable part starts at the table stays there)
-            shift = tuple(o * grid.dx for o in off)
-            g = dataclasses.replace(grid, lower=tuple(a - s for a, s in zip(grid.lower, shift)),
-                                    upper=tuple(a - s + (grid.dx if s > 0 else 0.0)
-                                                for a, s in zip(grid.upper, shift)))
             sc = dataclasses.replace(prob["scene"], particles=X0[0], volumes=np.asarray(own["volumes"], np.float64),
-                                     grid=g, device=args.device).with_material(mat, table_friction=mu)
+                                     grid=grid.shifted(off), device=args.device).with_material(mat, table_friction=mu)
             X, _, _ = _ForwardSim(sc, [mat], [mu]).run(T)
             X = X[:, 0].astype(np.float64)
             if not np.all(np.isfinite(X)):
@@ -761,6 +801,9 @@ def _parser():
                         "material, e.g. E=1e4,density=1100 (a material the doctor's rules were not chosen on); the "
                         "recordings' names end with them")
     p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--vary-physics", action="store_true",
+                   help="with --make: each seed its own E, effect parameters, grid offset and particle jitter "
+                        "(VARY_FACTORS; names start with v_); without it every seed is one simulation, other noise")
     p.add_argument("--first-seed", type=int, default=0, help="seeds --first-seed ... --first-seed + --seeds - 1")
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--cameras", type=int, default=3)

@@ -274,6 +274,40 @@ def test_the_recordings_own_simulation_reproduces_it_and_only_it(bench, slide_pr
         bench.oracles(tmp_path / "unknown", bench.parse_args(["--object", "block"]))
 
 
+def test_vary_physics_gives_each_seed_its_own_material_and_grid_and_the_oracle_follows(bench, tmp_path):
+    """``--make --vary-physics``: each seed draws its own E, effect parameter, grid offset and particle jitter
+    (within VARY_FACTORS), the same for its ``none`` as for its effect; the recording's ground truth and the problem
+    hold what was drawn, and the recording's own simulation (``--oracle``), run with them, reproduces it at the
+    depth noise's level."""
+    import pickle
+
+    from empm_gym.perception.synth import OBJECT_DEFAULTS
+
+    rc = bench.main(["--object", "block", "--make", str(tmp_path / "rec"), "--problems", str(tmp_path / "prob"),
+                     "--effects", "table_friction", "--only-scripts", "push-slide", "--scripts", "1", "--seeds", "2",
+                     "--dx", "0.02", "--synth-dx", "0.02", "--frames", "8", "--cameras", "2", "--width", "160",
+                     "--height", "120", "--only-make", "--vary-physics"])
+    assert rc == 0
+    probs = {}
+    for seed in (0, 1):
+        name = f"v_block-push-slide-{seed}-table_friction"
+        with open(tmp_path / "prob" / f"{name}.pkl", "rb") as f:
+            probs[seed] = pickle.load(f)
+        prob = probs[seed]
+        gt = json.loads((tmp_path / "rec" / name / "ground_truth.json").read_text())
+        assert gt["material"]["E"] == pytest.approx(prob["base_params"]["E"])
+        assert gt["table_friction"] == pytest.approx(prob["truth_params"]["friction"])
+        assert gt["scene"]["grid_offset_cells"] == pytest.approx(prob["synth_kw"]["grid_offset"])
+        assert 0.5 <= prob["base_params"]["E"] / OBJECT_DEFAULTS["block"]["E"] <= 2.0
+        assert 0.025 <= prob["truth_params"]["friction"] <= 0.1
+        none_base, _, none_kw = bench.varied_physics(seed, "block", "none", {}, {})
+        assert none_base == prob["base_params"] and none_kw == prob["synth_kw"]
+    assert probs[0]["base_params"]["E"] != probs[1]["base_params"]["E"]
+    assert probs[0]["synth_kw"]["grid_offset"] != probs[1]["synth_kw"]["grid_offset"]
+    own = bench.oracles(tmp_path / "prob", bench.parse_args(["--object", "block"]))
+    assert len(own) == 2 and all(r["oracle_chamfer_m"] < 8e-3 for r in own), own
+
+
 def test_the_doctors_simulator_is_the_synthesisers_on_its_grid_and_another_offset_moves_it(bench, slide_problems,
                                                                                          capsys):
     """``--grid-offsets``: on the recording's own grid (offset 0) the doctor's simulator, given the synthesiser's

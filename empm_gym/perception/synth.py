@@ -223,17 +223,20 @@ def grid_shift_off_faces(lower, positions, end_effectors, dx: float, axes=(0, 1)
 
 
 def _build(obj: str, material, *, dx: float, ppc: float, table_friction: float, ee_friction: float, seed: int,
-           device, controls_pos, ee_kwargs, grid_box, controls_quat=None):
+           device, controls_pos, ee_kwargs, grid_box, controls_quat=None, grid_offset=(0.0, 0.0, 0.0),
+           jitter: float = 0.0):
     from empm_gym.sim import (EndEffectorConfig, GridConfig, ModelBuilder, TableConfig, sample_box,
                               sample_cylinder)
 
-    grid = GridConfig(lower=grid_box[0], upper=grid_box[1], dx=dx)
+    grid = GridConfig(lower=grid_box[0], upper=grid_box[1], dx=dx).shifted(grid_offset)
+    if not (math.isfinite(jitter) and 0.0 <= jitter <= 1.0):
+        raise ValueError(f"jitter must lie in [0, 1] (a fraction of the particle spacing), got {jitter!r}")
     if obj == "rope":
         L, r = _ROPE_LENGTH_M, _ROPE_RADIUS_M
-        x, vol = sample_cylinder((-L / 2, 0, r), (L / 2, 0, r), r, dx, ppc, seed=seed)
+        x, vol = sample_cylinder((-L / 2, 0, r), (L / 2, 0, r), r, dx, ppc, seed=seed, jitter=jitter)
     else:
         sx, sy, sz = _GEOMETRY[obj].size
-        x, vol = sample_box((-sx / 2, -sy / 2, 0.0), (sx / 2, sy / 2, sz), dx, ppc, seed=seed)
+        x, vol = sample_box((-sx / 2, -sy / 2, 0.0), (sx / 2, sy / 2, sz), dx, ppc, seed=seed, jitter=jitter)
     ee = [EndEffectorConfig(friction=ee_friction, **kw) for kw in ee_kwargs]
     b = ModelBuilder(grid, gravity=(0, 0, -9.81), table=TableConfig(height=0.0, friction=table_friction))
     w = b.add_world(material)
@@ -368,7 +371,8 @@ def body_parts(particles: np.ndarray, dx: float, min_frac: float = 0.02) -> Opti
 def simulate(object: str, material, *, script: str = "default", frames: int = 60, fps: float = 30.0,
              dx: float = 0.01, particles_per_cell: float = 8, table_friction: float = 0.5,
              gripper_friction: float = 0.8, seed: int = 0, device: str = "cpu", progress: bool = False,
-             simulator: str = "mpm", springmass_damping: float = 1.0) -> dict:
+             simulator: str = "mpm", springmass_damping: float = 1.0, grid_offset=(0.0, 0.0, 0.0),
+             jitter: float = 0.0) -> dict:
     """Run ``script`` on ``object`` of ``material`` without rendering. Returns a dict: ``particles`` [T, N, 3]
     (m, frame t = after t intervals), ``positions`` [T, K, 3], ``grip`` [T, K], ``end_effectors``
     (EndEffectorConfig list), ``grid``, ``model``, ``substeps``, ``dt``, ``volumes`` [N] (m^3). The table
@@ -377,7 +381,12 @@ def simulate(object: str, material, *, script: str = "default", frames: int = 60
     ``simulator`` "springmass" runs the body as a spring-mass network instead (see :func:`_simulate_springmass`):
     the MPM's frame-0 particles voxel-downsampled to half a cell, springs of stiffness ``material.E`` (the
     network's Young's modulus, Pa), dashpots of ``springmass_damping`` (Pa s), the same table, friction and
-    end-effector motion, a closed gripper holding the particles it touches."""
+    end-effector motion, a closed gripper holding the particles it touches.
+
+    ``grid_offset`` moves the script's grid by fractions of a cell (:meth:`~empm_gym.sim.GridConfig.shifted`);
+    ``jitter`` (in [0, 1]) displaces each particle of the body's lattice uniformly within +-jitter/2 of the
+    lattice spacing along each axis (seeded by ``seed``). Both default to the lattice and grid every seed shares: with them, seeds differ in the
+    discretisation as a real object's reconstruction does (benchmarks/RESULTS.md, session 56)."""
     from tqdm.auto import tqdm
 
     from empm_gym.sim import SolverMPM
@@ -391,7 +400,7 @@ def simulate(object: str, material, *, script: str = "default", frames: int = 60
     model, ee_cfgs, grid = _build(object, material, dx=dx, ppc=particles_per_cell, table_friction=table_friction,
                                   ee_friction=gripper_friction, seed=seed, device=device, controls_pos=pos,
                                   ee_kwargs=[dict(kw, gripper=bool(np.any(grip[:, k]))) for k, kw in enumerate(ee_kw)],
-                                  grid_box=grid_box, controls_quat=quat)
+                                  grid_box=grid_box, controls_quat=quat, grid_offset=grid_offset, jitter=jitter)
     if simulator == "springmass":
         out = _simulate_springmass(model, material, pos, grip, ee_cfgs, grid, fps=fps, damping=springmass_damping,
                                    table_friction=table_friction, device=device, progress=progress, quat=quat)
@@ -817,7 +826,8 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
                overwrite: bool = False, progress: bool = True, device: str = "cpu", script: str = "default",
                effect: Optional[str] = None, effect_params: Optional[Dict[str, float]] = None,
                material=None, debug_particles: Optional[bool] = None, tangent_splats: bool = True,
-               simulator: str = "mpm", springmass_damping: float = 1.0) -> Path:
+               simulator: str = "mpm", springmass_damping: float = 1.0, grid_offset=(0.0, 0.0, 0.0),
+               jitter: float = 0.0) -> Path:
     """Simulate a scripted manipulation and write a synthetic recording with known parameters to ``out_dir``.
 
     ``object`` is "rope", "dough" or "block"; ``script`` "default" (rope lift-and-stretch, dough squeeze,
@@ -843,7 +853,8 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
     ``simulator`` "springmass" moves the body as a spring-mass network (PhysTwin's family; only table friction
     and a stiffness field can be its effects, dashpots ``springmass_damping`` Pa s) instead of our MPM, so that
     the doctor and identification can be tried on another simulator's output (:func:`simulate`); the
-    rendering is the same.
+    rendering is the same. ``grid_offset`` and ``jitter`` vary the discretisation (:func:`simulate`); the
+    ground truth's ``scene`` records both.
     Returns the recording path. See the module docstring for the scene, the noise model and how
     ``controls.npz`` replays.
     """
@@ -893,7 +904,8 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
     # -- simulate -------------------------------------------------------------------------------
     sim = simulate(object, material, script=script, frames=T, fps=fps, dx=dx, particles_per_cell=particles_per_cell,
                    table_friction=table_friction, gripper_friction=gripper_friction, seed=seed, device=device,
-                   progress=progress, simulator=simulator, springmass_damping=springmass_damping)
+                   progress=progress, simulator=simulator, springmass_damping=springmass_damping,
+                   grid_offset=grid_offset, jitter=jitter)
     X, pos, grip, ee_cfgs, grid, model = (sim["particles"], sim["positions"], sim["grip"], sim["end_effectors"],
                                           sim["grid"], sim["model"])
     quat = sim["orientations"]
@@ -993,6 +1005,8 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
                        "spacing_m": float(model.spacing), "springs": int(model.spring_count)}),
         "scene": {
             "grid": {"lower": list(grid.lower), "upper": list(grid.upper), "dx": grid.dx},
+            "grid_offset_cells": [float(v) for v in grid_offset],
+            "particle_jitter": float(jitter),
             "particles_per_cell": float(particles_per_cell),
             "particle_count": int(X.shape[1]),
             "substeps_per_frame": n_sub,
@@ -1051,7 +1065,8 @@ def _cli(args) -> int:
                           script=args.script, effect=effect, effect_params=params, material=material,
                           debug_particles=True if args.debug_particles else None,
                           tangent_splats=args.tangent_splats, simulator=args.simulator,
-                          springmass_damping=args.springmass_damping)
+                          springmass_damping=args.springmass_damping, grid_offset=args.grid_offset,
+                          jitter=args.jitter)
     except (RecordingError, ValueError, OSError) as exc:
         print(f"empm synth: error: {exc}", file=sys.stderr)
         return 2
@@ -1115,6 +1130,11 @@ def register(subparsers) -> None:
                         "to try the doctor and identification on another simulator's output")
     p.add_argument("--springmass-damping", dest="springmass_damping", type=float, default=1.0,
                    help="the spring-mass dashpots, Pa s (with --simulator springmass)")
+    p.add_argument("--grid-offset", dest="grid_offset", type=float, nargs=3, default=(0.0, 0.0, 0.0),
+                   metavar=("X", "Y", "Z"),
+                   help="move the simulation grid's nodes down by these fractions of a cell, each in [0, 1)")
+    p.add_argument("--jitter", type=float, default=0.0,
+                   help="displace the body's particles by up to +-jitter/2 of their spacing (0 to 1, seeded)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing recording in out_dir")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cli)

@@ -8,7 +8,7 @@ allowed, so a bad parameter never turns into a NaN three layers later.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Dict, Mapping, Optional, Sequence, Tuple
 
 __all__ = [
@@ -221,6 +221,17 @@ class GridConfig:
     def resolution(self) -> Tuple[int, int, int]:
         """Number of grid nodes along x, y, z."""
         return tuple(int(math.ceil((self.upper[i] - self.lower[i]) / self.dx - 1e-6)) + 1 for i in range(3))
+
+    def shifted(self, cells: Sequence[float]) -> "GridConfig":
+        """This grid with its nodes moved down by ``cells`` (x, y, z: fractions of a cell, each in [0, 1)) and, along
+        each axis so moved, one cell more at the top: every point keeps at least the room it had, and a box whose
+        usable part starts at the table stays there. ``(0, 0, 0)`` is this grid. The same body and material on two
+        such grids are two discretisations of one scene (``bench_doctor.py --grid-offsets``)."""
+        c = tuple(float(v) for v in cells)
+        if len(c) != 3 or not all(math.isfinite(v) and 0.0 <= v < 1.0 for v in c):
+            raise ValueError(f"GridConfig.shifted: cells must be 3 fractions of a cell, each in [0, 1), got {cells!r}")
+        return replace(self, lower=tuple(a - v * self.dx for a, v in zip(self.lower, c)),
+                       upper=tuple(a - v * self.dx + (self.dx if v > 0 else 0.0) for a, v in zip(self.upper, c)))
 
 
 @dataclass(frozen=True)

@@ -252,6 +252,42 @@ def test_a_clamped_block_does_not_hang_on_the_rounding_of_its_grid(script):
     assert S.grid_shift_off_faces(g, *S._script("block", script, 30)[:3:2], 0.01).tolist() == [0.0, 0.0]
 
 
+def test_a_seed_may_vary_the_discretisation_and_the_same_arguments_reproduce_it(tmp_path):
+    """``grid_offset`` moves the grid's nodes down by fractions of a cell (one cell more at the top), ``jitter``
+    moves each particle of the lattice within +-jitter/2 of its spacing, seeded: the same arguments give the same
+    simulation to the bit, another seed or offset another one, and the ground truth records both. An offset of a
+    whole cell, or a jitter beyond 1, is refused by name."""
+    from empm_gym.sim import GridConfig
+
+    g = GridConfig(lower=(-0.1, -0.1, -0.04), upper=(0.1, 0.1, 0.1), dx=0.02)
+    moved = g.shifted((0.25, 0.0, 0.5))
+    assert moved.lower == pytest.approx((-0.105, -0.1, -0.05)) and moved.upper == pytest.approx((0.115, 0.1, 0.11))
+    assert g.shifted((0.0, 0.0, 0.0)) == g
+    for bad in ((1.0, 0.0, 0.0), (-0.1, 0.0, 0.0), (0.5, 0.5)):
+        with pytest.raises(ValueError, match="GridConfig.shifted"):
+            g.shifted(bad)
+
+    m, _ = S.effect_material("block", "none")
+    run = dict(script="press-release", frames=4, dx=0.02)
+    plain = S.simulate("block", m, **run)
+    a = S.simulate("block", m, **run, seed=3, jitter=0.5, grid_offset=(0.3, 0.6, 0.2))
+    b = S.simulate("block", m, **run, seed=3, jitter=0.5, grid_offset=(0.3, 0.6, 0.2))
+    c = S.simulate("block", m, **run, seed=4, jitter=0.5, grid_offset=(0.3, 0.6, 0.2))
+    assert np.array_equal(a["particles"], b["particles"])
+    spacing = 0.02 / 8 ** (1 / 3)
+    d0 = np.abs(a["particles"][0] - plain["particles"][0])
+    assert 0.0 < d0.max() <= 0.25 * spacing + 1e-7
+    assert not np.array_equal(a["particles"][0], c["particles"][0])
+    assert a["grid"].lower == pytest.approx(tuple(np.asarray(plain["grid"].lower) - [0.006, 0.012, 0.004]))
+    with pytest.raises(ValueError, match="jitter must lie in"):
+        S.simulate("block", m, **run, jitter=1.5)
+    S.synthesize(tmp_path / "rec", "block", effect="none", script="press-release", seed=3, jitter=0.5,
+                 grid_offset=(0.3, 0.6, 0.2), **{**TINY, "frames": 4})
+    scene = json.loads((tmp_path / "rec" / "ground_truth.json").read_text())["scene"]
+    assert scene["grid_offset_cells"] == [0.3, 0.6, 0.2] and scene["particle_jitter"] == 0.5
+    assert scene["grid"]["lower"] == pytest.approx(list(a["grid"].lower))
+
+
 def test_grid_shift_off_faces_moves_only_a_grid_that_holds_a_face_on_its_nodes():
     """A box whose face stays on a node plane moves the grid by a quarter cell along that axis only; a face that
     sweeps across the nodes (a pusher in motion), a face between node planes and a sphere move nothing."""
