@@ -8,7 +8,7 @@ doctor's current rule (``bench_doctor.rescore``), older result rows are taken as
 ran the doctor other than as shipped (a changed rule, a probe) are left out of the verdicts by name (EXCLUDED), and
 so are the floors' and oracles' files, which ``stored_floors`` reads.
 
-usage: python benchmarks/tally_doctor.py [--seeds 10-18] [--misses]
+usage: python benchmarks/tally_doctor.py [--seeds 10-18] [--misses] [--varied]
 """
 
 import argparse
@@ -27,7 +27,7 @@ DATA = Path(__file__).resolve().parent / "data"
 EXCLUDED = ("signatures", "oracle", "floors", "probe", "s52_yield", "s52_rope_lift_end_14", "code_742e6fc",
             "world_axes", "before_change", "before_rule", "before_scan", "retry_reverted", "variants_side", "old_new",
             "alone", "repeat", "contenders", "unscaled_start_only", "trimmed_bodies", "grid_offsets")
-NAME = re.compile(r"(dough|rope)-([a-z-]+)-(\d+)-([a-z_]+)$")
+NAME = re.compile(r"(v_)?(dough|rope)-([a-z-]+)-(\d+)-([a-z_]+)$")  # v_: made with --vary-physics
 
 
 def _session(path: Path) -> int:
@@ -42,9 +42,10 @@ def _stored(data: Path, pattern: str, excluded=EXCLUDED):
                   key=lambda p: (_session(p), p.name))  # within a session, by name: the same order on any machine
 
 
-def stored_rows(first: int, last: int, data: Path = DATA):
+def stored_rows(first: int, last: int, data: Path = DATA, varied: bool = False):
     """The benchmark's rows of seeds ``first``..``last``, each from the last stored run of its recording, with the
-    file it came from under ``"source"``."""
+    file it came from under ``"source"``; ``varied``: those of the recordings made with ``--vary-physics``
+    (``v_...``, each seed its own material and discretisation) instead of the fixed set's."""
     rows = {}
     for path in _stored(data, "doctor_s*.jsonl"):
         lines = [json.loads(t) for t in path.read_text().splitlines() if t.strip()]
@@ -52,12 +53,12 @@ def stored_rows(first: int, last: int, data: Path = DATA):
         scored = {r["recording"]: r for r in B.rescore([path])} if dumps else {}
         for line in lines:
             m = NAME.match(line.get("recording", ""))
-            if not m or not first <= int(m.group(3)) <= last:
+            if not m or bool(m.group(1)) != varied or not first <= int(m.group(4)) <= last:
                 continue
             row = scored.get(line["recording"]) or (line if "verdict" in line else None)
             if row is None:
                 continue
-            obj, script, truth = m.group(1), m.group(2), row.get("truth") or m.group(4)
+            obj, script, truth = m.group(2), m.group(3), row.get("truth") or m.group(5)
             if truth != "none" and script not in (B.NATURAL[truth], B.second_script(obj, truth)):
                 continue
             rows.pop(line["recording"], None)
@@ -96,7 +97,7 @@ def by_simulation(rows) -> dict:
     out = {}
     for r in rows:
         m = NAME.match(r["recording"])
-        key = (m.group(1), r["script"], r["truth"])
+        key = (m.group(2), r["script"], r["truth"])
         right, n = out.get(key, (0, 0))
         out[key] = (right + (r["verdict"] == r["truth"]), n + 1)
     return out
@@ -106,6 +107,8 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seeds", default="10-18", help="FIRST-LAST, inclusive (default 10-18)")
     p.add_argument("--misses", action="store_true", help="list the wrong verdicts and the file each came from")
+    p.add_argument("--varied", action="store_true",
+                   help="the recordings made with --vary-physics (v_..., each seed its own material and grid)")
     args = p.parse_args(argv)
     try:
         first, last = (int(x) for x in args.seeds.split("-"))
@@ -113,21 +116,24 @@ def main(argv=None):
         raise SystemExit(f"--seeds: FIRST-LAST, two whole numbers, e.g. 10-18; got {args.seeds!r}")
     if first > last:
         raise SystemExit(f"--seeds: FIRST must not exceed LAST; got {args.seeds!r}")
-    rows = stored_rows(first, last)
+    rows = stored_rows(first, last, varied=args.varied)
     if not rows:
-        raise SystemExit(f"no stored benchmark rows for seeds {first}-{last} in {DATA}")
+        raise SystemExit(f"no stored benchmark rows for {'varied ' if args.varied else ''}seeds {first}-{last} "
+                         f"in {DATA}")
     ok = sum(r["truth"] == r["verdict"] for r in rows)
     print(f"seeds {first}-{last}: {len(rows)} recordings, {ok} named right ({100 * ok / len(rows):.1f} %)")
     # the code each verdict's run was made with: an old run's fits are not the current doctor's
     print(f"  runs by session: {by_session(rows)}")
     sims = by_simulation(rows)
-    every = sum(right == n for right, n in sims.values())
-    most = sum(2 * right > n for right, n in sims.values())
-    print(f"  {len(sims)} simulations (object, script, truth: its seeds render one simulation): named right "
-          f"on every seed {every}, on most seeds {most}")
+    if not args.varied:  # varied recordings are each a simulation of their own
+        every = sum(right == n for right, n in sims.values())
+        most = sum(2 * right > n for right, n in sims.values())
+        print(f"  {len(sims)} simulations (object, script, truth: its seeds render one simulation): named right "
+              f"on every seed {every}, on most seeds {most}")
     B.summarise(rows, stored_floors())
     if args.misses:
-        print("\nsimulations not named right on every seed (named right / recordings)")
+        print("\n" + ("objects, scripts and effects" if args.varied else "simulations")
+              + " not named right on every seed (named right / recordings)")
         for (obj, script, truth), (right, n) in sorted(sims.items()):
             if right < n:
                 print(f"  {obj:6s} {script:14s} {truth:24s} {right} / {n}")

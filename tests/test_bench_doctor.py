@@ -413,6 +413,10 @@ def test_the_stored_tally_takes_each_recordings_last_run_in_session_order(tmp_pa
     assert rows["rope-squeeze-lift-10-viscosity"]["source"] == "doctor_s12_again.jsonl"
     assert rows["dough-drag-11-none"]["verdict"] == "none"
     assert tally.by_session(rows.values()) == "s3 1, s12 1"
+    # the recordings made with --vary-physics are their own set
+    write("doctor_s13_varied.jsonl", [_row("v_dough-drag-11-none", "none", "none", "drag", 0.01)])
+    assert [r["recording"] for r in tally.stored_rows(10, 18, tmp_path, varied=True)] == ["v_dough-drag-11-none"]
+    assert "v_dough-drag-11-none" not in {r["recording"] for r in tally.stored_rows(10, 18, tmp_path)}
     with pytest.raises(SystemExit, match="FIRST must not exceed LAST; got '18-10'"):
         tally.main(["--seeds", "18-10"])
 
