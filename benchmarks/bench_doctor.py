@@ -84,7 +84,9 @@ def varied_physics(seed: int, obj: str, effect: str, base: dict, eparams: dict):
     out_eff = {}
     if effect != "none":
         erng = np.random.default_rng([int(seed), 56, 1])
-        material = MaterialConfig(E=E, nu=float(base.get("nu", 0.3)), density=float(base.get("density", 1000.0)))
+        d = OBJECT_DEFAULTS[obj]
+        material = MaterialConfig(E=E, nu=float(base.get("nu", d["nu"])),
+                                  density=float(base.get("density", d["density"])))
         values = {**default_effect_params(effect, material), **eparams}
         for name in EFFECTS[effect].param_names:
             if name in VARY_FACTORS:
@@ -539,10 +541,11 @@ def _grid_offsets_arg(text: str):
 def grid_offsets(problems: Path, args):
     """How much of each effect recording is its grid's: the recording's own body and true material
     (:func:`_own_simulation`, the benchmark's own use of ground truth) simulated by the doctor's simulator on the
-    recording's grid shifted by fractions of a cell (``args.grid_offsets``), scored as the doctor scores. Per
-    offset: the held-out loss and Chamfer, the distance of the particles from the recording's own simulation (the
-    median at the last frame, and the largest over all frames), and the pieces the body is in (:func:`~empm_gym.identification.doctor.features.count_pieces`):
-    the first frame in more than one, and at the last frame. At offset 0 the doctor's simulator is the
+    recording's grid shifted by fractions of a cell (``args.grid_offsets``, :meth:`GridConfig.shifted`), scored as
+    the doctor scores. Per offset: the held-out loss and Chamfer, the distance of the particles from the recording's
+    own simulation (the median at the last frame, and the largest over all frames), and the pieces the body is in
+    (:func:`~empm_gym.identification.doctor.features.count_pieces`): the first frame in more than one, and at the
+    last frame. At offset 0 the doctor's simulator is the
     synthesiser's, particle for particle; an effect whose outcome changes with the offset (a tear that opens on
     one grid and not on another) is as much the discretisation's as the material's, and no fit on the doctor's own
     grid can be expected to reproduce it."""

@@ -385,8 +385,8 @@ def simulate(object: str, material, *, script: str = "default", frames: int = 60
 
     ``grid_offset`` moves the script's grid by fractions of a cell (:meth:`~empm_gym.sim.GridConfig.shifted`);
     ``jitter`` (in [0, 1]) displaces each particle of the body's lattice uniformly within +-jitter/2 of the
-    lattice spacing along each axis (seeded by ``seed``). Both default to the lattice and grid every seed shares: with them, seeds differ in the
-    discretisation as a real object's reconstruction does (benchmarks/RESULTS.md, session 56)."""
+    lattice spacing along each axis (seeded by ``seed``). Both default to the lattice and grid every seed shares;
+    with them, seeds differ in the discretisation as real objects do (benchmarks/RESULTS.md, session 56)."""
     from tqdm.auto import tqdm
 
     from empm_gym.sim import SolverMPM
