@@ -58,7 +58,8 @@ def second_script(obj: str, effect: str) -> str:
 
 #: What ``--make --vary-physics`` draws per seed: log-uniform factors on the value each parameter would have (the
 #: object's default or ``--base-params``; the effect's default or ``--effect-params``), the grid's offset (uniform
-#: in [0, 1) cells per axis) and the body's particles jittered by up to +-VARY_JITTER/2 of their spacing. The
+#: in [0, 1) cells along x and y; none along z, which would move the table's node layer: docs/EFFECTS.md) and the
+#: body's particles jittered by up to +-VARY_JITTER/2 of their spacing. The
 #: stiffness slope stays within the doctor's cap (1.2 at the default 1.0) and the fracture strain at or above
 #: 0.15 (the pull-apart stretches to 80 %).
 VARY_FACTORS = {"E": (0.5, 2.0), "yield_stress": (0.5, 2.0), "viscosity": (0.5, 2.0), "friction": (0.5, 2.0),
@@ -79,7 +80,9 @@ def varied_physics(seed: int, obj: str, effect: str, base: dict, eparams: dict):
     rng = np.random.default_rng([int(seed), 56])
     lo, hi = VARY_FACTORS["E"]
     E = float(base.get("E", OBJECT_DEFAULTS[obj]["E"])) * float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
-    offset = [float(v) for v in rng.uniform(0.0, 1.0, 3)]
+    # along x and y only: the table acts on the highest node layer not above it, and the synthesiser's grid has
+    # one on the table (as the doctor's, on the table it measures); moved down, the body would rest in the table
+    offset = [float(v) for v in rng.uniform(0.0, 1.0, 2)] + [0.0]
     out_base = {**base, "E": E}
     out_eff = {}
     if effect != "none":

@@ -304,6 +304,7 @@ def test_vary_physics_gives_each_seed_its_own_material_and_grid_and_the_oracle_f
         assert none_base == prob["base_params"] and none_kw == prob["synth_kw"]
     assert probs[0]["base_params"]["E"] != probs[1]["base_params"]["E"]
     assert probs[0]["synth_kw"]["grid_offset"] != probs[1]["synth_kw"]["grid_offset"]
+    assert all(p["synth_kw"]["grid_offset"][2] == 0.0 for p in probs.values())  # the table's node layer stays
     own = bench.oracles(tmp_path / "prob", bench.parse_args(["--object", "block"]))
     assert len(own) == 2 and all(r["oracle_chamfer_m"] < 8e-3 for r in own), own
 

@@ -226,7 +226,8 @@ class GridConfig:
         """This grid with its nodes moved down by ``cells`` (x, y, z: fractions of a cell, each in [0, 1)) and, along
         each axis so moved, one cell more at the top: every point keeps at least the room it had, and a box whose
         usable part starts at the table stays there. ``(0, 0, 0)`` is this grid. The same body and material on two
-        such grids are two discretisations of one scene (``bench_doctor.py --grid-offsets``)."""
+        such grids are two discretisations of one scene (``bench_doctor.py --grid-offsets``); moved along z, the
+        table acts on another node layer (the highest not above it), up to a cell lower."""
         c = tuple(float(v) for v in cells)
         if len(c) != 3 or not all(math.isfinite(v) and 0.0 <= v < 1.0 for v in c):
             raise ValueError(f"GridConfig.shifted: cells must be 3 fractions of a cell, each in [0, 1), got {cells!r}")
