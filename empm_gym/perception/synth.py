@@ -1132,7 +1132,8 @@ def register(subparsers) -> None:
                    help="the spring-mass dashpots, Pa s (with --simulator springmass)")
     p.add_argument("--grid-offset", dest="grid_offset", type=float, nargs=3, default=(0.0, 0.0, 0.0),
                    metavar=("X", "Y", "Z"),
-                   help="move the simulation grid's nodes down by these fractions of a cell, each in [0, 1)")
+                   help="move the simulation grid's nodes down by these fractions of a cell, each in [0, 1); a z "
+                        "offset moves the node layer the table acts on below the table (the body rests in it)")
     p.add_argument("--jitter", type=float, default=0.0,
                    help="displace the body's particles by up to +-jitter/2 of their spacing (0 to 1, seeded)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing recording in out_dir")
