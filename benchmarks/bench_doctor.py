@@ -73,13 +73,15 @@ def varied_physics(seed: int, obj: str, effect: str, base: dict, eparams: dict):
     (the same E, offset and jitter for every effect and script of a seed: its ``none`` is the effect's recording
     without the effect). Without it every seed of one object, script and effect is one simulation, seen through
     other noise (benchmarks/RESULTS.md, session 56)."""
-    from empm_gym.perception.synth import OBJECT_DEFAULTS, default_effect_params
-    from empm_gym.sim import MaterialConfig
+    from empm_gym.perception.synth import OBJECT_DEFAULTS, effect_material
     from empm_gym.sim.effects import EFFECTS
 
+    def factor(rng, name):  # log-uniform within VARY_FACTORS[name]
+        lo, hi = VARY_FACTORS[name]
+        return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+
     rng = np.random.default_rng([int(seed), 56])
-    lo, hi = VARY_FACTORS["E"]
-    E = float(base.get("E", OBJECT_DEFAULTS[obj]["E"])) * float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+    E = float(base.get("E", OBJECT_DEFAULTS[obj]["E"])) * factor(rng, "E")
     # along x and y only: the table acts on the highest node layer not above it, and the synthesiser's grid has
     # one on the table (as the doctor's, on the table it measures); moved down, the body would rest in the table
     offset = [float(v) for v in rng.uniform(0.0, 1.0, 2)] + [0.0]
@@ -87,14 +89,10 @@ def varied_physics(seed: int, obj: str, effect: str, base: dict, eparams: dict):
     out_eff = {}
     if effect != "none":
         erng = np.random.default_rng([int(seed), 56, 1])
-        d = OBJECT_DEFAULTS[obj]
-        material = MaterialConfig(E=E, nu=float(base.get("nu", d["nu"])),
-                                  density=float(base.get("density", d["density"])))
-        values = {**default_effect_params(effect, material), **eparams}
+        values = effect_material(obj, effect, eparams or None, **out_base)[1][0]["params"]  # defaults at this E
         for name in EFFECTS[effect].param_names:
             if name in VARY_FACTORS:
-                lo, hi = VARY_FACTORS[name]
-                out_eff[name] = float(values[name]) * float(np.exp(erng.uniform(np.log(lo), np.log(hi))))
+                out_eff[name] = float(values[name]) * factor(erng, name)
             elif name in eparams:
                 out_eff[name] = float(eparams[name])
     return out_base, out_eff, {"grid_offset": offset, "jitter": VARY_JITTER}
@@ -548,10 +546,9 @@ def grid_offsets(problems: Path, args):
     the doctor scores. Per offset: the held-out loss and Chamfer, the distance of the particles from the recording's
     own simulation (the median at the last frame, and the largest over all frames), and the pieces the body is in
     (:func:`~empm_gym.identification.doctor.features.count_pieces`): the first frame in more than one, and at the
-    last frame. At offset 0 the doctor's simulator is the
-    synthesiser's, particle for particle; an effect whose outcome changes with the offset (a tear that opens on
-    one grid and not on another) is as much the discretisation's as the material's, and no fit on the doctor's own
-    grid can be expected to reproduce it."""
+    last frame. At offset 0 the doctor's simulator is the synthesiser's, particle for particle; an effect whose
+    outcome changes with the offset (a tear that opens on one grid and not on another) is as much the
+    discretisation's as the material's, and no fit on the doctor's own grid can be expected to reproduce it."""
     import dataclasses
 
     from empm_gym.identification.doctor import DoctorConfig
@@ -569,6 +566,10 @@ def grid_offsets(problems: Path, args):
         F = int(round(cfg.train_fraction * T))
         mu = mat.get("friction")
         own_pieces = [count_pieces(X0[t]) for t in range(T)]
+
+        def parts_from(counts):  # the first frame in more than one piece (None: whole throughout)
+            return next((t for t, n in enumerate(counts) if n > 1), None)
+
         for off in args.grid_offsets:
             sc = dataclasses.replace(prob["scene"], particles=X0[0], volumes=np.asarray(own["volumes"], np.float64),
                                      grid=grid.shifted(off), device=args.device).with_material(mat, table_friction=mu)
@@ -583,10 +584,8 @@ def grid_offsets(problems: Path, args):
                    "heldout_chamfer_m": float(np.mean(per["chamfer"][F:])),
                    "max_from_own_m": float(np.max(np.linalg.norm(X - X0, axis=-1))),
                    "median_from_own_last_m": float(np.median(np.linalg.norm(X[-1] - X0[-1], axis=-1))),
-                   "parts_from_frame": next((t for t, n in enumerate(pieces) if n > 1), None),
-                   "last_pieces": pieces[-1],
-                   "own_parts_from_frame": next((t for t, n in enumerate(own_pieces) if n > 1), None),
-                   "own_last_pieces": own_pieces[-1]}
+                   "parts_from_frame": parts_from(pieces), "last_pieces": pieces[-1],
+                   "own_parts_from_frame": parts_from(own_pieces), "own_last_pieces": own_pieces[-1]}
             parts = ("whole" if row["parts_from_frame"] is None else
                      f"parts from frame {row['parts_from_frame']}, {row['last_pieces']} piece(s) at the last")
             _emit(row, f"grid offset {off} cells: held-out loss {1e3 * row['heldout_loss']:.3f} mm; from its own "
@@ -893,6 +892,8 @@ def main(argv=None):
         p.error("--reload rebuilds the problems kept by --make DIR --keep-existing: give both")
     if not args.tangent_splats and not args.make:
         p.error("--flat-splats says how --make records its recordings: give --make DIR")
+    if args.vary_physics and not args.make:
+        p.error("--vary-physics says what --make simulates for each seed: give --make DIR")
     if args.make:
         problems = make(args)
         if args.only_make:
