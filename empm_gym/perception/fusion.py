@@ -176,9 +176,18 @@ def fit_table_plane(points: np.ndarray, *, distance_threshold_m: float = 0.004, 
             best = (int(count[k]), float(rms[k]), (nrm[k], float(-nrm[k] @ a[ok][k])))
     if best[2] is None:
         raise ValueError("fit_table_plane: the points are collinear; no plane through them")
-    n, d = best[2]
+    n, d, inliers = _refine_plane(centred, *best[2], thr)
+    d = float(d - n @ pts.mean(0))  # back to the original coordinates
+    if n @ np.asarray(up_hint, float) < 0:
+        n, d = -n, -d
+    return n, d, inliers.astype(np.int64)
+
+
+def _refine_plane(centred: np.ndarray, n: np.ndarray, d: float, thr: float):
+    """Least-squares refits of the plane ``n . x + d = 0`` to the points of ``centred`` (coordinates about their
+    mean) within ``thr`` of it (the smallest principal direction) until the inliers settle: ``(n, d, inliers)``."""
     inliers = np.flatnonzero(np.abs(centred @ n + d) < thr)
-    for _ in range(10):  # least-squares refits to the inliers (smallest principal direction) until they settle
+    for _ in range(10):
         q = centred[inliers]
         mean = q.mean(0)
         n_new = np.linalg.svd(q - mean, full_matrices=False)[2][-1]
@@ -188,10 +197,7 @@ def fit_table_plane(points: np.ndarray, *, distance_threshold_m: float = 0.004, 
         if len(new) < 3 or np.array_equal(new, inliers):
             break
         inliers = new
-    d = float(d - n @ pts.mean(0))  # back to the original coordinates
-    if n @ np.asarray(up_hint, float) < 0:
-        n, d = -n, -d
-    return n, d, inliers.astype(np.int64)
+    return n, d, inliers
 
 
 def estimate_table_plane(rec: Recording, t: int = 0, *, voxel_m: float = 0.005, distance_threshold_m: float = 0.004,
@@ -199,7 +205,11 @@ def estimate_table_plane(rec: Recording, t: int = 0, *, voxel_m: float = 0.005, 
     """Table plane ``(normal, offset)`` of a recording by RANSAC on the background pixels of frame ``t``.
 
     Background means outside the object and controller masks (all pixels when there are no masks).
-    The normal is oriented towards the cameras.
+    The normal is oriented towards the cameras. RANSAC searches the points averaged per ``voxel_m`` voxel; the
+    plane is then fitted by least squares to every background point within ``distance_threshold_m`` of it. A fit
+    to the voxel averages alone is biased: a voxel that the table's noisy points barely reach weighs as much as
+    one they fill, and with 5-mm voxels the table came out 0.8-0.9 mm low on a synthetic recording (0.008 mm with
+    2-mm voxels, benchmarks/RESULTS.md, session 56).
     """
     from scipy import ndimage
 
@@ -213,13 +223,18 @@ def estimate_table_plane(rec: Recording, t: int = 0, *, voxel_m: float = 0.005, 
                 fg |= cm
             fg = ndimage.binary_dilation(fg, iterations=3)
         pts.append(cam.backproject(rec.depth(c, t), ~fg, max_depth_m=max_depth_m))
-    pts = voxel_downsample(np.concatenate(pts), voxel_m)
+    full = np.concatenate(pts)
+    pts = voxel_downsample(full, voxel_m)
     if len(pts) < 100:
         raise RecordingError(f"{rec.path}: too few background depth points ({len(pts)}) in frame {t} to find the "
                              f"table plane; pass table_plane explicitly")
     cam_centre = np.mean(rec.c2w[:, :3, 3], axis=0)
     n, d, _ = fit_table_plane(pts, distance_threshold_m=distance_threshold_m, seed=seed,
                               up_hint=cam_centre - pts.mean(0))
+    mean = full.mean(0)
+    n2, d2, inliers = _refine_plane(full - mean, n, float(d + n @ mean), float(distance_threshold_m))
+    if len(inliers) >= 3:
+        n, d = (n2, float(d2 - n2 @ mean)) if n2 @ n >= 0 else (-n2, float(-d2 + n2 @ mean))
     return n, d
 
 

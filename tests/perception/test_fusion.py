@@ -31,10 +31,13 @@ def test_fusion_follows_the_squeeze(dough_rec):
 
 
 def test_ransac_finds_table(dough_rec, rope_rec):
+    """The synthetic table z = 0 is found level and at its height to a tenth of a millimetre: the plane is fitted
+    to every background point, not to the voxel averages that RANSAC searches (which put it 0.8-0.9 mm low on a
+    5-mm-voxel dough recording, and the simulated contact plane with it)."""
     for path in (dough_rec, rope_rec):
         n, d = F.estimate_table_plane(Recording(path))
-        assert np.degrees(np.arccos(min(1.0, n[2]))) < 1.0
-        assert abs(d) < 0.002
+        assert np.degrees(np.arccos(min(1.0, n[2]))) < 0.05
+        assert abs(d) < 1e-4, d
 
 
 def test_fit_table_plane_with_clutter():
