@@ -1161,6 +1161,10 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
             + f": the held-out gain is real, but {winner.name} may stand in for something the catalogue lacks (for a "
               f"table friction: adhesion, a grasp that gives, a body that rolls; for a grip friction: a body that "
               f"tears or gives at the grasp; confidence halved); read the runner-up candidates")
+    if winner is not None and len(passing) > 1:
+        note = yield_note(as_dicts[cands.index(winner)], as_dicts[cands.index(by_name[passing[1]])])
+        if note:
+            warnings.append(note)
     ranked = sorted(cands, key=lambda f: f.heldout["loss"])
     chosen = winner or base_fit
     left = unexplained_note(chosen.heldout.get("chamfer_m", float("nan")), noise,
@@ -1540,12 +1544,19 @@ def select_verdict(candidates: Sequence[dict], variants: Optional[dict]) -> Tupl
     discretisation are paired (one body, one grid, one base model): compared medians threw that away. Seed 16's
     dough lifted by one end with a hidden fracture (session 44): fracture gained more than gripper slip on 4 of
     the 5 discretisations, by 0.2-3.8 points, and slip's median was 0.3 points higher; its dough pulled apart with
-    a stiffness field: the field first on 3 of 5, fracture's median 0.2 points higher."""
+    a stiffness field: the field first on 3 of 5, fracture's median 0.2 points higher.
+
+    Last, a first candidate whose fit lies outside what real objects and contacts show (:func:`implausible_params`)
+    yields to the best one that passes with plausible values and explains the held-out frames about as well
+    (:func:`_yields_to`): such a fit stands in for something else (on a dough torn by a hidden fracture a grip
+    friction of 162 gained 73.3 %, the fracture's own fit 74.5 % with a strain of 0.24; session 57). One that
+    explains clearly more stays first, doubted (a spring-mass dough dragged: a table friction of 1.62 gained
+    17.7 %, a stiffness field 5.2 %)."""
     sig = _significant(candidates)
     passing = sig
+    params = {c["effect"]: c.get("params", {}) for c in candidates}
     if variants and variants.get("variants"):
         checked = variants.get("candidates", {})
-        params = {c["effect"]: c.get("params", {}) for c in candidates}
         passing = [n for n in sig if n in checked and _robust(checked[n]["tests"])["robust"]
                    and not _within_discretisation(n, params[n], variants)]
         gains = {c["effect"]: float(_discretisation_gain(
@@ -1555,7 +1566,35 @@ def select_verdict(candidates: Sequence[dict], variants: Optional[dict]) -> Tupl
         cols = _discretisation_columns(passing, {c["effect"]: c["gain"]["gain"] for c in candidates}, variants)
         wins = {a: sum(_beats(a, b, cols, gains) for b in passing if b != a) for a in passing}
         passing = sorted(passing, key=lambda n: -wins[n])  # stable: equal wins keep the order of the medians
+    if passing and implausible_params(params[passing[0]]):
+        by_name = {c["effect"]: c for c in candidates}
+        plausible = [n for n in passing[1:] if _yields_to(by_name[passing[0]], by_name[n])]
+        if plausible:
+            passing.remove(plausible[0])
+            passing.insert(0, plausible[0])
     return (passing[0] if passing else None), (sig[0] if sig else None), passing
+
+
+def yield_note(winner: dict, other: dict) -> Optional[str]:
+    """The note that says why ``winner`` (``doctor.json``'s ``candidates`` entry) is named before ``other``, the
+    candidate ranked next, when ``other`` was fitted outside the plausible range and yields to it
+    (:func:`_yields_to`); None otherwise."""
+    odd = implausible_params(other.get("params", {}))
+    if not odd or not _yields_to(other, winner):
+        return None
+    return (f"{other['effect']} passes too and its held-out gain ({100 * other['gain']['gain']:.1f} %) is not "
+            f"clearly above {winner['effect']}'s ({100 * winner['gain']['gain']:.1f} %), but its fit has "
+            + ", ".join(f"{k} = {other['params'][k]:.3g}, outside the {lo:g} to {hi:g} that real objects and contacts "
+                        f"usually show" for k, (lo, hi) in odd.items())
+            + f": {winner['effect']}, fitted within that range, is named before it")
+
+
+def _yields_to(first: dict, other: dict) -> bool:
+    """Whether candidate ``first`` (``doctor.json``'s ``candidates`` entry), fitted outside the plausible range
+    (:func:`implausible_params`), yields the verdict to ``other``: ``other`` is fitted within it and its held-out
+    gain's 95 % interval reaches the lower end of ``first``'s (the frames do not clearly prefer ``first``)."""
+    return (not implausible_params(other.get("params", {}))
+            and float(other["gain"]["upper"]) >= float(first["gain"]["lower"]))
 
 
 def _discretisation_columns(names: Sequence[str], body_gains: Dict[str, float], variants: dict
