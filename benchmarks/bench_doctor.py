@@ -713,6 +713,14 @@ def _by_confidence(rows, edges=CONFIDENCE_BINS):
     return out
 
 
+def _median_pct(values) -> str:
+    """The median of ``values`` (fractions; NaNs left out) in per cent, or "n/a" when none is finite (a table of
+    ``none`` recordings alone), without numpy's warning over an empty slice."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    return f"{100 * np.median(v):.1f} %" if len(v) else "n/a"
+
+
 def _table(rows):
     """Confusion matrix, accuracy, false effects on none, median reduction and wall time of result rows."""
     from empm_gym.sim.effects import EFFECTS
@@ -739,7 +747,7 @@ def _table(rows):
         if sum(conf[t].values()):
             print(f"{t:24s}" + "".join(f"{conf[t][p]:>11d}" for p in names))
     print(f"\nrecordings {n}; naming accuracy {100 * acc:.1f} %; false effects on none {100 * false_rate:.1f} %; "
-          f"median held-out Chamfer reduction with the true effect {100 * np.nanmedian(reductions or [np.nan]):.1f} %; "
+          f"median held-out Chamfer reduction with the true effect {_median_pct(reductions)}; "
           f"wall time per recording median {np.median(walls):.1f} s, max {np.max(walls):.1f} s")
     if natural:
         print(f"on each effect's natural script only: accuracy {100 * np.mean(natural):.1f} % of {len(natural)}")
@@ -782,7 +790,7 @@ def _table(rows):
               f"accuracy {100 * np.mean(ok):.1f} % of {len(known)}; "
               f"recordings that show their effect: {100 * np.mean([r['verdict'] == r['truth'] for r in shown]):.1f} % "
               f"of {len(shown)}; median Chamfer reduction on them "
-              f"{100 * np.nanmedian([r['reduction'] for r in shown if r['truth'] != 'none']):.1f} %")
+              f"{_median_pct([r['reduction'] for r in shown if r['truth'] != 'none'])}")
 
 
 def _parser():

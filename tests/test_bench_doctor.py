@@ -1,6 +1,7 @@
 """The doctor benchmark's scoring (benchmarks/bench_doctor.py), on constructed result rows: no simulation."""
 
 import json
+import warnings
 
 import pytest
 
@@ -232,6 +233,19 @@ def test_accuracy_is_tallied_by_the_verdicts_confidence(bench, tmp_path, capsys)
                                                      (0.9, 1.0, [True, False])]
     assert ("0.0-0.5: 1 of 2 right; 0.5-0.9: 1 of 1 right; 0.9-1.0: 1 of 2 right"
             in _summarise(bench, tmp_path, capsys, rows))
+
+
+def test_a_table_of_none_recordings_alone_has_no_reduction_to_give(bench, tmp_path, capsys):
+    """A run of `none` recordings alone (one process of bench_doctor_gpus.sh) has no held-out reduction with a true
+    effect: its tables say n/a, without numpy's warning over an empty slice; with an effect row they give it."""
+    rows = [_row("a-0-none", "none", "none", "drag", 0.01), _row("b-0-none", "none", "none", "lift-end", 0.01)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        out = _summarise(bench, tmp_path, capsys, rows)
+    assert "median held-out Chamfer reduction with the true effect n/a;" in out
+    assert "median Chamfer reduction on them n/a" in out and "nan %" not in out
+    rows.append(_row("c-0-plasticity", "plasticity", "plasticity", "press-release", 0.01))
+    assert "median held-out Chamfer reduction with the true effect n/a;" not in _summarise(bench, tmp_path, capsys, rows)
 
 
 @pytest.fixture(scope="module")
