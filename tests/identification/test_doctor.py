@@ -477,6 +477,27 @@ def test_a_first_candidate_fitted_outside_the_plausible_range_yields_to_a_plausi
     assert select_verdict(dragged, None)[0] == "heterogeneous_stiffness"
 
 
+def test_a_viscosity_at_the_top_of_its_capped_box_says_the_cap_is_the_solvers():
+    """A named viscosity at the top of a box the explicit step cut (a soft rope at dx = 5 mm: 0.5-22.7 Pa s, the
+    registry's box reaching 500; the truth 44.8 Pa s, session 57) says the bound is the solver's, with the cap's
+    value; a viscosity at the registry's own top, the box's bottom, or another parameter at its bound does not."""
+    from empm_gym.identification.doctor.core import _search_box, at_bound_note
+    from empm_gym.sim import MaterialConfig
+
+    box = _search_box("viscosity", MaterialConfig(E=41374.0, nu=0.3, density=1000.0), 0.005)
+    assert box[0] == 0.5 and 22.0 < box[1] < 23.5  # rho dx c / 3 x exp(0.6): 22.7 Pa s
+    bounds = {"E": (4597.0, 41374.0), "viscosity": box}
+    note = at_bound_note("viscosity", {"E": 30000.0, "viscosity": box[1] * 0.99}, bounds, ["viscosity"])
+    assert note.startswith("viscosity's fit ends at the bound of its search box in viscosity = 22.")
+    assert f"box ends at {box[1]:.3g} Pa s because the doctor steps explicitly" in note, note
+    for params, bnds in (({"E": 3e4, "viscosity": 495.0}, {**bounds, "viscosity": (0.5, 500.0)}),  # the registry's
+                         ({"E": 3e4, "viscosity": 0.5}, bounds)):                                 # its bottom
+        other = at_bound_note("viscosity", params, bnds, ["viscosity"])
+        assert "no measurement" in other and "steps explicitly" not in other
+    assert "steps explicitly" not in at_bound_note("plasticity", {"E": 3e4, "yield_stress": 99.0},
+                                                   {"E": (1e3, 1e5), "yield_stress": (10.0, 100.0)}, ["yield_stress"])
+
+
 def test_candidates_search_the_whole_box_when_the_base_fit_ends_at_its_bound():
     """The base fit's E at a bound of its box measures nothing (the block is softer than the box allows): the
     candidates then refit E over the whole box, not within E_refit_factor of that bound; inside the box they

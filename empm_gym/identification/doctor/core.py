@@ -678,6 +678,25 @@ def _params_at_bound(f: "_Fit") -> List[str]:
     return [k for k, v in f.params.items() if k in f.bounds and any(_bound_sides(k, v, f.bounds[k]))]
 
 
+def at_bound_note(name: str, params: Dict[str, float], bounds: Dict[str, Tuple[float, float]],
+                  at_bound: Sequence[str]) -> str:
+    """The note on a named effect ``name`` whose fitted ``params`` end at a bound of their search box ``bounds``
+    in ``at_bound`` (:func:`_params_at_bound`). A viscosity at the top of a box that :data:`_VISCOSITY_CAP` cut
+    below the registry's says so: that bound is the explicit step's, not the data's (a soft rope at dx = 5 mm gets
+    19-23 Pa s against a true 45-50 Pa s; benchmarks/RESULTS.md, session 57)."""
+    note = (f"{name}'s fit ends at the bound of its search box in "
+            + ", ".join(f"{k} = {params[k]:.4g} (box {bounds[k][0]:.4g} to {bounds[k][1]:.4g})" for k in at_bound)
+            + ": the effect is named from its held-out gain, but that value is no measurement (the best fit may lie "
+              "beyond the box), and the material file holds it as fitted")
+    if "viscosity" in at_bound and _bound_sides("viscosity", params["viscosity"], bounds["viscosity"])[1] \
+            and bounds["viscosity"][1] < PARAMETERS["viscosity"].search[1]:
+        note += (f". The viscosity's box ends at {bounds['viscosity'][1]:.3g} Pa s because the doctor steps "
+                 f"explicitly and tries no viscosity that would need more substeps than its other candidates (about "
+                 f"{_VISCOSITY_CAP:.2f} x density x dx x wave speed / 3, at the stiffest E it searches): the "
+                 f"material's viscosity may be several times larger, which this solver cannot test at this cell")
+    return note
+
+
 def toward_absence(params: Dict[str, float], bounds: Dict[str, Tuple[float, float]]) -> List[str]:
     """The effect parameters of a candidate's fit (``params``, searched in ``bounds``) that end at the bound of
     their box on the side where the effect vanishes (:data:`_ABSENT`: a fracture strain or yield stress at the
@@ -1173,12 +1192,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         warnings.append(left)
     at_bound = _params_at_bound(winner) if winner is not None else []
     if at_bound:
-        warnings.append(
-            f"{winner.name}'s fit ends at the bound of its search box in "
-            + ", ".join(f"{k} = {winner.params[k]:.4g} (box {winner.bounds[k][0]:.4g} to {winner.bounds[k][1]:.4g})"
-                        for k in at_bound)
-            + ": the effect is named from its held-out gain, but that value is no measurement (the best fit may "
-              "lie beyond the box), and the material file holds it as fitted")
+        warnings.append(at_bound_note(winner.name, winner.params, winner.bounds, at_bound))
     # candidates these held-out frames can neither show nor exclude: what keeps a `none` from full confidence
     undecided = not_ruled_out(as_dicts, winner.name if winner else None)
     result.update({
