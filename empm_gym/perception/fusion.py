@@ -233,8 +233,8 @@ def estimate_table_plane(rec: Recording, t: int = 0, *, voxel_m: float = 0.005, 
                               up_hint=cam_centre - pts.mean(0))
     mean = full.mean(0)
     n2, d2, inliers = _refine_plane(full - mean, n, float(d + n @ mean), float(distance_threshold_m))
-    if len(inliers) >= 3:
-        n, d = (n2, float(d2 - n2 @ mean)) if n2 @ n >= 0 else (-n2, float(-d2 + n2 @ mean))
+    if len(inliers) >= 3:  # _refine_plane keeps the normal's side: still towards the cameras
+        n, d = n2, float(d2 - n2 @ mean)
     return n, d
 
 
