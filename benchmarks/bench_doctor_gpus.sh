@@ -39,6 +39,7 @@ python3 - <<'PY'
 import json, glob, os
 keys = ["base", "base_bound_check", "candidates", "confidence", "effect", "effect_before_variants", "first_elsewhere", "first_on", "grid",
         "implausible", "indistinguishable_from", "noise_sigma_m", "not_ruled_out", "notes", "parted", "reason", "recording", "schema",
+        "viscosity_box_raised",
         "script", "signature_m",
         "stage_wall_s",
         "truth", "variants", "wall_s"]
