@@ -8,7 +8,7 @@ doctor's current rule (``bench_doctor.rescore``), older result rows are taken as
 ran the doctor other than as shipped (a changed rule, a probe) are left out of the verdicts by name (EXCLUDED), and
 so are the floors' and oracles' files, which ``stored_floors`` reads.
 
-usage: python benchmarks/tally_doctor.py [--seeds 10-18] [--misses] [--varied]
+usage: python benchmarks/tally_doctor.py [--seeds 10-18] [--misses] [--varied] [--would-raise]
 """
 
 import argparse
@@ -17,6 +17,7 @@ import re
 import sys
 from collections import Counter
 from pathlib import Path
+from typing import Optional
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_doctor as B  # noqa: E402
@@ -82,6 +83,35 @@ def stored_floors(data: Path = DATA):
     return list(rows.values())
 
 
+def would_raise(row: dict) -> str:
+    """Why the current doctor would fit ``row``'s candidates again with the viscosity's box raised
+    (:func:`~empm_gym.identification.doctor.core.viscosity_raise_reason`, from its stored viscosity candidate),
+    or '' where it would not, or the run raised it already (``viscosity_box_raised``). A row stored before
+    candidates kept their search box (session 58) has it recomputed from its E window and material at the
+    recording's cell: the first pass's box."""
+    from empm_gym.identification.doctor.core import DoctorConfig, _Fit, _search_box, viscosity_raise_reason
+    from empm_gym.sim import MaterialConfig
+
+    if row.get("viscosity_box_raised"):
+        return ""
+    dx = (row.get("grid") or {}).get("dx_m")
+    for c in row.get("candidates") or []:
+        if c.get("effect") != "viscosity" or not c.get("gain") or "viscosity" not in c.get("params", {}):
+            continue
+        box = (c.get("search_box") or {}).get("viscosity")
+        if box is None:
+            if not dx or not c.get("E_window"):
+                continue
+            m = c.get("material") or {}
+            stiffest = MaterialConfig(E=c["E_window"][1], nu=m.get("nu", 0.3), density=m.get("density", 1000.0))
+            box = _search_box("viscosity", stiffest, dx)
+        f = _Fit("viscosity", dict(c["params"]), MaterialConfig(E=c["params"]["E"], nu=0.3, density=1000.0), 0.5,
+                 c.get("fit_loss", 0.0), 0.0, added=1, bounds={"viscosity": tuple(box)})
+        f.test = c["gain"]
+        return viscosity_raise_reason([f], DoctorConfig()) or ""
+    return ""
+
+
 def by_session(rows) -> str:
     """How many of ``rows`` (:func:`stored_rows`) come from the runs of each session: "s35 22, s37 42, ..."."""
     n = Counter(_session(Path(r["source"])) for r in rows)
@@ -109,6 +139,9 @@ def main(argv=None):
     p.add_argument("--misses", action="store_true", help="list the wrong verdicts and the file each came from")
     p.add_argument("--varied", action="store_true",
                    help="the recordings made with --vary-physics (v_..., each seed its own material and grid)")
+    p.add_argument("--would-raise", action="store_true",
+                   help="list the recordings whose stored run the current doctor would fit again with the "
+                        "viscosity's box raised (DoctorConfig.viscosity_raise) and the file each came from")
     args = p.parse_args(argv)
     try:
         first, last = (int(x) for x in args.seeds.split("-"))
@@ -141,7 +174,24 @@ def main(argv=None):
         for r in sorted(rows, key=lambda r: r["recording"]):
             if r["truth"] != r["verdict"]:
                 print(f"  {r['recording']:45s} {r['verdict']:24s} {r['source']}")
+    if args.would_raise:
+        print("\nrecordings the current doctor would fit again with the viscosity's box raised (verdict, stored in)")
+        for r in sorted(rows, key=lambda r: r["recording"]):
+            line = _line_of(r)
+            why = would_raise(line) if line else ""
+            if why:
+                print(f"  {r['recording']:45s} {r['verdict']:24s} {r['source']}\n    {why}")
     return 0
+
+
+def _line_of(row: dict, data: Path = DATA) -> Optional[dict]:
+    """The stored line (slim dump or result row) that ``row`` (:func:`stored_rows`) was scored from."""
+    for t in (data / row["source"]).read_text().splitlines():
+        if t.strip():
+            line = json.loads(t)
+            if line.get("recording") == row["recording"]:
+                return line
+    return None
 
 
 if __name__ == "__main__":

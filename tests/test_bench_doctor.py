@@ -465,3 +465,28 @@ def test_the_stored_floors_are_each_recordings_last_of_each_kind(tmp_path):
     assert len(rows) == 2
     assert [r["floor_chamfer_m"] for r in rows if "floor_chamfer_m" in r] == [0.0025]
     assert [r["oracle_chamfer_m"] for r in rows if "oracle_chamfer_m" in r] == [0.0016]
+
+
+def test_the_tally_finds_the_stored_runs_the_raised_viscosity_box_would_fit_again():
+    """tally_doctor.would_raise: a stored viscosity candidate at the top of its capped box that gained held out
+    (the rope squeezed in the ring, seed 18: 18.1 Pa s, gain 12.4 %) would be fitted again, its box recomputed
+    from the E window at the recording's cell where the row predates stored boxes (5 mm and 41.4 kPa: 22.7 Pa s);
+    not one lower in its box, one the run already raised, or a row without a viscosity candidate."""
+    tally = load_benchmark("tally_doctor")
+
+    def row(v, **extra):
+        cand = {"effect": "viscosity", "params": {"E": 1.4e4, "viscosity": v}, "fit_loss": 0.004,
+                "gain": {"gain": 0.124, "threshold": 0.04, "lower": -0.027, "upper": 0.2},
+                "material": {"E": 1.4e4, "nu": 0.3, "density": 1000.0}, "E_window": [4597.0, 41374.0]}
+        return {"recording": "rope-squeeze-ring-18-viscosity", "grid": {"dx_m": 0.005},
+                "candidates": [{"effect": "plasticity", "params": {"E": 1.5e4, "yield_stress": 900.0}}, cand], **extra}
+
+    why = tally.would_raise(row(18.1))
+    assert why.startswith("the viscosity candidate's fit ended at 18.1 Pa s, at the top of its box (0.5 to 22.7")
+    assert tally.would_raise(row(10.0)) == ""
+    assert tally.would_raise(row(18.1, viscosity_box_raised=3.0)) == ""
+    assert tally.would_raise({**row(18.1), "candidates": row(18.1)["candidates"][:1]}) == ""
+    # a stored box is used as it is: 18.1 Pa s near the top of 0.5-19 Pa s but low in a raised 0.5-68 Pa s one
+    stored = row(18.1)
+    stored["candidates"][1]["search_box"] = {"E": [4597.0, 41374.0], "viscosity": [0.5, 68.0]}
+    assert tally.would_raise(stored) == ""

@@ -173,8 +173,10 @@ class DoctorConfig:
     :data:`_RAISE_SHARE` in log viscosity) and gains more than its penalty held out, the candidates are fitted
     and scored again, all of them on the clock of a box this many times higher (about as many times the
     substeps): the cap is the explicit step's, not the data's, and on a soft rope at dx = 5 mm it lies at
-    19-23 Pa s against a true 45-50 (benchmarks/RESULTS.md, session 57). Of 253 stored diagnoses (sessions
-    47-57) 11 would have been fitted again, 9 of them recordings with a hidden viscosity. 1: never."""
+    19-23 Pa s against a true 45-50 (benchmarks/RESULTS.md, session 57). Of the stored runs of seeds 10-18
+    (``benchmarks/tally_doctor.py --would-raise``), 27 of 324 would be fitted again: 17 of the 31 with a hidden
+    viscosity (8 of its 11 misses among them), 9 with a plasticity, 1 with a stiffness field, no ``none``.
+    1: never."""
 
 
 def heldout_objective(scene: Scene, obs: Observations, T: int, cfg: DoctorConfig) -> Objective:
