@@ -966,8 +966,10 @@ def test_doctor_cli_marks_fits_at_their_search_bound(tmp_path, capsys, monkeypat
            "not_ruled_out": [{"effect": "viscosity"}]}
     seen = {}
     monkeypatch.setattr(doctor, "diagnose_recording", lambda *a, **k: seen.update(k) or res)
-    assert main(["doctor", str(tmp_path), "--out", str(tmp_path / "out"), "--control-delay", "1.5"]) == 0
+    assert main(["doctor", str(tmp_path), "--out", str(tmp_path / "out"), "--control-delay", "1.5",
+                 "--viscosity-raise", "1"]) == 0
     assert seen["control_delay"] == 1.5  # handed on to delay the controls (delayed_controls checks the value)
+    assert seen["config"].viscosity_raise == 1.0
     out = capsys.readouterr().out
     assert "base model: E=2000 (at bound)" in out
     assert "(significant); fitted E=2.994e+04, grip_friction=0.8967\n" in out

@@ -14,7 +14,8 @@ def _doctor(args) -> int:
     from .report import gap_summary
 
     cfg = DoctorConfig(train_fraction=args.train_fraction, base_iters=args.iters, candidate_iters=args.iters,
-                       popsize=args.popsize, variants=args.variants, variant_iters=args.variant_iters)
+                       popsize=args.popsize, variants=args.variants, variant_iters=args.variant_iters,
+                       viscosity_raise=args.viscosity_raise)
     effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
     try:
         res = diagnose_recording(args.rec_dir, out_dir=args.out, base=args.base, config=cfg, dx=args.dx,
@@ -87,5 +88,9 @@ def register(subparsers) -> None:
                    help="delay the recorded controls by this many frames (fractional) before fitting: for a "
                         "recording whose images trail its controls, as doctor.json's control_lag and its note say "
                         "(default 0)")
+    p.add_argument("--viscosity-raise", type=float, default=3.0, metavar="FACTOR",
+                   help="when the viscosity's fit ends at the top of the box the explicit step allows and gains held "
+                        "out, fit every candidate again with that box FACTOR times higher, on about FACTOR times the "
+                        "substeps (default 3; 1: never)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_doctor)
