@@ -550,10 +550,13 @@ def test_a_viscosity_fit_at_its_capped_top_fits_every_candidate_again_on_a_raise
 
     scene, obs = _swinging_block(MaterialConfig(E=3.0e3, nu=0.3, density=1000.0, viscosity=100.0))
     dts = {}  # the stable step of every fit of each pass, by the pass's progress label
+    starts = {}  # the raised pass's first generations, by candidate
     fit_candidates = core._fit_candidates
 
     def spy(specs, obs, progress, desc):
         dts.setdefault(desc, []).extend(stable_dt(list(sc.dt_materials), sc.dx, sc.cfl) for _, sc, _, _ in specs)
+        if desc.endswith("raised"):
+            starts.update({name: kw["extra_starts"] for name, _, kw, _ in specs})
         return fit_candidates(specs, obs, progress, desc)
 
     monkeypatch.setattr(core, "_fit_candidates", spy)
@@ -576,6 +579,8 @@ def test_a_viscosity_fit_at_its_capped_top_fits_every_candidate_again_on_a_raise
     assert dts["doctor: candidates"][:2] == first
     assert len(first) == len(second) == 2  # the base model's refit and the viscosity candidate, each pass
     assert len(set(first)) == 1 and len(set(second)) == 1 and second[0] < first[0] / 1.5
+    # each raised fit starts from its first pass's optimum as well (the same first pass as the run without raise)
+    assert v1["params"] in starts["viscosity"] and once["base"]["params"] in starts["base"]
     # the base model too was refitted on the raised clock: it is scored with the candidate's substeps
     assert twice["base"]["heldout"]["loss"] != once["base"]["heldout"]["loss"]
     assert sum(twice["stage_wall_s"].values()) == pytest.approx(twice["wall_time_s"], abs=0.06)

@@ -1072,9 +1072,11 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         E_range = (lo, hi)
         spread = _scan_starts((lo, hi), min(3, cfg.popsize - 2))
 
-    def candidates_pass(cfg: DoctorConfig, desc: str):
+    def candidates_pass(cfg: DoctorConfig, desc: str, before: Optional[Dict[str, Dict[str, float]]] = None):
         """Every candidate and the base model's refit on one clock (``cfg``'s viscosity cap), widened where
-        they end at an edge of their window, simulated over all frames and scored on the held-out ones."""
+        they end at an edge of their window, simulated over all frames and scored on the held-out ones.
+        ``before``: each candidate's optimum of an earlier pass, a member of its first generation (clipped to
+        its box)."""
         # one clock for the whole diagnosis from here on: every fit (and its refits on the variants) steps with
         # the substeps that the stiffest corner of any candidate's box needs (a fit widened beyond its window,
         # more)
@@ -1084,9 +1086,12 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         def first_generation(name: str) -> List[Dict[str, float]]:
             init, box, _ = _candidate_box(name, base_fit.material, E_range, sc.dx, cfg.viscosity_cap)
             own = _effect_starts(box, base_fit.params["E"], cfg.popsize)
-            # the base model inside the candidate first, then the scan of E (when the base fit's E is no
-            # measurement), then the scan of the effect's parameter; one member at least is left sampled
-            return (own[:1] + [{**init, "E": E} for E in spread] + own[1:])[:cfg.popsize - 1]
+            # the base model inside the candidate first, then its optimum of an earlier pass, the scan of E (when
+            # the base fit's E is no measurement), then the scan of the effect's parameter; one member at least is
+            # left sampled
+            earlier = [{k: float(np.clip(v, *box[k])) for k, v in before[name].items() if k in box}
+                       ] if before and name in before else []
+            return (own[:1] + earlier + [{**init, "E": E} for E in spread] + own[1:])[:cfg.popsize - 1]
 
         # every candidate and the base model's refit, generation by generation, their worlds simulated together
         fits: List[_Fit] = _fit_candidates([_candidate_spec(name, sc, base_fit.material, E_range, F, cfg,
@@ -1123,7 +1128,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         first_s = time.perf_counter() - t_start - sum(clock.values())
         cfg = dataclasses.replace(cfg, viscosity_cap=cfg.viscosity_cap * cfg.viscosity_raise)
         scene = scene0
-        scene, fits, loose, objective, X, per = candidates_pass(cfg, "doctor: candidates, viscosity box raised")
+        scene, fits, loose, objective, X, per = candidates_pass(cfg, "doctor: candidates, viscosity box raised",
+                                                                before={f.name: f.params for f in fits})
         warnings.append(f"{raised}: every candidate was fitted and scored again with the viscosity's box raised "
                         f"{cfg.viscosity_raise:g} times, on the substeps that needs (the first pass took "
                         f"{first_s:.0f} s)")
