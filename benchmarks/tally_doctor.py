@@ -83,8 +83,9 @@ def stored_floors(data: Path = DATA):
     return list(rows.values())
 
 
-def would_raise(row: dict) -> str:
-    """Why the current doctor would fit ``row``'s candidates again with the viscosity's box raised
+def would_raise(row: dict, factor: float = 3.0) -> str:
+    """Why the current doctor with ``DoctorConfig.viscosity_raise`` at ``factor`` (off by default) would fit
+    ``row``'s candidates again with the viscosity's box raised
     (:func:`~empm_gym.identification.doctor.core.viscosity_raise_reason`, from its stored viscosity candidate),
     or '' where it would not, or the run raised it already (``viscosity_box_raised``). A row stored before
     candidates kept their search box (session 58) has it recomputed from its E window and material at the
@@ -108,7 +109,7 @@ def would_raise(row: dict) -> str:
         f = _Fit("viscosity", dict(c["params"]), MaterialConfig(E=c["params"]["E"], nu=0.3, density=1000.0), 0.5,
                  c.get("fit_loss", 0.0), 0.0, added=1, bounds={"viscosity": tuple(box)})
         f.test = c["gain"]
-        return viscosity_raise_reason([f], DoctorConfig()) or ""
+        return viscosity_raise_reason([f], DoctorConfig(viscosity_raise=factor)) or ""
     return ""
 
 
@@ -140,8 +141,8 @@ def main(argv=None):
     p.add_argument("--varied", action="store_true",
                    help="the recordings made with --vary-physics (v_..., each seed its own material and grid)")
     p.add_argument("--would-raise", action="store_true",
-                   help="list the recordings whose stored run the current doctor would fit again with the "
-                        "viscosity's box raised (DoctorConfig.viscosity_raise) and the file each came from")
+                   help="list the recordings whose stored run the doctor would fit again with the viscosity's box "
+                        "raised (DoctorConfig.viscosity_raise=3, off by default) and the file each came from")
     args = p.parse_args(argv)
     try:
         first, last = (int(x) for x in args.seeds.split("-"))
@@ -175,7 +176,8 @@ def main(argv=None):
             if r["truth"] != r["verdict"]:
                 print(f"  {r['recording']:45s} {r['verdict']:24s} {r['source']}")
     if args.would_raise:
-        print("\nrecordings the current doctor would fit again with the viscosity's box raised (verdict, stored in)")
+        print("\nrecordings the doctor with viscosity_raise=3 would fit again with the viscosity's box raised "
+              "(verdict, stored in)")
         for r in sorted(rows, key=lambda r: r["recording"]):
             line = _line_of(r)
             why = would_raise(line) if line else ""

@@ -88,9 +88,9 @@ def register(subparsers) -> None:
                    help="delay the recorded controls by this many frames (fractional) before fitting: for a "
                         "recording whose images trail its controls, as doctor.json's control_lag and its note say "
                         "(default 0)")
-    p.add_argument("--viscosity-raise", type=float, default=3.0, metavar="FACTOR",
+    p.add_argument("--viscosity-raise", type=float, default=1.0, metavar="FACTOR",
                    help="when the viscosity's fit ends at the top of the box the explicit step allows and gains held "
                         "out, fit every candidate again with that box FACTOR times higher, on about FACTOR times the "
-                        "substeps (default 3; 1: never)")
+                        "substeps (default 1: never; for a material far more viscous than the box)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_doctor)
