@@ -539,6 +539,47 @@ def _swinging_block(material, T=18, move=9):
     return scene, Observations(30.0, list(X), tracks=X, visibility=np.ones(X.shape[:2], bool))
 
 
+def test_the_doctor_reports_how_much_its_shared_clock_damps_the_base_model():
+    """The candidates' boxes set one clock for every fit; a viscosity's box needs more substeps than the base
+    model alone. On a block swinging with 100 Pa s of viscosity the doctor reports both substep counts and the
+    base model's held-out loss on each clock (on its own, coarser clock the base model is damped less and misses
+    the viscous swing by 11 % more), and says so in a note since that exceeds the 4 % penalty. The loss on the
+    base model's own clock is that of the fitted material simulated on that clock. With plasticity alone as the
+    candidate the clock is the base model's own: no change, no note."""
+    from empm_gym.identification.doctor import core
+    from empm_gym.identification.problem import simulate_frames
+    from empm_gym.sim import MaterialConfig
+
+    scene, obs = _swinging_block(MaterialConfig(E=3.0e3, nu=0.3, density=1000.0, viscosity=100.0))
+    cfg = DoctorConfig(base_iters=2, candidate_iters=2, popsize=6, variants=0, base_E=3e3, E_bounds=(1e3, 9e3))
+    res = diagnose(scene, obs, effects=["viscosity"], config=cfg, progress=False)
+    ck = res["clock"]
+    assert ck["substeps_per_frame"] > ck["base_model_alone"] >= 1
+    assert ck["base_heldout_loss"] == res["base"]["heldout"]["loss"]
+    # the fitted base material on the substeps its own E window needs, scored as the doctor scores
+    T, heldout = 18, list(range(res["heldout_frames"][0], 18))
+    window = res["base"]["E_window"]
+    own = dataclasses.replace(scene, dt_materials=(MaterialConfig(E=window[0], nu=0.3, density=1000.0),
+                                                   MaterialConfig(E=window[1], nu=0.3, density=1000.0)),
+                              motion_margin=DoctorConfig().motion_margin)
+    base_mat = MaterialConfig(E=res["base"]["params"]["E"], nu=0.3, density=1000.0)
+    assert core._substeps(own, base_mat, T) == ck["base_model_alone"]
+    X = simulate_frames(own.with_material(base_mat), [base_mat])[:, 0]
+    loss = np.mean(core._per_frame_losses(core.heldout_objective(own, obs, T, cfg), X)["loss"][heldout])
+    assert ck["base_heldout_loss_on_its_own_clock"] == pytest.approx(loss, rel=1e-4)
+    assert ck["change"] == pytest.approx((loss - ck["base_heldout_loss"]) / ck["base_heldout_loss"], rel=1e-3)
+    assert ck["change"] > cfg.penalty_per_param
+    notes = [n for n in res["notes"] if "substeps a frame" in n]
+    assert len(notes) == 1 and f"{ck['base_model_alone']} the base model alone would" in notes[0]
+    assert f"scores {100 * ck['change']:.1f} % worse held out" in notes[0]
+    plastic = diagnose(scene, obs, effects=["plasticity"], config=cfg, progress=False)
+    assert plastic["clock"]["substeps_per_frame"] == plastic["clock"]["base_model_alone"]
+    assert plastic["clock"]["change"] == 0.0 and not any("substeps a frame" in n for n in plastic["notes"])
+    for change in (0.039, -0.039, float("nan")):
+        assert core.clock_note({**ck, "change": change}, 0.04) is None
+    assert "better held out" in core.clock_note({**ck, "change": -0.05}, 0.04)
+
+
 def test_a_viscosity_fit_at_its_capped_top_fits_every_candidate_again_on_a_raised_clock(monkeypatch):
     """A block swinging with 100 Pa s of viscosity, where the first pass caps the viscosity at 42 Pa s: its fit
     ends at the top of that box and gains held out, so every candidate (the base model's refit too) is fitted

@@ -25,7 +25,8 @@ Pipeline (:func:`diagnose`):
    clock caps the viscosity's box (``DoctorConfig.viscosity_cap``); with ``DoctorConfig.viscosity_raise`` above 1
    (off by default: measured, it named none of three viscosity misses), a viscosity fit that ends at that cap and
    gains held out has every candidate fitted and scored again on the clock of a box that many times higher
-   (:func:`viscosity_raise_reason`; the notes say so).
+   (:func:`viscosity_raise_reason`; the notes say so). How much the shared clock damps the base model beyond its
+   own (:func:`clock_check`) is reported, and noted where it exceeds a candidate's penalty.
 4. **Scores.** Base and candidates are simulated over all frames; the per-frame score on the held-out
    frames (Chamfer plus the median tracking error, metres) is compared pairwise with :func:`empm_gym.identification.uncertainty.paired_gain_test` (block
    bootstrap over frames, a relative-gain penalty per added parameter).
@@ -69,11 +70,12 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from empm_gym.sim import MaterialConfig, stable_dt
+from empm_gym.sim.config import end_effector_speed
 from empm_gym.sim.effects import BASE_TABLE_FRICTION, EFFECTS, PARAMETERS
 
 from ..data import frame_ranges
 from ..offline import Objective, fit_losses, identify
-from ..problem import Observations, Scene, Views, _ForwardSim, run_together
+from ..problem import Observations, Scene, Views, _ForwardSim, run_together, substeps_for
 from ..uncertainty import block_bootstrap_indices, gain_is_significant, measurement_noise, paired_gain_test
 
 __all__ = ["DoctorConfig", "DoctorError", "diagnose", "candidate_params", "select_verdict", "not_ruled_out",
@@ -749,6 +751,53 @@ def viscosity_raise_reason(fits: Sequence["_Fit"], cfg: DoctorConfig) -> Optiona
     return None
 
 
+def _substeps(scene: Scene, material: MaterialConfig, T: int) -> int:
+    """Substeps per frame that :class:`~..problem._ForwardSim` steps ``material`` with on ``scene`` over ``T``
+    frames."""
+    speed = end_effector_speed(scene.ee_velocities(T), scene.ee_omegas(T), scene.ee_configs)
+    return substeps_for(scene, [material], speed)[0]
+
+
+def clock_check(base_fit: "_Fit", obs: Observations, T: int, heldout: Sequence[int], cfg: DoctorConfig) -> dict:
+    """How much the diagnosis's shared clock (:func:`_clock`: the substeps the candidates' boxes need) damps the
+    base model: its fit simulated again on the substeps its own E window alone needs. ``{"substeps_per_frame":
+    the clock's, "base_model_alone": its own, "base_heldout_loss": on the clock,
+    "base_heldout_loss_on_its_own_clock", "change": the relative change of that loss from the clock's to its
+    own}``.
+
+    MPM's particle-grid transfers lose motion once per substep, so the more substeps a frame, the more a model is
+    damped; a real recording has no such damping. On three of the benchmark's viscosity misses a clock three times
+    finer lowered the base model's held-out loss by 3-12 %, about what a candidate must gain to be named
+    (benchmarks/RESULTS.md, session 58)."""
+    own = dataclasses.replace(base_fit.scene, dt_materials=_box_corners(base_fit.start_material,
+                                                                        {"E": base_fit.bounds["E"]}))
+    n_clock, n_own = _substeps(base_fit.scene, base_fit.material, T), _substeps(own, base_fit.material, T)
+    loss = base_fit.heldout["loss"]
+    out = {"substeps_per_frame": n_clock, "base_model_alone": n_own, "base_heldout_loss": loss,
+           "base_heldout_loss_on_its_own_clock": loss, "change": 0.0}
+    if n_own < n_clock:
+        X = _ForwardSim(own, [base_fit.material], [base_fit.friction]).run(T)[0][:, 0]
+        own_loss = float(np.mean(_per_frame_losses(heldout_objective(own, obs, T, cfg), X)["loss"][list(heldout)]))
+        out.update(base_heldout_loss_on_its_own_clock=own_loss,
+                   change=(own_loss - loss) / loss if loss > 0 else float("nan"))
+    return out
+
+
+def clock_note(check: dict, penalty: float) -> Optional[str]:
+    """The note on :func:`clock_check`'s ``check`` where the clock changes the base model's held-out loss by more
+    than ``penalty`` (what one added parameter must gain); None otherwise."""
+    change = check.get("change")
+    if change is None or not np.isfinite(change) or abs(change) <= penalty:
+        return None
+    n, m = check["substeps_per_frame"], check["base_model_alone"]
+    return (f"every fit here steps {n} substeps a frame (what the candidates' search boxes need), {n / m:.1f}x the "
+            f"{m} the base model alone would; on its own clock the base model scores {100 * abs(change):.1f} % "
+            f"{'better' if change < 0 else 'worse'} held out. MPM damps the motion a little at every substep and a "
+            f"real object does not: a clock's damping this large is as much as a candidate must gain to be named "
+            f"({100 * penalty:.0f} %), so a damping effect named here (viscosity), or one not named, may owe that to "
+            f"the solver's clock")
+
+
 def toward_absence(params: Dict[str, float], bounds: Dict[str, Tuple[float, float]]) -> List[str]:
     """The effect parameters of a candidate's fit (``params``, searched in ``bounds``) that end at the bound of
     their box on the side where the effect vanishes (:data:`_ABSENT`: a fracture strain or yield stress at the
@@ -1146,6 +1195,12 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         warnings.append(f"the base model's E = {base_fit.params['E']:.4g} Pa lies at its search bound ({lo:g}, "
                         f"{hi:g}) Pa: the elastic model cannot explain the recording with any stiffness in it")
 
+    # the shared clock's own damping: the base model on the substeps it alone would need
+    clock_damping = clock_check(base_fit, obs, T, heldout, cfg)
+    note = clock_note(clock_damping, cfg.penalty_per_param)
+    if note:
+        warnings.append(note)
+
     # -- 4. verdict -------------------------------------------------------------------------------------------
     cands = fits[1:]
     # significant candidates that only move the table's friction a little: not named, said in the notes and reason
@@ -1306,6 +1361,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                               f"({', '.join(f.absent)} at its bound)" for f in vanished))),
         "effect_before_variants": unchecked.name if unchecked else "none",
         "viscosity_box_raised": cfg.viscosity_raise if raised else None,
+        "clock": clock_damping,
         "indistinguishable_from": rivals,
         "not_ruled_out": undecided,
         "implausible": {k: list(rng) for k, rng in implausible.items()},
