@@ -37,7 +37,7 @@ for g in $(seq 0 $((NG - 1))); do for k in $(seq 1 $K); do worker $g & done; don
 wait
 python3 - <<'PY'
 import json, glob, os
-keys = ["base", "base_bound_check", "candidates", "confidence", "effect", "effect_before_variants", "first_elsewhere", "first_on", "grid",
+keys = ["base", "base_bound_check", "candidates", "clock", "confidence", "effect", "effect_before_variants", "first_elsewhere", "first_on", "grid",
         "implausible", "indistinguishable_from", "noise_sigma_m", "not_ruled_out", "notes", "parted", "reason", "recording", "schema",
         "viscosity_box_raised",
         "script", "signature_m",
