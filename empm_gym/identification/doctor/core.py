@@ -92,6 +92,7 @@ _SLOPE_CAP = 1.2
 #: ``DoctorConfig.viscosity_raise`` for the second.
 _VISCOSITY_CAP = math.exp(_SLOPE_CAP / 2.0)
 
+
 class DoctorError(ValueError):
     """The recording cannot be diagnosed (too short, no controls, ...); the message says why."""
 
