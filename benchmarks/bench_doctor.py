@@ -326,7 +326,7 @@ def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: flo
             "before_variants": res.get("effect_before_variants", res["effect"]), "signature_m": signature_m,
             "signature_doubted": sig.get("doubted"), "wall_s": wall_s, "stage_wall_s": res.get("stage_wall_s"),
             "not_ruled_out": [e["effect"] for e in not_ruled_out(res.get("candidates") or [], res["effect"])],
-            "parted": parted}
+            "parted": parted, "clock_change": (res.get("clock") or {}).get("change")}
 
 
 def _write_problem(path: Path, prob: dict) -> None:
@@ -601,6 +601,20 @@ def grid_offsets(problems: Path, args):
     return rows
 
 
+def _clock_damping(rows, penalty: float = 0.04) -> None:
+    """How much the diagnoses' shared clock damped their base models (doctor.json's ``clock``, from session 58):
+    the base model's held-out loss on its own clock against the shared one's, and the recordings where that
+    exceeds ``penalty`` (what a candidate must gain; the doctor then notes it)."""
+    rs = [r for r in rows if r.get("clock_change") is not None and np.isfinite(r["clock_change"])]
+    if not rs:
+        return
+    big = [r for r in rs if abs(r["clock_change"]) > penalty]
+    print(f"\nthe shared clock's damping (the base model on its own clock against the diagnosis's): {len(rs)} "
+          f"recordings, median change of its held-out loss {100 * np.median([r['clock_change'] for r in rs]):+.1f} %; "
+          f"beyond the {100 * penalty:.0f} % penalty on {len(big)}"
+          + "".join(f"\n  {r['recording']:45s} {100 * r['clock_change']:+6.1f} %  verdict {r['verdict']}" for r in big))
+
+
 def summarise(rows, floor_rows=()):
     """The tables of result rows: the benchmark's set (each effect on its natural and second script) first,
     then any other recordings (the first runs' second scripts) on their own. With ``floor_rows``
@@ -626,6 +640,7 @@ def summarise(rows, floor_rows=()):
               f"{100 * np.median(can):.1f} %")
     _against_the_recordings_own_simulation(bench, floor_rows)
     _shown_on_the_body(bench, floor_rows)
+    _clock_damping(bench)
     if rest:
         print(f"\n=== other recordings: scripts besides each effect's two (the first runs' second scripts, the rope's "
               f"push-slide with viscosity; {len(rest)} recordings)")

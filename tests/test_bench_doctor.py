@@ -490,3 +490,21 @@ def test_the_tally_finds_the_stored_runs_the_raised_viscosity_box_would_fit_agai
     stored = row(18.1)
     stored["candidates"][1]["search_box"] = {"E": [4597.0, 41374.0], "viscosity": [0.5, 68.0]}
     assert tally.would_raise(stored) == ""
+
+
+def test_the_summary_reports_the_shared_clocks_damping(bench, capsys):
+    """bench_doctor._clock_damping: the median change of the base model's held-out loss from the diagnosis's clock
+    to its own, and the recordings beyond the penalty (rows without the check, before session 58, left out)."""
+    rows = [{"recording": "rope-squeeze-ring-17-viscosity", "verdict": "none", "clock_change": 0.115},
+            {"recording": "dough-push-slide-15-viscosity", "verdict": "none", "clock_change": -0.006},
+            {"recording": "dough-press-release-10-none", "verdict": "none", "clock_change": 0.006},
+            {"recording": "rope-drag-12-none", "verdict": "none", "clock_change": None},
+            {"recording": "rope-drag-13-none", "verdict": "none"}]
+    bench._clock_damping(rows)
+    out = capsys.readouterr().out
+    assert "3 recordings, median change of its held-out loss +0.6 %; beyond the 4 % penalty on 1" in out
+    assert "rope-squeeze-ring-17-viscosity" in out and "+11.5 %" in out and "dough-push-slide" not in out
+    bench._clock_damping(rows[3:])
+    assert capsys.readouterr().out == ""
+    row = bench._row({"effect": "none", "clock": {"change": 0.115}}, "viscosity", "r", "squeeze-ring", None, 1.0)
+    assert row["clock_change"] == 0.115
