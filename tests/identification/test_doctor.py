@@ -521,6 +521,11 @@ def test_the_viscosity_box_is_raised_only_for_a_fit_at_its_capped_top_that_gains
                  [visc(18.1, 0.124, name="plasticity")], [visc(float("nan"), 0.2)], []):
         assert viscosity_raise_reason(fits, cfg) is None
     assert viscosity_raise_reason([visc(18.1, 0.124)], DoctorConfig()) is None  # off by default
+    for bad in (float("nan"), float("inf"), 0.0, -3.0, "3", True):
+        with pytest.raises(ValueError, match="DoctorConfig.viscosity_raise must be a positive, finite number"):
+            DoctorConfig(viscosity_raise=bad)
+    with pytest.raises(ValueError, match="DoctorConfig.viscosity_cap"):
+        DoctorConfig(viscosity_cap=float("nan"))
 
 
 def _swinging_block(material, T=18, move=9):

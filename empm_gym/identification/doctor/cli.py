@@ -13,11 +13,11 @@ def _doctor(args) -> int:
     from .core import interval_text, fitted_text
     from .report import gap_summary
 
-    cfg = DoctorConfig(train_fraction=args.train_fraction, base_iters=args.iters, candidate_iters=args.iters,
-                       popsize=args.popsize, variants=args.variants, variant_iters=args.variant_iters,
-                       viscosity_raise=args.viscosity_raise)
     effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
     try:
+        cfg = DoctorConfig(train_fraction=args.train_fraction, base_iters=args.iters, candidate_iters=args.iters,
+                           popsize=args.popsize, variants=args.variants, variant_iters=args.variant_iters,
+                           viscosity_raise=args.viscosity_raise)
         res = diagnose_recording(args.rec_dir, out_dir=args.out, base=args.base, config=cfg, dx=args.dx,
                                  particles_per_cell=args.particles_per_cell, device=args.device,
                                  progress=not args.quiet, effects=effects, view_bodies=not args.no_view_bodies,

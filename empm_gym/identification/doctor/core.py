@@ -186,6 +186,12 @@ class DoctorConfig:
     recordings the numerical damping of a finer clock explains about as much as the missing viscosity. Kept for
     a material far more viscous than the cap, where a user may try it (``empm doctor --viscosity-raise 3``)."""
 
+    def __post_init__(self):
+        for name in ("viscosity_cap", "viscosity_raise"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise ValueError(f"DoctorConfig.{name} must be a positive, finite number, got {v!r}")
+
 
 def heldout_objective(scene: Scene, obs: Observations, T: int, cfg: DoctorConfig) -> Objective:
     """The objective that scores simulations on all ``T`` frames (:func:`_per_frame_losses`) as the doctor does."""
