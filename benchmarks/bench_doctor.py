@@ -23,6 +23,7 @@ import pickle
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -601,10 +602,14 @@ def grid_offsets(problems: Path, args):
     return rows
 
 
-def _clock_damping(rows, penalty: float = 0.04) -> None:
+def _clock_damping(rows, penalty: Optional[float] = None) -> None:
     """How much the diagnoses' shared clock damped their base models (doctor.json's ``clock``, from session 58):
     the base model's held-out loss on its own clock against the shared one's, and the recordings where that
-    exceeds ``penalty`` (what a candidate must gain; the doctor then notes it)."""
+    exceeds ``penalty`` (what a candidate must gain, ``DoctorConfig.penalty_per_param`` by default; the doctor
+    then notes it)."""
+    from empm_gym.identification.doctor import DoctorConfig
+
+    penalty = DoctorConfig().penalty_per_param if penalty is None else penalty
     rs = [r for r in rows if r.get("clock_change") is not None and np.isfinite(r["clock_change"])]
     if not rs:
         return

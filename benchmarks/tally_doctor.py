@@ -12,6 +12,7 @@ usage: python benchmarks/tally_doctor.py [--seeds 10-18] [--misses] [--varied] [
 """
 
 import argparse
+import functools
 import json
 import re
 import sys
@@ -188,12 +189,13 @@ def main(argv=None):
 
 def _line_of(row: dict, data: Path = DATA) -> Optional[dict]:
     """The stored line (slim dump or result row) that ``row`` (:func:`stored_rows`) was scored from."""
-    for t in (data / row["source"]).read_text().splitlines():
-        if t.strip():
-            line = json.loads(t)
-            if line.get("recording") == row["recording"]:
-                return line
-    return None
+    return _lines(data / row["source"]).get(row["recording"])
+
+
+@functools.lru_cache(maxsize=None)
+def _lines(path: Path) -> dict:
+    """A stored file's lines by recording (the last of each), read once."""
+    return {line.get("recording"): line for line in map(json.loads, filter(str.strip, path.read_text().splitlines()))}
 
 
 if __name__ == "__main__":

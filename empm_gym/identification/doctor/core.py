@@ -1133,6 +1133,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         E_range = (lo, hi)
         spread = _scan_starts((lo, hi), min(3, cfg.popsize - 2))
 
+    unclocked = scene  # each pass sets its own clock on it
+
     def candidates_pass(cfg: DoctorConfig, desc: str, before: Optional[Dict[str, Dict[str, float]]] = None):
         """Every candidate and the base model's refit on one clock (``cfg``'s viscosity cap), widened where
         they end at an edge of their window, simulated over all frames and scored on the held-out ones.
@@ -1141,7 +1143,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         # one clock for the whole diagnosis from here on: every fit (and its refits on the variants) steps with
         # the substeps that the stiffest corner of any candidate's box needs (a fit widened beyond its window,
         # more)
-        sc = dataclasses.replace(scene, dt_materials=_clock(names, base_fit.material, E_range, scene.dx,
+        sc = dataclasses.replace(unclocked, dt_materials=_clock(names, base_fit.material, E_range, unclocked.dx,
                                                             cfg.viscosity_cap))
 
         def first_generation(name: str) -> List[Dict[str, float]]:
@@ -1180,7 +1182,6 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                 f.absent = toward_absence(f.params, f.bounds)
         return sc, fits, loose, objective, X, per
 
-    scene0 = scene
     scene, fits, loose, objective, X, per = candidates_pass(cfg, "doctor: candidates")
     raised = viscosity_raise_reason([f for f in fits if f.name == "viscosity"], cfg)
     if raised:
@@ -1188,7 +1189,6 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         # viscosity box reaches viscosity_raise times higher, so that all are scored with the same substeps
         first_s = time.perf_counter() - t_start - sum(clock.values())
         cfg = dataclasses.replace(cfg, viscosity_cap=cfg.viscosity_cap * cfg.viscosity_raise)
-        scene = scene0
         scene, fits, loose, objective, X, per = candidates_pass(cfg, "doctor: candidates, viscosity box raised",
                                                                 before={f.name: f.params for f in fits})
         warnings.append(f"{raised}: every candidate was fitted and scored again with the viscosity's box raised "
