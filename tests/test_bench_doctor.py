@@ -143,7 +143,7 @@ def test_make_with_effect_params_synthesises_them_and_keeps_them_for_scoring(ben
     with open(pkl, "rb") as f:
         prob = pickle.load(f)
     assert prob["truth"] == "viscosity" and prob["truth_params"] == {"viscosity": 80.0}
-    assert prob["base_params"] == {"E": 3.0e4, "density": 900.0}
+    assert prob["base_params"] == {"E": 3.0e4, "density": 900.0} and prob["object"] == "block"
     gt = json.loads((tmp_path / "rec" / pkl.stem / "ground_truth.json").read_text())
     assert gt["effects"] == [{"name": "viscosity", "params": {"viscosity": 80.0}}]
     assert gt["material"]["E"] == 3.0e4 and gt["material"]["density"] == 900.0
@@ -508,3 +508,30 @@ def test_the_summary_reports_the_shared_clocks_damping(bench, capsys):
     assert capsys.readouterr().out == ""
     row = bench._row({"effect": "none", "clock": {"change": 0.115}}, "viscosity", "r", "squeeze-ring", None, 1.0)
     assert row["clock_change"] == 0.115
+
+
+def test_floors_take_only_the_given_objects_problems_each_with_its_own_material(bench, tmp_path):
+    """``--floor``, ``--oracle`` and ``--grid-offsets`` simulate each effect problem's true material, which is its
+    object's (E, nu, density, the effect's defaults): a folder holding dough and rope problems yields, for
+    ``--object dough``, the dough's alone (by the problem's ``object``, or for problems made before it, by the name
+    ``--make`` gives them), and a problem that says neither is refused by name."""
+    import pickle
+
+    from empm_gym.perception.synth import effect_material
+
+    def put(name, **prob):
+        with open(tmp_path / f"{name}.pkl", "wb") as f:
+            pickle.dump({"truth": "viscosity", "truth_params": {}, "base_params": {}, **prob}, f)
+
+    put("v_dough-push-slide-21-viscosity")                      # old problem: its object from its name
+    put("rope-squeeze-lift-3-viscosity")
+    put("renamed-by-a-user", object="dough")                     # new problem: its object from itself
+    put("dough-drag-3-none", truth="none")
+    got = {p.stem: mat for p, _, mat in bench._effect_problems(tmp_path, "dough")}
+    assert sorted(got) == ["renamed-by-a-user", "v_dough-push-slide-21-viscosity"]
+    assert got["renamed-by-a-user"] == effect_material("dough", "viscosity")[0]
+    assert effect_material("rope", "viscosity")[0] != got["renamed-by-a-user"]  # the mix-up this guards against
+    assert [p.stem for p, _, _ in bench._effect_problems(tmp_path, "rope")] == ["rope-squeeze-lift-3-viscosity"]
+    put("mystery", truth="fracture")
+    with pytest.raises(SystemExit, match="mystery.pkl does not say which object"):
+        list(bench._effect_problems(tmp_path, "dough"))
