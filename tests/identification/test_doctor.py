@@ -1757,3 +1757,46 @@ def test_frames_where_the_object_is_wholly_hidden_are_neither_fitted_nor_scored(
     assert np.isfinite(res["base"]["heldout"]["chamfer_m"])
     with pytest.raises(DoctorError, match=r"wholly hidden in frames 10.*3 of the held-out frames 9-12 see it"):
         diagnose(scene, hide({10}), effects=["viscosity"], config=cfg, progress=False)
+
+
+def test_the_base_model_is_taken_at_a_candidates_E_that_fits_the_fitting_frames_better(monkeypatch):
+    """Every candidate searches E too. Where a candidate's fit ends at an E at which the elastic model alone fits
+    the fitting frames better than the base model's refit, the base model is taken there (session 59: a dough
+    lifted by one end without any effect, its refit at 55 kPa, a plasticity that never yields at 66.5 kPa named by
+    what that E gained held out). The candidates' fits are replaced by fixed results on a swinging block (3 kPa): the
+    refit at 2x the truth's E, the viscosity's at the truth's E with 2 Pa s. Taken as it is, the refit lets the
+    viscosity gain by its E and be named; with the base model at the viscosity's E (which the note and doctor.json
+    say) the viscosity gains about nothing and the verdict is none. A candidate's E that fits worse is not taken."""
+    from empm_gym.identification.doctor import core
+    from empm_gym.sim import MaterialConfig
+
+    truth = MaterialConfig(E=3.0e3, nu=0.3, density=1000.0)
+    scene, obs = _swinging_block(truth)
+    cfg = DoctorConfig(base_iters=2, popsize=5, variants=0, base_E=3e3, E_bounds=(1e3, 3e4))
+    found = {"base": {"E": 6.0e3}, "viscosity": {"E": 3.0e3, "viscosity": 2.0}}
+
+    def fixed(specs, obs, progress, desc):
+        return [core._Fit(name, found[name], start_mat.replace(**found[name]), 0.5, 0.0, 0.0, added=len(ps),
+                          scene=sc, bounds=bounds, start_material=start_mat)
+                for name, _, kw, (ps, bounds, start_mat, sc) in specs]
+
+    monkeypatch.setattr(core, "_fit_candidates", fixed)
+    res = diagnose(scene, obs, effects=["viscosity"], config=cfg, progress=False)
+    assert res["base"]["params"]["E"] == 3.0e3 and res["base"]["E_from"] == "viscosity"
+    (visc,) = res["candidates"]
+    assert abs(visc["gain"]["gain"]) < 0.02 and res["effect"] == "none"
+    (note,) = [n for n in res["notes"] if "the base model's refit ended at E = 6000 Pa" in n]
+    assert "better at E = 3000 Pa, where the viscosity fit put it" in note
+    # the refit as it was: the viscosity gains by the E its fit found, and is named
+    monkeypatch.setattr(core, "_best_base", lambda fits, obs, F, cfg: (fits[0], float("nan")))
+    kept = diagnose(scene, obs, effects=["viscosity"], config=cfg, progress=False)
+    assert kept["base"]["params"]["E"] == 6.0e3 and "E_from" not in kept["base"]
+    assert kept["candidates"][0]["gain"]["gain"] > 0.2 and kept["effect"] == "viscosity"
+    # a candidate's E that fits the fitting frames worse leaves the refit as it is
+    monkeypatch.undo()
+    sc = dataclasses.replace(scene, dt_materials=core._clock(["viscosity"], truth, (1.0e3, 9.0e3), scene.dx))
+    fits = fixed([core._candidate_spec(n, sc, truth, (1.0e3, 9.0e3), 13, cfg) for n in ("base", "viscosity")], obs,
+                 False, "")
+    fits[0].params, fits[1].params = {"E": 3.0e3}, {"E": 9.0e3, "viscosity": 2.0}
+    base, loss = core._best_base(fits, obs, 13, cfg)
+    assert base is fits[0] and np.isfinite(loss)
