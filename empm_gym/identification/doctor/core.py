@@ -16,7 +16,8 @@ Pipeline (:func:`diagnose`):
    candidates and the base model's refit stepped generation by generation in turn, all their worlds one batched
    simulation (:func:`~empm_gym.identification.offline.identify_lockstep`: the same fits as one by one, at a
    fraction of the launches). The base model is refitted the same way (the null candidate) and is the base model
-   from then on: a candidate must gain by its effect, not by a second search of E. A fit whose E ends at an
+   from then on, taken at a candidate's E instead where the elastic model fits the fitting frames better there
+   (:func:`_best_base`): a candidate must gain by its effect, not by a second search of E. A fit whose E ends at an
    edge of that window is fitted again with the window stretched to the base box on that side, and when the
    base fit itself ends at a bound of its box every candidate searches the whole box (:func:`_widened`). The
    base model's refit, every candidate and every variant refit step with one clock, the substeps per frame that
@@ -1625,8 +1626,8 @@ def _best_base(fits: List["_Fit"], obs: Observations, F: int, cfg: DoctorConfig)
 def best_base_note(base: "_Fit", refit_E: float, refit_loss: float) -> str:
     """The note that says the base model is taken at a candidate's E (:func:`_best_base`)."""
     return (f"the base model's refit ended at E = {refit_E:.4g} Pa, but the elastic model fits the fitting frames "
-            f"better at E = {base.params['E']:.4g} Pa, where the {base.E_from} fit put it (loss {base.fit_loss:.5g} "
-            f"against {refit_loss:.5g}): the base model is taken there, so that no candidate is credited with what "
+            f"better at E = {base.params['E']:.4g} Pa, where the {base.E_from} fit put it (loss {base.fit_loss:.6g} "
+            f"against {refit_loss:.6g}): the base model is taken there, so that no candidate is credited with what "
             f"that E alone gains")
 
 
