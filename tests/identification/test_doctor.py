@@ -1766,7 +1766,8 @@ def test_the_base_model_is_taken_at_a_candidates_E_that_fits_the_fitting_frames_
     what that E gained held out). The candidates' fits are replaced by fixed results on a swinging block (3 kPa): the
     refit at 2x the truth's E, the viscosity's at the truth's E with 2 Pa s. Taken as it is, the refit lets the
     viscosity gain by its E and be named; with the base model at the viscosity's E (which the note and doctor.json
-    say) the viscosity gains about nothing and the verdict is none. A candidate's E that fits worse is not taken."""
+    say) the viscosity gains about nothing and the verdict is none. A move of E within 1 % is made without a note; a
+    candidate's E that fits worse is not taken."""
     from empm_gym.identification.doctor import core
     from empm_gym.sim import MaterialConfig
 
@@ -1792,6 +1793,13 @@ def test_the_base_model_is_taken_at_a_candidates_E_that_fits_the_fitting_frames_
     kept = diagnose(scene, obs, effects=["viscosity"], config=cfg, progress=False)
     assert kept["base"]["params"]["E"] == 6.0e3 and "E_from" not in kept["base"]
     assert kept["candidates"][0]["gain"]["gain"] > 0.2 and kept["effect"] == "viscosity"
+    # a move of E within 1 % is made, and not noted
+    monkeypatch.undo()
+    monkeypatch.setattr(core, "_fit_candidates", fixed)
+    found["base"] = {"E": 3.0e3 * 1.005}
+    near = diagnose(scene, obs, effects=["viscosity"], config=cfg, progress=False)
+    assert near["base"]["params"]["E"] == 3.0e3 and near["base"]["E_from"] == "viscosity"
+    assert not any("the base model's refit ended at" in n for n in near["notes"])
     # a candidate's E that fits the fitting frames worse leaves the refit as it is
     monkeypatch.undo()
     sc = dataclasses.replace(scene, dt_materials=core._clock(["viscosity"], truth, (1.0e3, 9.0e3), scene.dx))
