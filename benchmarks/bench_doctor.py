@@ -240,7 +240,8 @@ def make(args):
                     continue
                 obs = _subsample(obs, seed, args.max_points)
                 prob = {"scene": scene, "obs": obs, "truth": truth[0] if truth else "none", "script": script,
-                        "object": args.object, "seed": seed, "truth_params": eparams, "body_notes": notes, "base_params": seed_base,
+                        "object": args.object, "seed": seed, "truth_params": eparams, "body_notes": notes,
+                        "base_params": seed_base,
                         "synth_dx": synth_dx, "trim_to_surface": args.trim_bodies, "simulator": args.simulator,
                         "parted": gt.get("parted"),
                         "synth_kw": {k: v for k, v in seed_kw.items() if k in ("grid_offset", "jitter")},

@@ -1603,24 +1603,18 @@ def _best_base(fits: List["_Fit"], obs: Observations, F: int, cfg: DoctorConfig)
     model fits the fitting frames better at 66.5 kPa (loss 0.0033386 against 0.0033466), and the plasticity, named
     by a held-out gain of 5.4 % against a 4 % penalty, gains nothing beside it. Returns the base model and the
     refit's loss (NaN where no candidate's E differs from it)."""
-    base = fits[0]
-    Es: List[Tuple[float, str]] = []
-    for f in fits[1:]:
-        E = float(f.params["E"])
-        if E != base.params["E"] and all(E != e for e, _ in Es):
-            Es.append((E, f.name))
-    if not Es:
+    base, alts = fits[0], _base_alternatives(fits)  # each named after the candidate whose E it takes
+    if not alts:
         return base, float("nan")
     losses = fit_losses(obs, _fit_scene(base.scene, base.material, ("E",)),
-                        [{"E": float(base.params["E"])}] + [{"E": E} for E, _ in Es], frames=F, l_trk=cfg.l_trk,
+                        [{"E": float(f.params["E"])} for f in [base, *alts]], frames=F, l_trk=cfg.l_trk,
                         max_points=cfg.max_points, seed=cfg.seed)
     finite = [k for k, v in enumerate(losses) if np.isfinite(v)]
     k = min(finite, key=lambda i: losses[i], default=0)  # the refit (0) first: it keeps a tie
     if k == 0 or not losses[k] < losses[0]:
         return base, float(losses[0])
-    E, name = Es[k - 1]
-    return dataclasses.replace(base, params={**base.params, "E": E}, material=base.material.replace(E=E),
-                               fit_loss=float(losses[k]), E_from=name), float(losses[0])
+    alt = alts[k - 1]
+    return dataclasses.replace(alt, name=base.name, fit_loss=float(losses[k]), E_from=alt.name), float(losses[0])
 
 
 #: The base model taken at a candidate's E (:func:`_best_base`) is noted where that moves E by more than this share:
