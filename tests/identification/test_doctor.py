@@ -1505,7 +1505,7 @@ def test_a_stiffness_field_within_the_discretisations_spread_is_not_named():
     contrast 1.8 on 4 of 5 variants while the base model's E moved by 1.9-2.6x between shifted grids (session
     27: the one effect invented on `none`). The same gains with a contrast of 9 name the field; the rule
     touches no other effect; the verdict taken again from doctor.json agrees."""
-    from empm_gym.identification.doctor.core import _within_discretisation, select_verdict
+    from empm_gym.identification.doctor.core import FIELD_CONTRAST_FLOOR, _within_discretisation, select_verdict
 
     def test(gain):
         return {"gain": gain, "lower": gain - 0.01, "upper": gain + 0.01, "threshold": 0.04}
@@ -1540,6 +1540,17 @@ def test_a_stiffness_field_within_the_discretisations_spread_is_not_named():
     cands, variants = case(500.0, effect="plasticity")
     assert not _within_discretisation("plasticity", cands[0]["params"], variants)
     assert select_verdict(cands, variants)[0] == "plasticity"
+    # a spread the short refits did not measure (the shifted grids' refits ended where they started) does not
+    # let a field under FIELD_CONTRAST_FLOOR through: a rope squeezed in a ring without an effect was named a field
+    # of contrast 1.19 (session 60)
+    flat = (8371.0, 8371.0 * 1.002, 8000.0, 12000.0)
+    cands, variants = case(0.088, base_Es=flat)
+    why = _within_discretisation("heterogeneous_stiffness", cands[0]["params"], variants)
+    assert "1.19x" in why and f"under {FIELD_CONTRAST_FLOOR:g}x" in why
+    assert select_verdict(cands, variants) == (None, "heterogeneous_stiffness", [])
+    cands, variants = case(0.25, base_Es=flat)  # contrast 1.65: above the floor, and the spread is 1.00
+    assert not _within_discretisation("heterogeneous_stiffness", cands[0]["params"], variants)
+    assert select_verdict(cands, variants)[0] == "heterogeneous_stiffness"
 
 
 def test_the_base_fit_scans_its_box():
