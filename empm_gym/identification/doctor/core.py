@@ -1724,8 +1724,7 @@ def _within_discretisation(name: str, params: Dict[str, float], variants: dict) 
     they started. A rope squeezed in a ring without any effect (seed 20, varied; session 60) was named a field
     of contrast 1.19 that gained 20.0 % held out and held on 4 of 5 variants, while the base model's E moved
     by 1.002x between the discretisations (the two shifted grids' refits ended at the same E)."""
-    if not name == "heterogeneous_stiffness" or not variants or not any(k.startswith("stiffness_slope")
-                                                                          for k in params):
+    if name != "heterogeneous_stiffness" or not variants or not any(k.startswith("stiffness_slope") for k in params):
         return ""  # another effect, no variants, or no field's values to weigh
     disc = [t for t in variants.get("candidates", {}).get(name, {}).get("tests", [])
             if _variant_kind(t) == "discretisation"]
