@@ -349,7 +349,7 @@ def rescore(paths):
     recordings again, given after the run it completes)."""
     from empm_gym.identification.doctor import DoctorConfig
     from empm_gym.identification.doctor.core import (SIGNATURE_FEATURES, _friction_equivalent, select_verdict,
-                                                     toward_absence)
+                                                     signature_contradicts, toward_absence)
     from empm_gym.sim.effects import PARAMETERS
 
     factor = DoctorConfig().friction_equivalence
@@ -386,6 +386,10 @@ def rescore(paths):
                     contra = bool(trusted and sc.get("explained") is False and not unsupported)
                     cands = [{**c, "contradicted_by_signature": contra and c["effect"] == res.get("effect")}
                              for c in cands]
+                # since then every significant candidate holds its own check: its veto is taken again by the
+                # current rule (session 61: an overshoot within the noise is none)
+                cands = [{**c, "contradicted_by_signature": signature_contradicts(c["signature_check"])}
+                         if c.get("signature_check") and "contradicted_by_signature" in c else c for c in cands]
                 variants = res.get("variants")
                 if variants and "base_E" not in variants:  # dumps older than session 28: the base fit's E
                     variants = {**variants, "base_E": res["base"]["params"]["E"]}

@@ -1438,6 +1438,24 @@ def test_a_candidate_whose_fit_moves_its_own_signature_away_from_the_measurement
     only = [c for c in cands(True) if c["effect"] != "fracture"]
     assert select_verdict(only, None) == (None, None, [])
     assert DoctorConfig().signature_veto
+    from empm_gym.identification.doctor.core import signature_contradicts, signature_overshot
+
+    assert signature_contradicts(slip) and not signature_overshot(slip) and not signature_contradicts(quiet)
+    # across the measurement and no further than the base model's discrepancy plus the noise: an overshoot, doubted
+    # and not vetoed (varied seed 23's stiff rope dragged over a slippery table, session 61: the base model's rope
+    # slid 6.92 mm less than the observed one, the table-friction fit 7.39 mm more, noise 2.41 mm; 80.8 % held out)
+    dragged = signature_check("table_friction", {"table_slide_m": 6.92e-3}, {"table_slide_m": -7.39e-3},
+                              noise_m=2.41e-3)
+    assert dragged["explained"] is False and dragged["overshot"] and dragged["doubted"]
+    assert not signature_contradicts(dragged)
+    # further across than that (a slip of 12.7 mm predicted where 1.7 mm was measured, noise 1.49 mm), or on the
+    # same side, stays a contradiction; so does any overshoot of a feature that is no signed length
+    for base, fit in ((1.7e-3, -12.68e-3), (-6.92e-3, -7.39e-3)):
+        c = signature_check("table_friction", {"table_slide_m": base}, {"table_slide_m": fit}, noise_m=1.49e-3)
+        assert not c["overshot"] and signature_contradicts(c), (base, fit)
+    key = "residual_after_release_vs_contact"
+    assert signature_contradicts(signature_check("plasticity", {key: 0.48}, {key: 0.83}))
+    assert not signature_contradicts(None)
 
 
 def test_candidates_that_pass_rank_by_the_discretisations_each_comes_first_on_before_their_median_gain():
