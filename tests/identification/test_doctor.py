@@ -509,6 +509,8 @@ def test_a_first_candidate_doubted_by_its_own_signature_yields_to_an_undoubted_o
     assert select_verdict(lifted(slip_doubted=False), variants)[0] == "gripper_slip"
     win, before, passing = select_verdict(lifted(), variants)
     assert (win, before) == ("fracture", "gripper_slip") and passing == ["fracture", "gripper_slip"], passing
+    # the order before the yield (what the diagnosis halves the confidence for, and says was set behind)
+    assert select_verdict(lifted(), variants, yield_rules=False)[2] == ["gripper_slip", "fracture"]
     note = yield_note(lifted()[1], lifted()[0])
     assert note.startswith("gripper_slip passes too and its held-out gain (42.3 %) is not clearly above fracture's "
                            "(41.9 %)") and "shows nothing in its signature (track_slip_m)" in note, note

@@ -1308,10 +1308,12 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     # passing candidates that come first on some discretisation: which of them explains the recording best
     # depends on how the body is discretised, and the verdict says so
     first_share, first_on, first_elsewhere = 1.0, "", []
-    # candidates set behind the winner by select_verdict's yield rules (fitted outside the plausible range, or
-    # doubted by their own signature): out of the first places and the bootstrap's rivals, and the confidence
-    # halved instead, for the verdict rests on that judgement as much as on the held-out frames
-    yielded = [n for n in passing[1:] if yield_note(as_dicts[cands.index(winner)], as_dicts[cands.index(by_name[n])])]
+    # candidates that select_verdict's yield rules set behind the winner (fitted outside the plausible range, or
+    # doubted by their own signature), ranked before it without them: out of the first places and the
+    # bootstrap's rivals, and the confidence halved instead, for the verdict rests on that judgement as much as
+    # on the held-out frames
+    unyielded = select_verdict(as_dicts, robustness if cfg.robust_verdict else None, yield_rules=False)[2]
+    yielded = unyielded[:unyielded.index(win)] if win in unyielded else []
     if winner is not None and cfg.robust_verdict and robustness["variants"]:
         contenders = [n for n in _contenders(as_dicts, robustness) if n not in yielded]
         first_share, first_elsewhere, n_disc = _first_on(
@@ -1367,8 +1369,9 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
               f"table friction: adhesion, a grasp that gives, a body that rolls; for a grip friction: a body that "
               f"tears or gives at the grasp; confidence halved); read the runner-up candidates")
     for n in yielded:
-        warnings.append(yield_note(as_dicts[cands.index(winner)], as_dicts[cands.index(by_name[n])])
-                        + " (confidence halved)")
+        note = yield_note(as_dicts[cands.index(winner)], as_dicts[cands.index(by_name[n])])
+        warnings.append((note or f"{n} passes too and came first before the yields of select_verdict") +
+                        " (confidence halved)")
     ranked = sorted(cands, key=lambda f: f.heldout["loss"])
     chosen = winner or base_fit
     left = unexplained_note(chosen.heldout.get("chamfer_m", float("nan")), noise,
@@ -1784,7 +1787,8 @@ def _within_discretisation(name: str, params: Dict[str, float], variants: dict) 
             f"model's E over the discretisations, {spread:.2f}x (the grid alone moves the stiffness that much)")
 
 
-def select_verdict(candidates: Sequence[dict], variants: Optional[dict]) -> Tuple[Optional[str], Optional[str], List[str]]:
+def select_verdict(candidates: Sequence[dict], variants: Optional[dict], yield_rules: bool = True
+                   ) -> Tuple[Optional[str], Optional[str], List[str]]:
     """The doctor's verdict from its candidates (``doctor.json``'s ``candidates``: ``effect``, ``heldout.loss``
     and the gain test ``gain``) and ``variants`` (``doctor.json``'s ``variants``; None: without that check).
 
@@ -1820,7 +1824,8 @@ def select_verdict(candidates: Sequence[dict], variants: Optional[dict]) -> Tupl
     a dough lifted by one end with a hidden fracture (seed 14, varied seed 22) was called gripper slip (42.3 %,
     fracture 41.9 %) while the tracked points near the closed gripper moved with it, within the depth noise, and
     the slip's fit moved them further from the measurement (0.25 -> 0.76 mm). Over the 483 recordings of
-    seeds 10-22 stored (session 61) the rule changes two verdicts, both to the truth."""
+    seeds 10-22 stored (session 61) the rule changes two verdicts, both to the truth. ``yield_rules=False``:
+    the order before these yields."""
     sig = _significant(candidates)
     passing = sig
     params = {c["effect"]: c.get("params", {}) for c in candidates}
@@ -1836,6 +1841,8 @@ def select_verdict(candidates: Sequence[dict], variants: Optional[dict]) -> Tupl
         wins = {a: sum(_beats(a, b, cols, gains) for b in passing if b != a) for a in passing}
         passing = sorted(passing, key=lambda n: -wins[n])  # stable: equal wins keep the order of the medians
     by_name = {c["effect"]: c for c in candidates}
+    if not yield_rules:  # the order before the yields below (what the diagnosis says was set behind)
+        return (passing[0] if passing else None), (sig[0] if sig else None), passing
     if passing and implausible_params(params[passing[0]]):
         plausible = [n for n in passing[1:] if _yields_to(by_name[passing[0]], by_name[n])]
         if plausible:
