@@ -1370,8 +1370,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
               f"tears or gives at the grasp; confidence halved); read the runner-up candidates")
     for n in yielded:
         note = yield_note(as_dicts[cands.index(winner)], as_dicts[cands.index(by_name[n])])
-        warnings.append((note or f"{n} passes too and came first before the yields of select_verdict") +
-                        " (confidence halved)")
+        warnings.append((note or f"{n} passes too and ranked before {winner.name} on its held-out gains, but was set "
+                                 f"behind for its fitted values or its own signature") + " (confidence halved)")
     ranked = sorted(cands, key=lambda f: f.heldout["loss"])
     chosen = winner or base_fit
     left = unexplained_note(chosen.heldout.get("chamfer_m", float("nan")), noise,
@@ -1870,6 +1870,8 @@ def yield_note(winner: dict, other: dict) -> Optional[str]:
     odd = implausible_params(other.get("params", {}))
     if not _yields_to(other, winner):
         return None
+    head = (f"{other['effect']} passes too and its held-out gain ({100 * other['gain']['gain']:.1f} %) is not "
+            f"clearly above {winner['effect']}'s ({100 * winner['gain']['gain']:.1f} %), but ")
     if not odd:
         sc = other.get("signature_check") or {}
         if not _doubted(other) or _doubted(winner):
@@ -1878,11 +1880,8 @@ def yield_note(winner: dict, other: dict) -> Optional[str]:
                f"explain" if sc.get("unsupported") else
                f"its fit does not bring its signature ({sc.get('feature')}) closer to the measurement by more than "
                f"the depth noise")
-        return (f"{other['effect']} passes too and its held-out gain ({100 * other['gain']['gain']:.1f} %) is not "
-                f"clearly above {winner['effect']}'s ({100 * winner['gain']['gain']:.1f} %), but {why}: "
-                f"{winner['effect']}, which its own signature does not doubt, is named before it")
-    return (f"{other['effect']} passes too and its held-out gain ({100 * other['gain']['gain']:.1f} %) is not "
-            f"clearly above {winner['effect']}'s ({100 * winner['gain']['gain']:.1f} %), but its fit has "
+        return head + f"{why}: {winner['effect']}, which its own signature does not doubt, is named before it"
+    return (head + "its fit has "
             + ", ".join(f"{k} = {other['params'][k]:.3g}, outside the {lo:g} to {hi:g} that real objects and contacts "
                         f"usually show" for k, (lo, hi) in odd.items())
             + f": {winner['effect']}, fitted within that range, is named before it")
