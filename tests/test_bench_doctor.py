@@ -345,6 +345,25 @@ def test_the_doctors_simulator_is_the_synthesisers_on_its_grid_and_another_offse
         assert "--grid-offsets wants X,Y,Z in cells" in capsys.readouterr().err
 
 
+def test_the_discretisations_score_the_true_material_on_the_doctors_body_as_the_floor_does_and_on_its_variants(
+        bench, slide_problems, capsys):
+    """``--discretisations K``: the true material on the doctor's own body scores what ``--floor`` scores, and on
+    each of the doctor's discretisation variants (grid shifted by part of a cell, particles on another lattice)
+    something else: the coarse block (2-cm cells) slides on another discretisation. The spread is the largest over
+    the smallest; K under 1 is refused by name."""
+    (floor,) = bench.floors(slide_problems, bench.parse_args(["--object", "block"]))
+    (row,) = bench.discretisations(slide_problems, bench.parse_args(["--object", "block", "--discretisations", "2"]))
+    assert len(row["heldout_loss"]) == 3 and len(row["heldout_chamfer_m"]) == 3
+    assert row["heldout_loss"][0] == pytest.approx(floor["floor_loss"], rel=1e-6)
+    assert row["heldout_chamfer_m"][0] == pytest.approx(floor["floor_chamfer_m"], rel=1e-6)
+    assert len(set(row["heldout_loss"])) == 3, row  # each discretisation its own outcome
+    assert row["spread"] == pytest.approx(max(row["heldout_loss"]) / min(row["heldout_loss"])) and row["spread"] > 1.0
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        bench.main(["--problems", str(slide_problems), "--object", "block", "--discretisations", "0"])
+    assert "--discretisations takes the number of variants, at least 1, got 0" in capsys.readouterr().err
+
+
 def test_the_gap_closed_is_measured_above_the_recordings_own_simulation(bench, tmp_path, capsys):
     """With ``--oracle`` rows among ``--floors``: a base model at 4 mm, the fit at 3 mm and the recording's own
     simulation at 2 mm show 25 % of a possible 50 %, half the gap above the noise closed; the median is taken over
@@ -532,6 +551,9 @@ def test_floors_take_only_the_given_objects_problems_each_with_its_own_material(
     assert got["renamed-by-a-user"] == effect_material("dough", "viscosity")[0]
     assert effect_material("rope", "viscosity")[0] != got["renamed-by-a-user"]  # the mix-up this guards against
     assert [p.stem for p, _, _ in bench._effect_problems(tmp_path, "rope")] == ["rope-squeeze-lift-3-viscosity"]
+    with_none = {p.stem: mat for p, _, mat in bench._effect_problems(tmp_path, "dough", with_none=True)}
+    assert sorted(with_none) == ["dough-drag-3-none", "renamed-by-a-user", "v_dough-push-slide-21-viscosity"]
+    assert with_none["dough-drag-3-none"] == effect_material("dough", "none")[0]  # the base model, no effect
     put("mystery", truth="fracture")
     with pytest.raises(SystemExit, match="mystery.pkl does not say which object"):
         list(bench._effect_problems(tmp_path, "dough"))
