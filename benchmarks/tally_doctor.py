@@ -28,7 +28,7 @@ DATA = Path(__file__).resolve().parent / "data"
 #: measurements, oracles and probes, a rule's before/after comparisons, runs with a setting changed to compare.
 EXCLUDED = ("signatures", "oracle", "floors", "probe", "s52_yield", "s52_rope_lift_end_14", "code_742e6fc",
             "world_axes", "before_change", "before_rule", "before_scan", "retry_reverted", "variants_side", "old_new",
-            "alone", "repeat", "contenders", "unscaled_start_only", "trimmed_bodies", "grid_offsets")
+            "alone", "repeat", "contenders", "unscaled_start_only", "trimmed_bodies", "grid_offsets", "discretisations")
 NAME = re.compile(r"(v_)?(dough|rope)-([a-z-]+)-(\d+)-([a-z_]+)$")  # v_: made with --vary-physics
 
 
