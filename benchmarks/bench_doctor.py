@@ -454,24 +454,29 @@ def floors(problems: Path, args):
     import dataclasses
 
     from empm_gym.identification.doctor import DoctorConfig
-    from empm_gym.identification.doctor.core import _per_frame_losses, heldout_objective
-    from empm_gym.identification.problem import _ForwardSim
 
     cfg = DoctorConfig()
     rows = []
     for path, prob, mat in _effect_problems(problems, args.object):
-        obs = prob["obs"]
-        mu = mat.get("friction")
         sc = dataclasses.replace(prob["scene"], device=args.device, motion_margin=cfg.motion_margin)
-        sc = sc.with_material(mat, table_friction=mu)
-        T = obs.num_frames if sc.num_frames is None else min(obs.num_frames, sc.num_frames)
-        F = int(round(cfg.train_fraction * T))
-        X, _, _ = _ForwardSim(sc, [mat], [mu]).run(T)
-        per = _per_frame_losses(heldout_objective(sc, obs, T, cfg), X[:, 0])
+        per, F, _ = _true_material_on(sc, prob["obs"], mat, cfg)
         row = {"recording": path.stem, "truth": prob["truth"], "floor_chamfer_m": float(np.mean(per["chamfer"][F:])),
                "floor_loss": float(np.mean(per["loss"][F:]))}
         _emit(row, f"true material's held-out Chamfer {1e3 * row['floor_chamfer_m']:.3f} mm", rows, args.jsonl)
     return rows
+
+
+def _true_material_on(scene, obs, mat, cfg):
+    """The true material ``mat`` simulated on ``scene`` (a body of the doctor's, its own clock) and scored as the
+    doctor scores (``cfg``): ``(per-frame losses, first held-out frame, positions [T, N, 3])``."""
+    from empm_gym.identification.doctor.core import _per_frame_losses, heldout_objective
+    from empm_gym.identification.problem import _ForwardSim
+
+    mu = mat.get("friction")
+    sc = scene.with_material(mat, table_friction=mu)
+    T = obs.num_frames if sc.num_frames is None else min(obs.num_frames, sc.num_frames)
+    X, _, _ = _ForwardSim(sc, [mat], [mu]).run(T)
+    return _per_frame_losses(heldout_objective(sc, obs, T, cfg), X[:, 0]), int(round(cfg.train_fraction * T)), X[:, 0]
 
 
 def discretisations(problems: Path, args):
@@ -485,30 +490,23 @@ def discretisations(problems: Path, args):
     import dataclasses
 
     from empm_gym.identification.doctor import DoctorConfig
-    from empm_gym.identification.doctor.core import _per_frame_losses, _variant_scene, heldout_objective
-    from empm_gym.identification.problem import _ForwardSim
+    from empm_gym.identification.doctor.core import _variant_scene
 
     cfg = DoctorConfig()
     rows = []
     for path, prob, mat in _effect_problems(problems, args.object, with_none=True):
-        obs = prob["obs"]
-        mu = mat.get("friction")
         body = dataclasses.replace(prob["scene"], device=args.device, motion_margin=cfg.motion_margin)
-        T = obs.num_frames if body.num_frames is None else min(obs.num_frames, body.num_frames)
-        F = int(round(cfg.train_fraction * T))
         losses, chamfers = [], []
         for k in range(-1, args.discretisations):
-            sc = (body if k < 0 else _variant_scene(body, k)).with_material(mat, table_friction=mu)
-            X, _, _ = _ForwardSim(sc, [mat], [mu]).run(T)
+            per, F, X = _true_material_on(body if k < 0 else _variant_scene(body, k), prob["obs"], mat, cfg)
             if not np.all(np.isfinite(X)):
                 raise SystemExit(f"{path.name}: the true material's simulation on discretisation {k + 1} is not "
                                  f"finite")
-            per = _per_frame_losses(heldout_objective(sc, obs, T, cfg), X[:, 0])
             losses.append(float(np.mean(per["loss"][F:])))
             chamfers.append(float(np.mean(per["chamfer"][F:])))
         row = {"recording": path.stem, "truth": prob["truth"], "heldout_loss": losses, "heldout_chamfer_m": chamfers,
                "spread": max(losses) / min(losses)}
-        _emit(row, "held-out loss on the doctor's body " + f"{losses[0]:.5f}, on its variants "
+        _emit(row, f"held-out loss on the doctor's body {losses[0]:.5f}, on its variants "
               + ", ".join(f"{v:.5f}" for v in losses[1:]) + f" ({row['spread']:.2f}x)", rows, args.jsonl)
     return rows
 
