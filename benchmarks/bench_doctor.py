@@ -154,7 +154,7 @@ def _dx_arg(text: str):
 
 
 def make(args):
-    from empm_gym.identification.data import view_jackknife_bodies
+    from empm_gym.identification.data import trimmed_body, view_jackknife_bodies
     from empm_gym.identification.doctor import DEFAULT_DX, load_for_doctor
     from empm_gym.perception.scripts import SCRIPTS
     from empm_gym.perception.synth import SPRINGMASS_EFFECTS, effect_signature, synthesize
@@ -219,6 +219,9 @@ def make(args):
                                                                effect_params=eparams or None, base_params=seed_base,
                                                                dx=synth_dx, **seed_kw)
                         changed = True
+                    if args.trimmed_body and "trimmed_body" not in prob and rec.exists():
+                        prob["trimmed_body"] = trimmed_body(rec, prob["scene"], particles_per_cell=args.ppc)
+                        changed = True
                     if args.view_bodies and "view_bodies" not in prob and rec.exists():
                         prob["view_bodies"] = view_jackknife_bodies(rec, prob["scene"], particles_per_cell=args.ppc)
                         changed = True
@@ -248,6 +251,8 @@ def make(args):
                         **({"view_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc,
                                                                  trim_to_surface=args.trim_bodies)}
                            if args.view_bodies else {}),
+                        **({"trimmed_body": trimmed_body(rec, scene, particles_per_cell=args.ppc)}
+                           if args.trimmed_body else {}),
                         "signature_m": effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
                                                         effect_params=eparams or None, base_params=seed_base,
                                                         dx=synth_dx, **seed_kw)}
@@ -283,7 +288,13 @@ def diagnose_all(problems: Path, args):
         scene = dataclasses.replace(prob["scene"], device=args.device)
         t0 = time.perf_counter()
         others = [(label, None if sc is None else dataclasses.replace(sc, device=args.device))
-                  for label, sc in prob.get("view_bodies", ())] if args.view_bodies else ()
+                  for label, sc in prob.get("view_bodies", ())] if args.view_bodies else []
+        if args.trimmed_body:
+            if "trimmed_body" not in prob:
+                raise SystemExit(f"{path}: --trimmed-body, but the problem holds no trimmed body (make it with "
+                                 f"--make ... --keep-existing --trimmed-body while the recording is there)")
+            label, sc = prob["trimmed_body"]
+            others.append((label, None if sc is None else dataclasses.replace(sc, device=args.device), "trimmed"))
         res = diagnose(scene, prob["obs"], None, config=cfg, progress=False, other_bodies=others,
                        body_notes=prob.get("body_notes", ()))
         wall = time.perf_counter() - t0
@@ -312,9 +323,16 @@ def diagnose_all(problems: Path, args):
 def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: float, parted=None) -> dict:
     """One result row of a doctor result (``diagnose``'s return value or a ``--dump`` line); ``parted``: where the
     synthesiser's body came apart (ground_truth.json's ``parted``), None where it stayed whole or is unknown."""
-    from empm_gym.identification.doctor.core import not_ruled_out
+    from empm_gym.identification.doctor.core import not_ruled_out, select_verdict
 
     red = c_true = c_base = l_base = float("nan")
+    variants = res.get("variants") or {}
+    before_trim = res["effect"]
+    if any("trimmed" in rec for rec in variants.get("candidates", {}).values()):
+        # the verdict without the check on the body trimmed to the measured surface (the other rules as they are)
+        untrimmed = {**variants, "candidates": {n: {k: v for k, v in rec.items() if k != "trimmed"}
+                                                for n, rec in variants["candidates"].items()}}
+        before_trim = select_verdict(res["candidates"], untrimmed)[0] or "none"
     if res.get("candidates"):
         c_base, l_base = res["base"]["heldout"]["chamfer_m"], res["base"]["heldout"]["loss"]
     if truth != "none" and res.get("candidates"):
@@ -329,7 +347,7 @@ def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: flo
             "before_variants": res.get("effect_before_variants", res["effect"]), "signature_m": signature_m,
             "signature_doubted": sig.get("doubted"), "wall_s": wall_s, "stage_wall_s": res.get("stage_wall_s"),
             "not_ruled_out": [e["effect"] for e in not_ruled_out(res.get("candidates") or [], res["effect"])],
-            "parted": parted, "clock_change": (res.get("clock") or {}).get("change")}
+            "parted": parted, "clock_change": (res.get("clock") or {}).get("change"), "before_trim": before_trim}
 
 
 def _write_problem(path: Path, prob: dict) -> None:
@@ -922,6 +940,9 @@ def _parser():
     p.add_argument("--view-bodies", action="store_true",
                    help="with --make: pickle the frame-0 body rebuilt without each camera; when diagnosing: use them "
                         "as variants too")
+    p.add_argument("--trimmed-body", action="store_true",
+                   help="with --make: pickle the frame-0 body trimmed to the measured surface (data.trimmed_body); "
+                        "when diagnosing: a named effect must hold on it too, as `empm doctor` checks by default")
     p.add_argument("--dump", default=None, help="write each recording's full doctor result (JSON) into this folder")
     p.add_argument("--only-make", action="store_true", help="stop after --make")
     p.add_argument("--flat-splats", dest="tangent_splats", action="store_false", default=True,

@@ -4,7 +4,8 @@
 # PER_GPU processes on each GPU, each taking the next recording when it is done; nothing is started with under
 # 100 s of BUDGET_S left, and every process is stopped at its end. Rows in $OUT/rows.jsonl, slim dumps (what
 # `bench_doctor.py --rescore` reads) in $OUT/slim.jsonl, each process's wall time in $OUT/times.txt.
-# SITE: a folder of installed packages to put first on PYTHONPATH (default /tmp/site).
+# SITE: a folder of installed packages to put first on PYTHONPATH (default /tmp/site); DOCTOR_ARGS: more flags of
+# bench_doctor.py (e.g. --trimmed-body).
 # Session 37 ran it on 4 H200s: `bash benchmarks/bench_doctor_gpus.sh 540 5 .dd11` (benchmarks/RESULTS.md).
 export PYTHONPATH=${SITE:-/tmp/site}:$PWD PYTHONUNBUFFERED=1
 if [ $# -lt 3 ] || ! [[ "$1" =~ ^[0-9]+$ && "$2" =~ ^[1-9][0-9]*$ ]] || [ -z "$OUT" ]; then
@@ -29,7 +30,7 @@ worker () {  # gpu
     n=$(basename $f .pkl.gz); mkdir -p $W/one/$n; gunzip -c $f > $W/one/$n/$n.pkl
     s=$(date +%s)
     timeout $left python3 benchmarks/bench_doctor.py --problems $W/one/$n --device cuda:$1 --iters 6 --popsize 8 \
-      --view-bodies --dump $W/dump --jsonl $W/res/$n.jsonl > $W/logs/$n.log 2>&1
+      --view-bodies $DOCTOR_ARGS --dump $W/dump --jsonl $W/res/$n.jsonl > $W/logs/$n.log 2>&1
     echo "$n gpu $1 rc $? process $(( $(date +%s) - s )) s" >> $W/times.txt
   done
 }

@@ -847,6 +847,43 @@ def test_a_gain_holds_on_the_variants_with_at_most_one_miss_in_five_and_most_reb
            "its bound)" in got["why"], got["why"]
 
 
+
+def test_a_gain_must_also_hold_on_the_body_trimmed_to_the_measured_surface():
+    """The trimmed body (:func:`~empm_gym.identification.data.trimmed_body`) is a check of its own: a gain that holds
+    on every variant but not there is refused and the verdict says where (the rebuilt bodies all lean larger than
+    the object, the trimmed one smaller); it is not counted among the one-in-five misses, and
+    ``robust_without_trimmed`` keeps the verdict of the variants alone; a select_verdict on stored variants applies
+    it too."""
+    from empm_gym.identification.data import TRIMMED_BODY
+    from empm_gym.identification.doctor.core import _robust, select_verdict
+
+    variants = ([{"variant": f"grid shifted and particles resampled ({i + 1})", "kind": "discretisation", "gain": g,
+                  "threshold": 0.04} for i, g in enumerate([0.06, 0.07])]
+                + [{"variant": f"without camera {i}", "kind": "body", "gain": g, "threshold": 0.04}
+                   for i, g in enumerate([0.05, 0.08, 0.09])])
+    trimmed = {"variant": TRIMMED_BODY, "kind": "trimmed", "gain": -0.038, "threshold": 0.04}
+    got = _robust(variants, trimmed)
+    assert not got["robust"] and got["robust_without_trimmed"] and got["holds_on"] == "5 of 5 variants"
+    assert f"on the {TRIMMED_BODY} it gains -3.8 % against a threshold of 4 %" in got["why"], got["why"]
+    assert _robust(variants, {**trimmed, "gain": 0.05})["robust"]                   # it holds there too
+    assert _robust(variants)["robust"]                                              # no trimmed body: as before
+    vanished = _robust(variants, {**trimmed, "gain": 0.2, "toward_absence": ["viscosity"]})
+    assert not vanished["robust"] and "where the effect vanishes (viscosity at its bound)" in vanished["why"]
+    one_miss = _robust([{**variants[0], "gain": 0.01}] + variants[1:], {**trimmed, "gain": 0.05})
+    assert one_miss["robust"] and one_miss["holds_on"] == "4 of 5 variants"          # the trimmed body is not a variant
+    # the verdict on stored variants: viscosity, refuted by the trimmed body, leaves plasticity, which holds there
+    cands = [{"effect": e, "params": {}, "heldout": {"loss": loss}, "added": 1,
+              "gain": {"gain": g, "lower": g - 0.02, "upper": g + 0.02, "threshold": 0.04, "significant": True}}
+             for e, loss, g in (("viscosity", 0.0044, 0.20), ("plasticity", 0.0046, 0.15))]
+    stored = {"variants": [v["variant"] for v in variants] + [TRIMMED_BODY],
+              "candidates": {"viscosity": {"tests": variants, "trimmed": trimmed},
+                             "plasticity": {"tests": variants, "trimmed": {**trimmed, "gain": 0.06}}}}
+    assert select_verdict(cands, stored)[0] == "plasticity"
+    stored["candidates"]["plasticity"]["trimmed"]["gain"] = 0.0
+    assert select_verdict(cands, stored)[0] is None
+    del stored["candidates"]["viscosity"]["trimmed"]
+    assert select_verdict(cands, stored)[0] == "viscosity"
+
 def test_fitted_values_at_their_search_bound_are_flagged():
     """A fit's parameter at a bound of its box (log-scaled: within 5 %; linear: within 2.5 % of the width) is
     listed, a value inside is not, whatever the sign of a linear parameter."""

@@ -100,21 +100,23 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
 
 def diagnose_recording(rec_dir, *, out_dir=None, base=None, config=None, dx: Optional[float] = None,
                        particles_per_cell: float = 8, device=None, progress: bool = True, effects=None,
-                       view_bodies: bool = True, control_delay: float = 0.0) -> dict:
+                       view_bodies: bool = True, trimmed_body: bool = False, control_delay: float = 0.0) -> dict:
     """Load a recording directory (our / PhysTwin's layout) and :func:`diagnose` it.
 
     ``base`` is a MaterialConfig or a material file path (its effects are part of the base model); ``dx`` [m]
     and ``particles_per_cell`` set the simulated body's resolution (without ``dx``, a cell that resolves the
     body: :func:`load_for_doctor`). ``view_bodies``: the frame-0 body rebuilt with each camera left out
     (:func:`~empm_gym.identification.data.view_jackknife_bodies`) joins the discretisation variants on which a
-    named effect must hold its gain. ``control_delay``: the controls are delayed by this many frames
+    named effect must hold its gain. ``trimmed_body``: so does the frame-0 body trimmed to the measured surface
+    (:func:`~empm_gym.identification.data.trimmed_body`), on which a named effect must hold its gain whatever the
+    other variants say (off by default until measured on the benchmark). ``control_delay``: the controls are delayed by this many frames
     (:func:`~empm_gym.identification.data.delayed_controls`) before anything is fitted, for a recording whose
     images trail its controls (the lag ``doctor.json``'s ``control_lag`` reads; a note says it was applied).
     """
     from empm_gym.sim import MaterialConfig
     from empm_gym.sim.material_file import read_material
 
-    from ..data import view_jackknife_bodies
+    from ..data import trimmed_body as trim, view_jackknife_bodies
 
     if base is not None and not isinstance(base, MaterialConfig):
         base = read_material(base).material
@@ -127,8 +129,12 @@ def diagnose_recording(rec_dir, *, out_dir=None, base=None, config=None, dx: Opt
         d = float(control_delay)
         notes = list(notes) + [f"the controls are delayed by {d:g} frame{'' if abs(d) == 1 else 's'} (as asked) before "
                                f"every fit: the lag read below is what remains"]
-    others = ((lambda: view_jackknife_bodies(rec_dir, scene, particles_per_cell=particles_per_cell,
-                                             symmetry=info.get("symmetry"))) if view_bodies
-              else ())
+
+    def others():  # built only when a candidate is to be checked
+        bodies = (view_jackknife_bodies(rec_dir, scene, particles_per_cell=particles_per_cell,
+                                        symmetry=info.get("symmetry")) if view_bodies else [])
+        return bodies + ([(*trim(rec_dir, scene, particles_per_cell=particles_per_cell), "trimmed")]
+                         if trimmed_body else [])
+
     return diagnose(scene, obs, views, base=base, config=config, out_dir=out_dir, progress=progress, effects=effects,
                     other_bodies=others, body_notes=notes)
