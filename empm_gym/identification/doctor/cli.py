@@ -21,7 +21,7 @@ def _doctor(args) -> int:
         res = diagnose_recording(args.rec_dir, out_dir=args.out, base=args.base, config=cfg, dx=args.dx,
                                  particles_per_cell=args.particles_per_cell, device=args.device,
                                  progress=not args.quiet, effects=effects, view_bodies=not args.no_view_bodies,
-                                 trimmed_body=args.trimmed_body, control_delay=args.control_delay)
+                                 trimmed_body=not args.no_trimmed_body, control_delay=args.control_delay)
     except (DoctorError, ValueError, OSError) as exc:
         print(f"empm doctor: error: {exc}", file=sys.stderr)
         return 2
@@ -84,10 +84,10 @@ def register(subparsers) -> None:
     p.add_argument("--no-view-bodies", action="store_true",
                    help="do not check a named effect on the body rebuilt without each camera (faster; the check on "
                         "other discretisations stays)")
-    p.add_argument("--trimmed-body", action="store_true",
-                   help="check a named effect on the body trimmed to the measured surface too (the rebuilt body "
-                        "fills the scan's outer envelope and is larger than the object; a named effect must then "
-                        "hold on the trimmed one as well)")
+    p.add_argument("--no-trimmed-body", action="store_true",
+                   help="do not check a named effect on the body trimmed to the measured surface (the rebuilt body "
+                        "fills the scan's outer envelope and is larger than the object: by default a named effect "
+                        "must hold on the trimmed one as well)")
     p.add_argument("--control-delay", type=float, default=0.0, metavar="FRAMES",
                    help="delay the recorded controls by this many frames (fractional) before fitting: for a "
                         "recording whose images trail its controls, as doctor.json's control_lag and its note say "
