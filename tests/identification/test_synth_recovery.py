@@ -134,6 +134,29 @@ def test_trimming_to_the_measured_surface_takes_only_outer_rows_and_brings_the_v
     assert abs(trim.volumes.sum() - true_vol) < abs(full.volumes.sum() - true_vol) - 0.03 * true_vol
 
 
+
+def test_the_trimmed_body_is_the_loaders_trim_of_the_same_scene_and_says_when_it_is_not_built(tmp_path, monkeypatch):
+    """:func:`~empm_gym.identification.data.trimmed_body` (the body the doctor's named effect must also hold on) is
+    the loader's ``trim_to_surface`` body, particle for particle, in the untrimmed scene's setting; where the trim
+    removes too little to be a body of its own, no scene, and the label says why."""
+    import empm_gym.identification.data as data
+    from empm_gym.perception.synth import synthesize
+
+    rec = synthesize(tmp_path / "rec", "dough", script="press-release", effect="none", frames=4, cameras=3,
+                     width=320, height=180, progress=False)
+    full, _, _ = load_recording(rec, dx=0.005, particles_per_cell=8, progress=False, warn=False)
+    info = {}
+    trim, _, _ = load_recording(rec, dx=0.005, particles_per_cell=8, progress=False, warn=False, info=info,
+                                trim_to_surface=True)
+    label, sc = data.trimmed_body(rec, full, particles_per_cell=8)
+    share = 100 * info["trimmed_share"]
+    assert sc is not None and label == f"{data.TRIMMED_BODY} ({share:.1f} % of the particles removed)", label
+    assert np.array_equal(sc.particles, trim.particles) and np.array_equal(sc.volumes, trim.volumes)
+    assert len(sc.particles) < len(full.particles) and sc.dx == full.dx and sc.table == full.table
+    monkeypatch.setattr(data, "MIN_TRIMMED_SHARE", 0.5)
+    label, sc = data.trimmed_body(rec, full, particles_per_cell=8)
+    assert sc is None and "under 50 %: the doctor's body already is that body" in label, label
+
 # -- recovery through the whole pipeline ---------------------------------------------------------------
 #
 # `empm synth` recordings (3 cameras, rendered surface, depth noise, tracks) -> perception -> identify, from

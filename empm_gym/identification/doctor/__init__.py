@@ -112,9 +112,10 @@ def diagnose_recording(rec_dir, *, out_dir=None, base=None, config=None, dx: Opt
     other variants say. On seed 24 of the doctor's benchmark (fresh, one H200, benchmarks/RESULTS.md, session 64)
     it refused the one effect given to a `none` recording (dough pushed across the table: viscosity, 21.7 % held out
     on the rebuilt body and holding on 4 of its 5 variants, -2.8 % on the trimmed one) and kept all 18 right
-    verdicts of the 24 recordings it ran (their gains on the trimmed body 17-98 %). ``control_delay``: the controls are delayed by this many frames
-    (:func:`~empm_gym.identification.data.delayed_controls`) before anything is fitted, for a recording whose
-    images trail its controls (the lag ``doctor.json``'s ``control_lag`` reads; a note says it was applied).
+    verdicts of the 24 recordings it ran (their gains on the trimmed body 17-98 %). ``control_delay``: the
+    controls are delayed by this many frames (:func:`~empm_gym.identification.data.delayed_controls`) before
+    anything is fitted, for a recording whose images trail its controls (the lag ``doctor.json``'s
+    ``control_lag`` reads; a note says it was applied).
     """
     from empm_gym.sim import MaterialConfig
     from empm_gym.sim.material_file import read_material

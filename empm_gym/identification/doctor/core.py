@@ -1559,7 +1559,7 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
     for name, rec in out["candidates"].items():
         rec.update(_robust(rec["tests"], rec.get("trimmed")))
         small = _within_discretisation(name, params[name], out)
-        if small and rec["robust"]:  # it holds on the variants, but its size is the grid's
+        if small and rec["robust_without_trimmed"]:  # it holds on the variants, but its size is the grid's
             rec.update(robust=False, why=small, within_discretisation=True, missed="", robust_without_trimmed=False)
     return out
 
@@ -1731,22 +1731,22 @@ def _robust(tests: List[dict], trimmed: Optional[dict] = None) -> dict:
     holds_on = f"{sum(map(_holds, tests))} of {len(tests)} variants"
     worst = min(failed, key=lambda t: (_variant_kind(t) != "discretisation", np.nan_to_num(_gain(t), nan=-1e9)),
                 default=None)
-    miss = "" if worst is None else (f"on '{worst['variant']}' it gains {100 * _gain(worst):.1f} % against a "
-                                      f"threshold of {100 * worst['threshold']:.0f} %"
-                                      + (f", its refit there ending where the effect vanishes "
-                                         f"({', '.join(worst['toward_absence'])} at its bound)"
-                                         if worst.get("toward_absence") else ""))
+    miss = "" if worst is None else _miss_text(f"'{worst['variant']}'", worst)
     why = "" if robust or not miss else f"it holds on {holds_on}; {miss}"
     out = {"robust": robust, "holds_on": holds_on, "why": why, "missed": miss if robust else "",
            "robust_without_trimmed": robust}
     if trimmed is not None and not _holds(trimmed):
-        t = (f"on the {TRIMMED_BODY} it gains {100 * _gain(trimmed):.1f} % against a threshold of "
-             f"{100 * trimmed['threshold']:.0f} %" + (f", its refit there ending where the effect vanishes "
-                                                      f"({', '.join(trimmed['toward_absence'])} at its bound)"
-                                                      if trimmed.get("toward_absence") else ""))
-        out.update(robust=False, missed="", why=f"it holds on {holds_on}" + (f" ({miss})" if miss else "") + f", but {t}")
+        out.update(robust=False, missed="", why=f"it holds on {holds_on}" + (f" ({miss})" if miss else "")
+                   + f", but {_miss_text(f'the {TRIMMED_BODY}', trimmed)}")
     # a robust candidate that still missed a variant says so: its verdict rests on the others
     return out
+
+
+def _miss_text(where: str, t: dict) -> str:
+    """What a variant's test ``t`` that the gain does not hold on says, the variant named ``where``."""
+    return (f"on {where} it gains {100 * _gain(t):.1f} % against a threshold of {100 * t['threshold']:.0f} %"
+            + (f", its refit there ending where the effect vanishes ({', '.join(t['toward_absence'])} at its bound)"
+               if t.get("toward_absence") else ""))
 
 
 #: The least stiffness contrast across the body that the doctor names as a stiffness field
