@@ -328,7 +328,8 @@ def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: flo
     red = c_true = c_base = l_base = float("nan")
     variants = res.get("variants") or {}
     before_trim = res["effect"]
-    if any("trimmed" in rec for rec in variants.get("candidates", {}).values()):
+    trim_checked = any("trimmed" in rec for rec in variants.get("candidates", {}).values())
+    if trim_checked:
         # the verdict without the check on the body trimmed to the measured surface (the other rules as they are)
         untrimmed = {**variants, "candidates": {n: {k: v for k, v in rec.items() if k != "trimmed"}
                                                 for n, rec in variants["candidates"].items()}}
@@ -347,7 +348,8 @@ def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: flo
             "before_variants": res.get("effect_before_variants", res["effect"]), "signature_m": signature_m,
             "signature_doubted": sig.get("doubted"), "wall_s": wall_s, "stage_wall_s": res.get("stage_wall_s"),
             "not_ruled_out": [e["effect"] for e in not_ruled_out(res.get("candidates") or [], res["effect"])],
-            "parted": parted, "clock_change": (res.get("clock") or {}).get("change"), "before_trim": before_trim}
+            "parted": parted, "clock_change": (res.get("clock") or {}).get("change"), "before_trim": before_trim,
+            "trim_checked": trim_checked}
 
 
 def _write_problem(path: Path, prob: dict) -> None:
@@ -857,6 +859,15 @@ def _table(rows):
         print(f"without the variants check: accuracy {100 * np.mean([t == v for t, v in before]):.1f} %, false effects "
               f"on none {sum(v != 'none' for t, v in before if t == 'none')} of {sum(t == 'none' for t, _ in before)}; "
               f"verdicts the check changed: {sum(r['before_variants'] != r['verdict'] for r in full if 'before_variants' in r)}")
+    trimmed = [r for r in full if r.get("trim_checked")]
+    if trimmed:
+        print(f"checked on the body trimmed to the measured surface: {len(trimmed)} recordings; without that check: "
+              f"accuracy {100 * np.mean([r['truth'] == r['before_trim'] for r in trimmed]):.1f} % (with it "
+              f"{100 * np.mean([r['truth'] == r['verdict'] for r in trimmed]):.1f} %), false effects on none "
+              f"{sum(r['before_trim'] != 'none' for r in trimmed if r['truth'] == 'none')} of "
+              f"{sum(r['truth'] == 'none' for r in trimmed)}; verdicts it changed: "
+              + (", ".join(f"{r['recording']} {r['before_trim']} -> {r['verdict']}" for r in trimmed
+                           if r["before_trim"] != r["verdict"]) or "none"))
     checked = [r for r in full if r.get("signature_doubted") is not None]
     if checked:
         doubted = [r for r in checked if r["signature_doubted"]]

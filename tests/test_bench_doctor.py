@@ -127,6 +127,34 @@ def test_rescore_sets_aside_old_dumps_fits_that_end_where_their_effect_vanishes(
     assert got == {"grid-at-top": "none", "grids-inside": "fracture"}
 
 
+def test_rescore_applies_the_trimmed_bodys_check_and_keeps_the_verdict_without_it(bench, tmp_path, capsys):
+    """A dump whose candidate holds on every variant but not on the body trimmed to the measured surface scores
+    `none` (the doctor's rule), its row's ``before_trim`` the verdict without that check; the summary tallies both."""
+    def res(name, trimmed_gain):
+        tests = [{"variant": f"grid shifted and particles resampled ({i + 1})", "kind": "discretisation",
+                  "params": {"E": 1.0e4, "viscosity": 2.0}, "gain": 0.1, "threshold": 0.04, "toward_absence": []}
+                 for i in range(2)]
+        trimmed = {"variant": "body trimmed to the measured surface", "kind": "trimmed", "toward_absence": [],
+                   "params": {"E": 1.0e4, "viscosity": 2.0}, "gain": trimmed_gain, "threshold": 0.04}
+        return {"recording": name, "script": "push-slide", "truth": "none", "effect": "viscosity", "confidence": 0.3,
+                "wall_s": 1.0, "base": {"heldout": {"chamfer_m": 2e-3, "loss": 5e-3}, "params": {"E": 1.0e4}},
+                "candidates": [{"effect": "viscosity", "params": {"E": 1.0e4, "viscosity": 2.0}, "toward_absence": [],
+                                "heldout": {"chamfer_m": 1.9e-3, "loss": 4.4e-3},
+                                "gain": {"gain": 0.12, "lower": 0.1, "upper": 0.14, "threshold": 0.04,
+                                         "significant": True}}],
+                "variants": {"variants": [t["variant"] for t in tests] + [trimmed["variant"]], "base": [],
+                             "base_E": 1.0e4, "candidates": {"viscosity": {"tests": tests, "trimmed": trimmed}}}}
+
+    (tmp_path / "dump.jsonl").write_text(json.dumps(res("refused", -0.028)) + "\n" + json.dumps(res("holds", 0.05))
+                                         + "\n")
+    rows = {r["recording"]: r for r in bench.rescore([tmp_path / "dump.jsonl"])}
+    assert (rows["refused"]["verdict"], rows["refused"]["before_trim"]) == ("none", "viscosity")
+    assert (rows["holds"]["verdict"], rows["holds"]["before_trim"]) == ("viscosity", "viscosity")
+    assert rows["refused"]["trim_checked"] and rows["holds"]["trim_checked"]
+    out = _summarise(bench, tmp_path, capsys, list(rows.values()))
+    assert ("checked on the body trimmed to the measured surface: 2 recordings; without that check: accuracy 0.0 % "
+            "(with it 50.0 %), false effects on none 2 of 2; verdicts it changed: refused viscosity -> none") in out, out
+
 def test_make_with_effect_params_synthesises_them_and_keeps_them_for_scoring(bench, tmp_path):
     """``--make --effect-params viscosity=80 --base-params E=3e4,density=900``: the recording is made with that
     viscosity on that base material (its ground truth says so), its problem's name ends with them, and the pickle
