@@ -960,7 +960,7 @@ def _losses_of(sim: "_ForwardSim", space: ParamSpace, base_mat: MaterialConfig, 
     as the worlds of ``sim`` (one per candidate); a diverged world's loss is NaN."""
     mats = [space.material(v, base_mat, scene.table_friction) for v in cand]
     sim.set([m for m, _ in mats], [mu for _, mu in mats])
-    X, _, _ = sim.run(F)
+    X, _, _ = sim.run(F, reuse=True)
     return [objective.numpy(X[:, w]) for w in range(len(cand))]
 
 
@@ -1096,7 +1096,7 @@ def identify_lockstep(observations: Observations, fits: Sequence[Tuple[Scene, di
                     for i, cand in zip(idx, cands) for v in cand]
             sim.set([m for m, _ in mats], [mu for _, mu in mats])
             asked.append(cands)
-        runs = run_together([sim.steps(preps[idx[0]].F, queued=True) for idx, sim in live])
+        runs = run_together([sim.steps(preps[idx[0]].F, queued=True, reuse=True) for idx, sim in live])
         for (idx, _), cands, (X, _, _) in zip(live, asked, runs):
             w = 0
             for i, cand in zip(idx, cands):

@@ -400,19 +400,21 @@ class _ForwardSim:
         self.model = scene.builder(materials, frictions).finalize(scene.device, requires_grad=False)
         self.solver = SolverMPM(self.model, SolverConfig(cfl=scene.cfl, check_every=0))
         self._own_stream = None  # made on the first queued rollout on CUDA (:meth:`steps`)
+        self._kept = None  # the rollouts from rest with ``reuse``: their states, control and CUDA graphs (:meth:`steps`)
 
     def set(self, materials, frictions):
         self.model.set_materials(list(materials))
         self.model.world_table_friction.assign(np.asarray(frictions, np.float32))
 
     def run(self, frames: int, *, state=None, start_frame: int = 0, velocities=None, omegas=None, grips=None,
-            on_frame=None):
+            on_frame=None, reuse: bool = False):
         """Simulate frames start_frame -> start_frame + frames - 1; returns (positions [frames, W, N, 3], diverged worlds, final state).
 
-        ``velocities`` / ``omegas`` [frames-1, K, 3] and ``grips`` [frames-1, K] override the scene's controls.
+        ``velocities`` / ``omegas`` [frames-1, K, 3] and ``grips`` [frames-1, K] override the scene's controls;
+        ``reuse`` as :meth:`steps`.
         """
         steps = self.steps(frames, state=state, start_frame=start_frame, velocities=velocities, omegas=omegas,
-                           grips=grips)
+                           grips=grips, reuse=reuse)
         while True:
             try:
                 t, a = next(steps)
@@ -422,7 +424,7 @@ class _ForwardSim:
                 on_frame(t, a)
 
     def steps(self, frames: int, *, state=None, start_frame: int = 0, velocities=None, omegas=None, grips=None,
-              queued: bool = False):
+              queued: bool = False, reuse: bool = False):
         """:meth:`run` a frame at a time: a generator that yields ``(frame, state it ends in)`` after each frame
         and returns :meth:`run`'s result.
 
@@ -430,7 +432,14 @@ class _ForwardSim:
         on this simulation's own stream and read back once, after the last frame (the states yielded are then
         still being computed). Advanced in turn (:func:`run_together`), the frames of several simulations run
         side by side on one GPU, where each alone, a few thousand particles a world, leaves most of it idle.
-        The positions are the same either way; on a CPU, ``queued`` changes nothing."""
+        The positions are the same either way; on a CPU, ``queued`` changes nothing.
+
+        ``reuse`` (a rollout from rest, ``state`` None): its states and control are this simulation's own, kept
+        from one such rollout to the next on the same substeps (set back to rest at the start), and so are the
+        CUDA graphs of their frames: a fit that simulates the same scene generation after generation captures
+        them once instead of once a generation (a capture launches every kernel of a frame's substeps from
+        Python: on a rope pulled apart at 5 mm, about 400 substeps a frame, most of the host's time). The
+        positions are the same; the final state returned is overwritten by the next such rollout."""
         sc, m = self.scene, self.model
         W, N, K = m.world_count, len(sc.particles), m.ee_count
         end = start_frame + frames
@@ -439,9 +448,17 @@ class _ForwardSim:
         grip = (sc.ee_grip[start_frame:end - 1] if K else None) if grips is None else np.asarray(grips)
         speed = end_effector_speed(vel, om, sc.ee_configs)
         sub, dt = substeps_for(sc, m.materials, speed)
-        a = state if state is not None else m.state()
-        b = m.state()
-        ctrl = m.control()
+        graphs = {}  # id(state a frame starts from) -> (CUDA graph of the frame's substeps, a, b after it)
+        if reuse and state is None:
+            if self._kept is None or self._kept["clock"] != (sub, dt):
+                self._kept = {"clock": (sub, dt), "rest": m.state(), "a": m.state(), "b": m.state(),
+                              "ctrl": m.control(), "graphs": {}}
+            kept = self._kept
+            a, b, ctrl, graphs = kept["a"].assign(kept["rest"]), kept["b"].assign(kept["rest"]), kept["ctrl"], kept["graphs"]
+        else:
+            a = state if state is not None else m.state()
+            b = m.state()
+            ctrl = m.control()
         seq = None
         if K and frames > 1:  # every frame's commands on the device at once; each frame copies its own there
             n = frames - 1
@@ -463,7 +480,6 @@ class _ForwardSim:
                 a, b = b, a
             return a, b
 
-        graphs = {}  # id(state a frame starts from) -> (CUDA graph of the frame's substeps, a, b after it)
         use_graph = self.graph and m.device.is_cuda
         for t in range(frames - 1):
             with wp.ScopedStream(stream, sync_enter=False) if stream is not None else nullcontext():
