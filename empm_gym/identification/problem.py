@@ -407,14 +407,14 @@ class _ForwardSim:
         self.model.world_table_friction.assign(np.asarray(frictions, np.float32))
 
     def run(self, frames: int, *, state=None, start_frame: int = 0, velocities=None, omegas=None, grips=None,
-            on_frame=None, reuse: bool = False):
+            on_frame=None, reuse: bool = False, queued: bool = False):
         """Simulate frames start_frame -> start_frame + frames - 1; returns (positions [frames, W, N, 3], diverged worlds, final state).
 
         ``velocities`` / ``omegas`` [frames-1, K, 3] and ``grips`` [frames-1, K] override the scene's controls;
-        ``reuse`` as :meth:`steps`.
+        ``reuse`` and ``queued`` as :meth:`steps` (queued, ``on_frame`` sees states still being computed).
         """
         steps = self.steps(frames, state=state, start_frame=start_frame, velocities=velocities, omegas=omegas,
-                           grips=grips, reuse=reuse)
+                           grips=grips, reuse=reuse, queued=queued)
         while True:
             try:
                 t, a = next(steps)

@@ -372,6 +372,30 @@ def test_unseen_surface_matches_observed_points_on_a_side_frame_0_did_not_see():
         Objective(scene, obs, 2, l_trk=0.0, observation="particles", unseen_surface=True)
 
 
+def test_carried_points_are_the_weighted_sums_of_their_particles_in_numpy_and_torch():
+    """The carried surface points (a sparse product a frame in numpy, a gather in torch) are sum_j a_sj x_j of
+    the embedding's particles on a body deformed unevenly, frame by frame, float32 input included."""
+    import torch
+
+    from empm_gym.identification.offline import Objective
+
+    x, s = _box_lattice()
+    rng = np.random.default_rng(3)
+    X = np.stack([x, x + 0.01 * np.sin(40.0 * x[:, [1, 2, 0]]), x * 1.1 + rng.normal(0, 1e-3, x.shape)])
+    top = x[x[:, 2] == x[:, 2].max()] + [0.0, 0.0, 0.5 * s]
+    obs = Observations(30.0, [top, top, top], surface=True)
+    ob = Objective(Scene(x, s ** 3, fps=30.0), obs, 3, l_trk=0.0, unseen_surface=True)
+    for emb in (ob.surf, ob.unseen):
+        idx, a = emb
+        want = np.einsum("tskd,sk->tsd", X[:, idx], a)
+        np.testing.assert_allclose(ob._carry(X, emb), want, rtol=0, atol=1e-14)
+        X32 = X.astype(np.float32)  # summed in float64
+        np.testing.assert_allclose(ob._carry(X32, emb), np.einsum("tskd,sk->tsd", X32.astype(np.float64)[:, idx], a),
+                                   rtol=0, atol=1e-14)
+        np.testing.assert_allclose(ob._carry(torch.as_tensor(X), emb).numpy(), want, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(ob.predicted_points(X)[0], top, atol=1e-7)  # frame 0 reproduces the points
+
+
 def test_a_frame_where_the_object_is_wholly_hidden_is_left_out_of_the_loss():
     """A frame with no observed points (a hand over the object) is not scored: the loss, its per-frame terms and
     its gradient are those of the recording with that frame cut out, tracks included (a track marked visible on
