@@ -183,6 +183,7 @@ class Objective:
         if observation not in OBSERVATION_MODELS:
             raise ValueError(f"observation must be one of {OBSERVATION_MODELS}, got {observation!r}")
         self.frames, self.l_dist, self.l_trk, self.direction = frames, float(l_dist), float(l_trk), chamfer
+        self._carry_mats = {}  # (id of an embedding's index, particles) -> its sparse matrix (:meth:`_carry`)
         self.observation = observation
         rng = np.random.default_rng(seed)
         self.points = []
@@ -228,16 +229,15 @@ class Objective:
             return torch.einsum("tskd,sk->tsd", X[:, torch.as_tensor(idx)], torch.as_tensor(a, dtype=X.dtype))
         # numpy (a fit scores every member of every generation so): the embedding as a sparse matrix [S, N], one
         # product a frame; 3-4x faster than gathering the k particles of every point (the same sums, in another order)
-        mats = self.__dict__.setdefault("_carry_mats", {})
         key = (id(idx), X.shape[1])
-        if key not in mats:
+        if key not in self._carry_mats:
             import scipy.sparse
 
             S, k = idx.shape
-            mats[key] = scipy.sparse.csr_matrix((np.asarray(a, np.float64).ravel(), (np.repeat(np.arange(S), k),
-                                                 idx.ravel())), shape=(S, X.shape[1]))
-        W = mats[key]
-        return np.stack([W @ np.asarray(x, np.float64) for x in X]) if len(X) else np.zeros((0, len(idx), 3))
+            self._carry_mats[key] = scipy.sparse.csr_matrix(
+                (np.asarray(a, np.float64).ravel(), (np.repeat(np.arange(S), k), idx.ravel())), shape=(S, X.shape[1]))
+        W = self._carry_mats[key]
+        return np.stack([W @ np.asarray(x, np.float64) for x in X])
 
     def predicted_points(self, X):
         """What the loss compares with the observed points: [frames, S, 3] carried surface points, or X itself."""

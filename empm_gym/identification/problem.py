@@ -400,7 +400,7 @@ class _ForwardSim:
         self.model = scene.builder(materials, frictions).finalize(scene.device, requires_grad=False)
         self.solver = SolverMPM(self.model, SolverConfig(cfl=scene.cfl, check_every=0))
         self._own_stream = None  # made on the first queued rollout on CUDA (:meth:`steps`)
-        self._kept = None  # the rollouts from rest with ``reuse``: their states, control and CUDA graphs (:meth:`steps`)
+        self._kept = None  # rollouts from rest with ``reuse``: their states, control, CUDA graphs (:meth:`steps`)
 
     def set(self, materials, frictions):
         self.model.set_materials(list(materials))
@@ -454,7 +454,8 @@ class _ForwardSim:
                 self._kept = {"clock": (sub, dt), "rest": m.state(), "a": m.state(), "b": m.state(),
                               "ctrl": m.control(), "graphs": {}}
             kept = self._kept
-            a, b, ctrl, graphs = kept["a"].assign(kept["rest"]), kept["b"].assign(kept["rest"]), kept["ctrl"], kept["graphs"]
+            a, b = kept["a"].assign(kept["rest"]), kept["b"].assign(kept["rest"])
+            ctrl, graphs = kept["ctrl"], kept["graphs"]
         else:
             a = state if state is not None else m.state()
             b = m.state()
