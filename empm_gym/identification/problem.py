@@ -389,13 +389,30 @@ def substeps_for(scene: Scene, materials: Sequence[MaterialConfig], max_ee_speed
     return n, 1.0 / (scene.fps * n)
 
 
+#: Substeps one CUDA graph of :class:`_ForwardSim` holds (even: a chunk ends in the state it started from).
+#: A frame's substeps are replayed as chunks of this many and one chunk of the rest, not as one graph of the
+#: whole frame: capturing launches every kernel of a graph from Python (about 4 launches a substep), and a
+#: frame of a stiff rope at 5 mm takes 879 substeps, captured anew for each simulation a diagnosis builds (a
+#: body, a clock); replaying 14 graphs a frame instead of one costs a few microseconds each.
+GRAPH_CHUNK = 64
+
+
+def frame_chunks(substeps: int, chunk: int = GRAPH_CHUNK) -> Tuple[int, ...]:
+    """The substeps of each CUDA graph a frame of ``substeps`` replays, in order: whole chunks of ``chunk``
+    (an even number), then the rest."""
+    if substeps < 1 or chunk < 2 or chunk % 2:
+        raise ValueError(f"frame_chunks: substeps must be >= 1 and chunk even and >= 2, got {substeps}, {chunk}")
+    whole, rest = divmod(substeps, chunk)
+    return (chunk,) * whole + ((rest,) if rest else ())
+
+
 class _ForwardSim:
     """A batched model of a scene (one world per candidate) for forward-only rollouts."""
 
     def __init__(self, scene: Scene, materials: Sequence[MaterialConfig], frictions: Sequence[float]):
         self.scene = scene
-        #: on CUDA, replay each frame's substeps from a CUDA graph captured at its first frame (a few thousand
-        #: particles are otherwise bound by launching kernels from Python)
+        #: on CUDA, replay each frame's substeps from CUDA graphs (:func:`frame_chunks`) captured at its first
+        #: frames (a few thousand particles are otherwise bound by launching kernels from Python)
         self.graph = True
         self.model = scene.builder(materials, frictions).finalize(scene.device, requires_grad=False)
         self.solver = SolverMPM(self.model, SolverConfig(cfl=scene.cfl, check_every=0))
@@ -436,10 +453,11 @@ class _ForwardSim:
 
         ``reuse`` (a rollout from rest, ``state`` None): its states and control are this simulation's own, kept
         from one such rollout to the next on the same substeps (set back to rest at the start), and so are the
-        CUDA graphs of their frames: a fit that simulates the same scene generation after generation captures
-        them once instead of once a generation (a capture launches every kernel of a frame's substeps from
-        Python: on a rope pulled apart at 5 mm, about 400 substeps a frame, most of the host's time). The
-        positions are the same; the final state returned is overwritten by the next such rollout."""
+        CUDA graphs of their frames' substeps (:func:`frame_chunks`): a fit that simulates the same scene
+        generation after generation captures them once instead of once a generation (a capture launches every
+        kernel of its substeps from Python: on a rope pulled apart at 5 mm, 400-900 substeps a frame, most of the
+        host's time). The positions are the same; the final state returned is overwritten by the next such
+        rollout."""
         sc, m = self.scene, self.model
         W, N, K = m.world_count, len(sc.particles), m.ee_count
         end = start_frame + frames
@@ -448,7 +466,7 @@ class _ForwardSim:
         grip = (sc.ee_grip[start_frame:end - 1] if K else None) if grips is None else np.asarray(grips)
         speed = end_effector_speed(vel, om, sc.ee_configs)
         sub, dt = substeps_for(sc, m.materials, speed)
-        graphs = {}  # id(state a frame starts from) -> (CUDA graph of the frame's substeps, a, b after it)
+        graphs = {}  # (id(state a chunk starts from), its substeps) -> (its CUDA graph, a, b after it)
         if reuse and state is None:
             if self._kept is None or self._kept["clock"] != (sub, dt):
                 self._kept = {"clock": (sub, dt), "rest": m.state(), "a": m.state(), "b": m.state(),
@@ -475,32 +493,37 @@ class _ForwardSim:
             flags_dev = wp.zeros((frames, W), dtype=int, device=m.device)
             stream.wait_stream(m.device.stream)  # what set() and the states' creation queued comes first
 
-        def substeps(a, b):  # one frame: returns (the state it ends in, the other)
-            for _ in range(sub):
-                self.solver.step(a, b, ctrl, dt, guards=False)
+        every = self.solver.config.sort_every
+
+        def substeps(a, b, n):  # n substeps: returns (the state they end in, the other)
+            for i in range(n):  # P2G's particle order re-sorted at the same substeps in a graph's every replay
+                self.solver.step(a, b, ctrl, dt, guards=False, sort=every > 0 and i % every == 0)
                 a, b = b, a
             return a, b
 
         use_graph = self.graph and m.device.is_cuda
+        plan = frame_chunks(sub, GRAPH_CHUNK)
         for t in range(frames - 1):
             with wp.ScopedStream(stream, sync_enter=False) if stream is not None else nullcontext():
                 if seq is not None:  # copied into the control's arrays, which the graphs read
                     ctrl.set_step(seq, t)
-                if use_graph and id(a) not in graphs:
-                    try:
-                        with wp.ScopedCapture(device=m.device) as cap:
-                            a1, b1 = substeps(a, b)
-                        graphs[id(a)] = (cap.graph, a1, b1)  # captured, not yet run
-                    except Exception as exc:  # a device or driver that cannot capture: launch kernel by kernel
-                        _log.warning("forward simulation: CUDA graph capture failed (%s); launching kernels one by "
-                                     "one", exc)
-                        use_graph = False
-                if use_graph:
-                    g, a1, b1 = graphs[id(a)]
-                    wp.capture_launch(g)
-                    a, b = a1, b1
-                else:
-                    a, b = substeps(a, b)
+                for n in plan:
+                    key = (id(a), n)
+                    if use_graph and key not in graphs:
+                        try:
+                            with wp.ScopedCapture(device=m.device) as cap:
+                                a1, b1 = substeps(a, b, n)
+                            graphs[key] = (cap.graph, a1, b1)  # captured, not yet run
+                        except Exception as exc:  # a device or driver that cannot capture: kernel by kernel
+                            _log.warning("forward simulation: CUDA graph capture failed (%s); launching kernels one "
+                                         "by one", exc)
+                            use_graph = False
+                    if use_graph:
+                        g, a1, b1 = graphs[key]
+                        wp.capture_launch(g)
+                        a, b = a1, b1
+                    else:
+                        a, b = substeps(a, b, n)
                 if stream is not None:
                     wp.copy(x_dev, a.particle_x, dest_offset=(t + 1) * W * N, count=W * N)
                     self.solver.queue_check(a, flags_dev[t + 1])

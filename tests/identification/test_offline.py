@@ -311,6 +311,68 @@ def test_rollouts_reusing_their_states_are_fresh_rollouts():
     np.testing.assert_array_equal(sim.run(6, reuse=True)[0], x_torn)
     assert not np.array_equal(x_torn, x_fresh)
 
+def test_frame_chunks_cover_a_frame_with_even_chunks_and_the_rest():
+    from empm_gym.identification.problem import frame_chunks
+
+    assert frame_chunks(879, 64) == (64,) * 13 + (47,)
+    assert frame_chunks(128, 64) == (64, 64)
+    assert frame_chunks(5, 64) == (5,)
+    for bad in [(0, 64), (10, 3), (10, 0)]:
+        with pytest.raises(ValueError, match="frame_chunks"):
+            frame_chunks(*bad)
+
+
+@pytest.mark.parametrize("chunk", [2, 4])
+def test_a_frame_simulated_in_chunks_is_the_frame_simulated_whole(monkeypatch, chunk):
+    """A frame's substeps run as chunks (the CUDA graphs' unit, :func:`frame_chunks`), an odd rest among them,
+    give the positions the whole frame's substeps give, to the bit on the CPU, from rest and reused."""
+    import dataclasses
+
+    from empm_gym.identification import problem
+    from empm_gym.identification.problem import _ForwardSim, substeps_for
+    from empm_gym.sim import MaterialConfig
+
+    sc = dataclasses.replace(scenes.rope_lift(E=ROPE_E, frames=4, lift_frames=3).scene,
+                             dt_materials=(MaterialConfig(E=2e5, nu=0.3, density=1000.0),))
+    mats = [MaterialConfig(E=E, nu=0.3, density=1000.0) for E in (5e4, 2e4)]
+    sub = substeps_for(sc, mats, sc.ee_max_speed(4))[0]
+    assert sub % chunk, "the test needs a frame that ends in a partial chunk"
+    monkeypatch.setattr(problem, "GRAPH_CHUNK", 10 ** 6)
+    whole = _ForwardSim(sc, mats, [0.5, 0.5]).run(4)[0]
+    monkeypatch.setattr(problem, "GRAPH_CHUNK", chunk)
+    sim = _ForwardSim(sc, mats, [0.5, 0.5])
+    np.testing.assert_array_equal(sim.run(4)[0], whole)
+    np.testing.assert_array_equal(sim.run(4, reuse=True)[0], whole)
+    np.testing.assert_array_equal(sim.run(4, reuse=True)[0], whole)
+
+
+@pytest.mark.skipif(not __import__("warp").is_cuda_available(), reason="needs a CUDA device")
+def test_a_frame_replayed_from_chunked_cuda_graphs_is_the_frame_launched_kernel_by_kernel(monkeypatch):
+    """On CUDA, a frame replayed from its chunks' graphs (two start states, whole chunks and an odd rest, each
+    captured once) follows the same substeps as kernel-by-kernel launches: the same positions but for the order
+    of atomic sums."""
+    import dataclasses
+
+    from empm_gym.identification import problem
+    from empm_gym.identification.problem import _ForwardSim, run_together
+    from empm_gym.sim import MaterialConfig
+
+    sc = dataclasses.replace(scenes.rope_lift(E=ROPE_E, frames=5, lift_frames=4).scene, device="cuda:0",
+                             dt_materials=(MaterialConfig(E=2e5, nu=0.3, density=1000.0),))
+    mats = [MaterialConfig(E=E, nu=0.3, density=1000.0) for E in (5e4, 2e4)]
+    monkeypatch.setattr(problem, "GRAPH_CHUNK", 4)
+    plain = _ForwardSim(sc, mats, [0.5, 0.5])
+    plain.graph = False
+    ref = plain.run(5)[0]
+    sim = _ForwardSim(sc, mats, [0.5, 0.5])
+    for _ in range(2):  # captured, then replayed
+        (x, bad, _), = run_together([sim.steps(5, queued=True, reuse=True)])
+        assert bad == []
+        np.testing.assert_allclose(x, ref, atol=1e-5)
+    assert len(sim._kept["graphs"]) == 4  # (each start state) x (a whole chunk, the rest)
+    assert float(np.max(np.abs(ref[-1] - ref[0]))) > 1e-3  # the rope moved
+
+
 def _box_lattice(n=(10, 8, 6), s=0.004):
     g = np.stack(np.meshgrid(*[np.arange(k) * s for k in n], indexing="ij"), -1).reshape(-1, 3)
     return g, s
