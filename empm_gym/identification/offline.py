@@ -183,7 +183,7 @@ class Objective:
         if observation not in OBSERVATION_MODELS:
             raise ValueError(f"observation must be one of {OBSERVATION_MODELS}, got {observation!r}")
         self.frames, self.l_dist, self.l_trk, self.direction = frames, float(l_dist), float(l_trk), chamfer
-        self._carry_mats = {}  # (id of an embedding's index, particles) -> its sparse matrix (:meth:`_carry`)
+        self._carry_mats = {}  # (id(embedding index), particles) -> (that index, its sparse matrix): :meth:`_carry`
         self.observation = observation
         rng = np.random.default_rng(seed)
         self.points = []
@@ -230,13 +230,13 @@ class Objective:
         # numpy (a fit scores every member of every generation so): the embedding as a sparse matrix [S, N], one
         # product a frame; 3-4x faster than gathering the k particles of every point (the same sums, in another order)
         key = (id(idx), X.shape[1])
-        if key not in self._carry_mats:
+        if key not in self._carry_mats or self._carry_mats[key][0] is not idx:  # an id can return with another array
             import scipy.sparse
 
             S, k = idx.shape
-            self._carry_mats[key] = scipy.sparse.csr_matrix(
-                (np.asarray(a, np.float64).ravel(), (np.repeat(np.arange(S), k), idx.ravel())), shape=(S, X.shape[1]))
-        W = self._carry_mats[key]
+            self._carry_mats[key] = (idx, scipy.sparse.csr_matrix(
+                (np.asarray(a, np.float64).ravel(), (np.repeat(np.arange(S), k), idx.ravel())), shape=(S, X.shape[1])))
+        W = self._carry_mats[key][1]
         return np.stack([W @ np.asarray(x, np.float64) for x in X])
 
     def predicted_points(self, X):
