@@ -276,7 +276,7 @@ def diagnose_all(problems: Path, args):
     from empm_gym.identification.doctor import DoctorConfig, diagnose
 
     cfg = DoctorConfig(base_iters=args.iters, candidate_iters=args.iters, popsize=args.popsize, variants=args.variants,
-                       robust_verdict=not args.no_robust)
+                       robust_verdict=not args.no_robust, deterministic=args.deterministic)
     rows = []
     k, n = (int(v) for v in args.shard.split("/"))
     paths = sorted(Path(problems).glob("*.pkl"))[k::n]
@@ -948,6 +948,8 @@ def _parser():
     p.add_argument("--device", default="cpu")
     p.add_argument("--variants", type=int, default=2, help="discretisation variants a named effect must hold on")
     p.add_argument("--no-robust", action="store_true", help="record the variants' gains, verdict without them")
+    p.add_argument("--deterministic", action="store_true",
+                   help="every simulation the same to the bit on every run (DoctorConfig.deterministic)")
     p.add_argument("--view-bodies", action="store_true",
                    help="with --make: pickle the frame-0 body rebuilt without each camera; when diagnosing: use them "
                         "as variants too")

@@ -174,6 +174,10 @@ def main(argv=None):
     p.add_argument("--effects", action="store_true", help="one row per effect of the catalogue (none first)")
     p.add_argument("--sort-every", type=int, default=None,
                    help="SolverConfig.sort_every of the forward column (CUDA; default: the solver's default)")
+    p.add_argument("--deterministic", action="store_true",
+                   help="the forward column with SolverConfig(deterministic=True) (64-bit fixed-point P2G); the "
+                        "unsorted column is then left out (the process's kernels are in Warp's deterministic "
+                        "mode from there on): run the default in a process of its own to compare")
     args = p.parse_args(argv)
     wp.init()
     dev = wp.get_device(args.device)
@@ -195,12 +199,14 @@ def main(argv=None):
         model = build(worlds, per_world, args.device, plastic=args.plastic)
         total = model.particle_count
         steps = args.steps or int(np.clip(2e7 / total if dev.is_cuda else 2e6 / total, 4, 2000))
+        kw = {} if args.sort_every is None else {"sort_every": args.sort_every}
         fwd = time_forward(model, steps, graph=not args.no_graph,
-                           config=None if args.sort_every is None else SolverConfig(sort_every=args.sort_every))
+                           config=SolverConfig(deterministic=True, **kw) if args.deterministic
+                           else SolverConfig(**kw) if kw else None)
         # the same step without the cell sort and warp sums (CUDA, sort_every=0); the plain reference step to
         # compare with is ../shared/tools/ref_mpm.py, run in the same job
         plain = time_forward(model, steps, graph=not args.no_graph, config=SolverConfig(sort_every=0)) \
-            if dev.is_cuda else float("nan")
+            if dev.is_cuda and not args.deterministic else float("nan")
         row = f"{worlds:>7} {total:>10} {fwd:>14.3e} {plain:>10.3e}"
         if total <= args.grad_max:
             gm = build(worlds, per_world, args.device, requires_grad=True, plastic=args.plastic)

@@ -776,7 +776,7 @@ def _fit_adam(scene, objective, space, init_vals, base_mat, iters, lr, betas, pr
 
     F = objective.frames
     model = scene.builder([base_mat], [scene.table_friction]).finalize(scene.device, requires_grad=True)
-    solver = SolverMPM(model, SolverConfig(cfl=scene.cfl, check_every=0))
+    solver = SolverMPM(model, SolverConfig(cfl=scene.cfl, check_every=0, deterministic=scene.deterministic))
     vel, om = scene.ee_velocities(F), scene.ee_omegas(F)
     grip = scene.ee_grip[: F - 1] if model.ee_count else None
     vmax = scene.ee_max_speed(F)

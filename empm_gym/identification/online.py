@@ -86,7 +86,8 @@ class OnlineIdentifier:
         self.radius = scene.particle_radius
         mat, mu = self._material()
         self.model = scene.builder([mat], [mu]).finalize(scene.device, requires_grad=False)
-        self.solver = SolverMPM(self.model, SolverConfig(cfl=scene.cfl, check_every=0))
+        self.solver = SolverMPM(self.model, SolverConfig(cfl=scene.cfl, check_every=0,
+                                                         deterministic=scene.deterministic))
         self.state, self._tmp = self.model.state(), self.model.state()
         self.ctrl = self.model.control()
         self._grad = None  # (model, solver, {substeps: (rollout, controls)}) built on the first update
@@ -226,7 +227,8 @@ class OnlineIdentifier:
         mat, mu = self._material()
         if self._grad is None:
             gm = self.scene.builder([mat], [mu]).finalize(self.scene.device, requires_grad=True)
-            self._grad = (gm, SolverMPM(gm, SolverConfig(cfl=self.scene.cfl, check_every=0)), {})
+            self._grad = (gm, SolverMPM(gm, SolverConfig(cfl=self.scene.cfl, check_every=0,
+                                                         deterministic=self.scene.deterministic)), {})
         gm, gs, cache = self._grad
         gm.set_materials([mat])
         gm.world_table_friction.assign(np.array([mu], np.float32))

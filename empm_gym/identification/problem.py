@@ -66,7 +66,8 @@ class Scene:
     whose stable step bounds the substep too, besides those simulated: a fit that passes the stiffest
     corners of its search box gets the same substeps for every evaluation, so that its loss is a function
     of the parameters alone (not of which other candidates share the batch; MPM's result depends on dt by
-    about as much as the effects the doctor weighs).
+    about as much as the effects the doctor weighs). ``deterministic``: every simulation of the scene is the
+    same to the bit on every run, on a GPU too (``SolverConfig.deterministic``).
     """
 
     particles: np.ndarray
@@ -87,6 +88,7 @@ class Scene:
     motion_bounds: Optional[Tuple[Sequence[float], Sequence[float]]] = None
     motion_margin: float = 0.03
     dt_materials: Tuple[MaterialConfig, ...] = ()
+    deterministic: bool = False
 
     def __post_init__(self):
         x = np.asarray(self.particles, np.float64)
@@ -415,7 +417,8 @@ class _ForwardSim:
         #: frames (a few thousand particles are otherwise bound by launching kernels from Python)
         self.graph = True
         self.model = scene.builder(materials, frictions).finalize(scene.device, requires_grad=False)
-        self.solver = SolverMPM(self.model, SolverConfig(cfl=scene.cfl, check_every=0))
+        self.solver = SolverMPM(self.model, SolverConfig(cfl=scene.cfl, check_every=0,
+                                                         deterministic=scene.deterministic))
         self._own_stream = None  # made on the first queued rollout on CUDA (:meth:`steps`)
         self._kept = None  # rollouts from rest with ``reuse``: their states, control, CUDA graphs (:meth:`steps`)
 

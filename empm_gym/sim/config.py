@@ -325,8 +325,11 @@ class SolverConfig:
     plasticity_min_singular: float = 1e-3
     """Lower clamp of singular values of F in the plastic return mapping [-]."""
     deterministic: bool = False
-    """Bit-identical runs on CUDA: switches the MPM kernel module (for every solver in the process) to
-    Warp's run-to-run deterministic atomics, at some speed cost. CPU runs are always deterministic."""
+    """Bit-identical runs on CUDA. Untaped steps sum P2G in 64-bit fixed point (integer atomics give the same
+    total in any order; on the CPU as well, where runs are deterministic anyway, so that the path is tested
+    there); taped steps, and CUDA with ``sort_every=0``, switch the MPM kernel module (for every solver in the
+    process) to Warp's run-to-run deterministic atomics. Results differ from the default's in float32's last
+    bits, as two default CUDA runs differ from each other."""
     sort_every: int = 16
     """On CUDA, re-sort P2G's particle order by grid cell every this many steps [-] (0: never sort, and
     scatter with one atomic per component as on the CPU). The order changes speed only, not results."""

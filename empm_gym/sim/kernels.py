@@ -659,6 +659,81 @@ def warp_segment_add(grid: wp.array4d(dtype=wp.vec4), w: int, i: int, j: int, k:
     ...
 
 
+#: A grid node of the deterministic P2G: momentum (xyz) and mass (w) as 64-bit fixed-point integers.
+vec4l = wp.types.vector(length=4, dtype=wp.int64)
+
+# Deterministic P2G (SolverConfig.deterministic): a float sum depends on the order of its terms, and the order in
+# which a GPU's atomics land changes from run to run; an integer sum does not. Each segment's float sum (fixed: the
+# particles' cell order and the warp's lanes decide it) is rounded to an integer in units of 1 / scale and added
+# with 64-bit integer atomics, which give the same total in any order; fixed_grid_to_float_kernel turns the totals
+# back into floats for the grid update. The CPU branch adds the same integers one particle at a time.
+@wp.func_native(
+    snippet="""
+""" + """#if defined(__CUDA_ARCH__)
+""" + _WARP_LANES + """
+    float s0 = value[0], s1 = value[1], s2 = value[2], s3 = value[3];
+""" + _segment_sum(["s0", "s1", "s2", "s3"]) + """
+    if (seg & 64) {
+        unsigned long long* node = reinterpret_cast<unsigned long long*>(&wp::index(grid, w, i, j, k));
+        const double q0 = (double)s0 * (double)scale[0], q1 = (double)s1 * (double)scale[0];
+        const double q2 = (double)s2 * (double)scale[0], q3 = (double)s3 * (double)scale[1];
+        atomicAdd(node, (unsigned long long)(long long)(q0 >= 0.0 ? q0 + 0.5 : q0 - 0.5));
+        atomicAdd(node + 1, (unsigned long long)(long long)(q1 >= 0.0 ? q1 + 0.5 : q1 - 0.5));
+        atomicAdd(node + 2, (unsigned long long)(long long)(q2 >= 0.0 ? q2 + 0.5 : q2 - 0.5));
+        atomicAdd(node + 3, (unsigned long long)(long long)(q3 >= 0.0 ? q3 + 0.5 : q3 - 0.5));
+    }
+#else
+    long long* node = reinterpret_cast<long long*>(&wp::index(grid, w, i, j, k));
+    for (int c = 0; c < 4; ++c) {
+        const double q = (double)value[c] * (double)scale[c == 3 ? 1 : 0];
+        node[c] += (long long)(q >= 0.0 ? q + 0.5 : q - 0.5);
+    }
+#endif
+""",
+    adj_snippet="",
+    replay_snippet="",
+)
+def warp_segment_add_fixed(grid: wp.array4d(dtype=vec4l), w: int, i: int, j: int, k: int, value: wp.vec4,
+                           scale: wp.vec2, seg: int, tid: int, n: int):
+    """grid[w, i, j, k] += the sum of ``value`` over this lane's segment, in integer units of 1 / ``scale``
+    (momentum: scale[0] per kg m/s; mass: scale[1] per kg). Forward only."""
+    ...
+
+
+@wp.func
+def active_node(active: wp.array(dtype=int), q: int, res: wp.vec3i):
+    """The grid node (w, i, j, k) that the ``q``-th thread of a stride over the active columns' nodes visits
+    (``active`` lists columns by flat index (w * res_i + i) * res_j + j; see active_columns_kernel)."""
+    col = active[q / res[2]]
+    k = q - (q / res[2]) * res[2]
+    j = col % res[1]
+    i = (col / res[1]) % res[0]
+    w = col / (res[1] * res[0])
+    return w, i, j, k
+
+
+@wp.kernel
+def fixed_grid_to_float_kernel(
+    grid_fixed: wp.array4d(dtype=vec4l),
+    active: wp.array(dtype=int),
+    active_count: wp.array(dtype=int),
+    res: wp.vec3i,
+    inv_scale_mv: wp.float64,
+    inv_scale_m: wp.float64,
+    threads: int,
+    grid_mvm: wp.array4d(dtype=wp.vec4),
+):
+    """The deterministic P2G's integer totals as the momentum and mass the grid update reads, on the active
+    columns' nodes (``threads`` threads striding over them); each integer node is zeroed once read."""
+    t = wp.tid()
+    for q in range(t, active_count[0] * res[2], threads):
+        w, i, j, k = active_node(active, q, res)
+        f = grid_fixed[w, i, j, k]
+        grid_mvm[w, i, j, k] = wp.vec4(float(wp.float64(f[0]) * inv_scale_mv), float(wp.float64(f[1]) * inv_scale_mv),
+                                       float(wp.float64(f[2]) * inv_scale_mv), float(wp.float64(f[3]) * inv_scale_m))
+        grid_fixed[w, i, j, k] = vec4l()
+
+
 @wp.func_native(
     snippet="""
 #if defined(__CUDA_ARCH__)
@@ -737,13 +812,17 @@ def p2g_sorted_kernel(
     res: wp.vec3i,
     dt: float,
     count: int,
+    fixed: int,
+    fixed_scale: wp.vec2,
     grid_mvm: wp.array4d(dtype=wp.vec4),
     columns: wp.array3d(dtype=int),
+    grid_fixed: wp.array4d(dtype=vec4l),
 ):
     """p2g_kernel for CUDA with warp-summed atomics; thread t scatters particle order[t] (one thread per
     particle: no grid-stride loop, so the lanes of a warp are the consecutive threads below ``count``). The
     material comes packed (pack_p2g_materials_kernel): in cell order a particle's reads scatter, and each
-    read costs a memory sector."""
+    read costs a memory sector. With ``fixed`` the sums go to ``grid_fixed`` as integers (deterministic P2G;
+    on the CPU, with the particles in any order, as well)."""
     t = wp.tid()
     p = order[t]
     w = particle_world[p]
@@ -762,8 +841,12 @@ def p2g_sorted_kernel(
                 weight = W[i, 0] * W[j, 1] * W[k, 2]
                 dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
                 m = weight * (mv + affine * dpos)
-                warp_segment_add(grid_mvm, w, base[0] + i, base[1] + j, base[2] + k,
-                                 wp.vec4(m[0], m[1], m[2], weight * mass), seg, t, count)
+                node = wp.vec4(m[0], m[1], m[2], weight * mass)
+                if fixed != 0:  # deterministic: integer totals in grid_fixed (see warp_segment_add_fixed)
+                    warp_segment_add_fixed(grid_fixed, w, base[0] + i, base[1] + j, base[2] + k, node, fixed_scale,
+                                           seg, t, count)
+                else:
+                    warp_segment_add(grid_mvm, w, base[0] + i, base[1] + j, base[2] + k, node, seg, t, count)
 
 
 @wp.kernel
@@ -838,11 +921,7 @@ def make_grid_update_kernel(ee_count: int):
                 om = ee_omega[t]
                 ee_rot_out[t] = wp.normalize(q0 + (0.5 * dt) * (wp.quat(om[0], om[1], om[2], 0.0) * q0))
         for q in range(t, active_count[0] * res[2], threads):
-            col = active[q / res[2]]
-            k = q - (q / res[2]) * res[2]
-            j = col % res[1]
-            i = (col / res[1]) % res[0]
-            w = col / (res[1] * res[0])
+            w, i, j, k = active_node(active, q, res)
             mvm = grid_mvm[w, i, j, k]
             m = mvm[3]
             if m == 0.0:
@@ -1233,11 +1312,7 @@ def flush_adjoint_sink_kernel(
     between G2P's adjoint and the grid update's."""
     t = wp.tid()
     for q in range(t, active_count[0] * res[2], threads):
-        col = active[q / res[2]]
-        k = q - (q / res[2]) * res[2]
-        j = col % res[1]
-        i = (col / res[1]) % res[0]
-        w = col / (res[1] * res[0])
+        w, i, j, k = active_node(active, q, res)
         s = sink[w, i, j, k]
         if s[0] != 0.0 or s[1] != 0.0 or s[2] != 0.0:
             if has_grad != 0:

@@ -111,6 +111,28 @@ def _grid_kernel(ee_count: int):
     return _GRID_KERNELS[ee_count]
 
 
+def fixed_point_scales(mass: np.ndarray, world: np.ndarray, worlds: int, max_speed: float,
+                       headroom: float = 2.0 ** 12) -> tuple:
+    """Integer units of the deterministic P2G (``SolverConfig.deterministic``): (momentum units per kg m/s, mass
+    units per kg) such that a world's whole mass moving at ``max_speed`` m/s times ``headroom`` fills 2^62 of
+    the 2^63 a signed 64-bit integer holds. A grid node holds at most its world's mass, and a state faster than
+    ``max_speed`` counts as diverged (:meth:`SolverMPM.check_state`): the headroom leaves room for the stress
+    impulses inside one substep and for materials made denser after the solver (``Model.set_materials``).
+    Powers of two, so that integers and floats convert by exact scalings. Resolution: under 2e-15 of a world's
+    mass, and of its mass times ``max_speed``, far below float32's rounding of any node's own value."""
+    totals = np.bincount(np.asarray(world, np.int64), weights=np.asarray(mass, np.float64), minlength=worlds)
+    heaviest = float(np.max(totals)) if totals.size else 0.0
+    if not np.isfinite(heaviest) or heaviest <= 0.0:
+        raise ValueError(f"deterministic P2G: the worlds' masses must be finite and positive, got a largest total "
+                         f"of {heaviest!r} kg")
+    full = 2.0 ** 62 / headroom
+
+    def unit(v):  # a power of two: the integers and their float values differ by an exact scaling
+        return 2.0 ** np.floor(np.log2(v))
+
+    return unit(full / (heaviest * max(float(max_speed), 1.0))), unit(full / heaviest)
+
+
 class SolverMPM:
     """Explicit MLS-MPM (APIC transfers, quadratic B-splines) with fixed-corotated elasticity,
     optional von Mises plasticity, Dirichlet/Coulomb end-effectors and a frictional table.
@@ -120,23 +142,33 @@ class SolverMPM:
     def __init__(self, model: Model, config: Optional[SolverConfig] = None):
         self.model = model
         self.config = config or SolverConfig()
-        if self.config.deterministic:
+        if self.config.deterministic and model.device.is_cuda:
             # float atomics of P2G (and of every adjoint) otherwise sum in a run-dependent order on GPUs
             wp.set_module_options({"deterministic": wp.DeterministicMode.RUN_TO_RUN}, module=K)
         self.scratch = GridScratch(model)
         self.step_count = 0
         self._order = None
+        self._keys = None
+        self._fixed = None
         self._packed = int(model.device.is_cuda and not self.config.deterministic)
         nodes = model.world_count * int(np.prod(model.grid_res))
-        # P2G with warp-summed atomics visits particles in cell order (CUDA only; the deterministic mode keeps
-        # Warp's own atomics, which it makes repeatable); the key must fit an int32
-        if model.device.is_cuda and not self.config.deterministic and self.config.sort_every > 0 and nodes < 2**31:
-            n = model.particle_count
+        n = model.particle_count
+        # P2G with warp-summed atomics visits particles in cell order (CUDA only); the key must fit an int32
+        if model.device.is_cuda and self.config.sort_every > 0 and nodes < 2**31:
             self._keys = wp.zeros(2 * n, dtype=int, device=model.device)
             self._values = wp.zeros(2 * n, dtype=int, device=model.device)
             self._key_bits = max(int(nodes - 1).bit_length(), 1)
             self._order = self._values[:n]
             self.sort_particles(model.state())  # also allocates the sort's scratch outside any graph capture
+        elif self.config.deterministic and not model.device.is_cuda:
+            self._order = wp.array(np.arange(n, dtype=np.int32), dtype=int, device=model.device)
+        if self.config.deterministic and self._order is not None:
+            # untaped steps: P2G sums in 64-bit fixed point (K.warp_segment_add_fixed), the same on every run;
+            # on the CPU too, so that this path is tested where CI runs. Taped steps, and CUDA without the
+            # sorted order, keep Warp's deterministic atomics (set above)
+            self._fixed = wp.zeros((model.world_count, *model.grid_res), dtype=K.vec4l, device=model.device)
+            self._fixed_scale = fixed_point_scales(model.particle_mass(), model.particle_world.numpy(),
+                                                   model.world_count, self.config.max_speed)
         self._flags = wp.zeros(model.world_count, dtype=int, device=model.device)
         self._adjoint_sink = None
         self._grid_kernel = _grid_kernel(model.ee_count)
@@ -198,7 +230,7 @@ class SolverMPM:
     def sort_particles(self, state: State):
         """Order P2G's threads by (world, stencil base node) of the particles of ``state`` (CUDA). Only the
         visiting order changes: particle arrays keep their order, and any order gives the same physics."""
-        if self._order is None:
+        if self._keys is None:
             return
         m = self.model
         n = m.particle_count
@@ -274,17 +306,24 @@ class SolverMPM:
                 sort = self.step_count % self.config.sort_every == 0
             if sort:
                 self.sort_particles(state_in)
+            fixed = self._fixed is not None
             wp.launch(K.p2g_sorted_kernel, dim=m.particle_count,
                       inputs=[self._order, state_in.particle_x, state_in.particle_v, state_in.particle_C,
                               state_in.particle_F, state_in.particle_damage, m.particle_world, m.particle_p2g,
-                              origin, m.dx, m.inv_dx, res, dt, m.particle_count],
-                      outputs=[g.mvm, g.columns], device=m.device)
+                              origin, m.dx, m.inv_dx, res, dt, m.particle_count, int(fixed),
+                              wp.vec2(*self._fixed_scale) if fixed else wp.vec2(0.0)],
+                      outputs=[g.mvm, g.columns, self._fixed], device=m.device)
         has_table = 1 if m.table is not None else 0
         table_z = float(m.table.height) if m.table is not None else 0.0
         wp.launch(K.active_columns_kernel, dim=g.columns.size, inputs=[g.columns_flat, g.columns.size],
                   outputs=[g.active, g.active_count], device=m.device, record_tape=False)
         threads = self._grid_threads or max(int(g.active_count.numpy()[0]) * m.grid_res[2], 1)
         threads = max(threads, m.world_count * m.ee_count)  # its first threads also move the end-effectors
+        if fused and self._fixed is not None and self._order is not None:
+            wp.launch(K.fixed_grid_to_float_kernel, dim=threads,
+                      inputs=[self._fixed, g.active, g.active_count, res, 1.0 / self._fixed_scale[0],
+                              1.0 / self._fixed_scale[1], threads], outputs=[g.mvm], device=m.device,
+                      record_tape=False)
         wp.launch(
             self._grid_kernel,
             dim=threads,

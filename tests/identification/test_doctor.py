@@ -1921,3 +1921,38 @@ def test_the_base_model_is_taken_at_a_candidates_E_that_fits_the_fitting_frames_
     fits[0].params, fits[1].params = {"E": 3.0e3}, {"E": 9.0e3, "viscosity": 2.0}
     base, loss = core._best_base(fits, obs, 13, cfg)
     assert base is fits[0] and np.isfinite(loss)
+
+
+def test_a_deterministic_diagnosis_simulates_every_fit_variant_and_rebuilt_body_deterministically(monkeypatch):
+    """``DoctorConfig(deterministic=True)`` reaches every simulation: the fits and scores on the doctor's body,
+    the variants' discretisations and a body given from outside (which arrives without the flag)."""
+    from empm_gym.identification.doctor.core import _check_variants, _fit_candidate
+    from empm_gym.sim import MaterialConfig, SolverMPM
+
+    made = []
+    init = SolverMPM.__init__
+
+    def recording_init(self, model, config=None):
+        init(self, model, config)
+        made.append((model.particle_count, self.config.deterministic, self._fixed is not None))
+
+    truth = MaterialConfig(E=3.0e3, nu=0.3, density=1000.0)
+    scene, obs = _pushed_block(truth)  # its observations simulated before the recorder below
+    monkeypatch.setattr(SolverMPM, "__init__", recording_init)
+    cfg = DoctorConfig(base_iters=1, candidate_iters=1, popsize=4, variants=0, base_E=3.0e3, deterministic=True)
+    res = diagnose(scene, obs, effects=["viscosity"], config=cfg, progress=False)
+    assert res["candidates"] and made and all(d and fixed for _, d, fixed in made), made
+    # the variants' check, on a scene the diagnosis made deterministic, with a body rebuilt elsewhere
+    made.clear()
+    det = dataclasses.replace(scene, deterministic=True)
+    other = dataclasses.replace(scene, particles=scene.particles[::2], volumes=scene.volumes[::2] * 2.0)
+    assert not other.deterministic
+    T, F = 13, 9
+    cfg = dataclasses.replace(cfg, variants=1, variant_iters=1)
+    base, visc = (_fit_candidate(name, det, obs, truth, (1e3, 1e4), F, cfg, False) for name in ("base", "viscosity"))
+    out = _check_variants([visc], det, obs, base, F, T, list(range(F, T)), cfg, False,
+                          other_bodies=[("half the particles", other)])
+    assert len(out["base"]) == 2 and out["candidates"]["viscosity"]["tests"]
+    counts = {n for n, _, _ in made}
+    assert len(other.particles) in counts and len(counts) >= 2  # the other body was simulated
+    assert all(d and fixed for _, d, fixed in made), made

@@ -17,7 +17,7 @@ def _doctor(args) -> int:
     try:
         cfg = DoctorConfig(train_fraction=args.train_fraction, base_iters=args.iters, candidate_iters=args.iters,
                            popsize=args.popsize, variants=args.variants, variant_iters=args.variant_iters,
-                           viscosity_raise=args.viscosity_raise)
+                           viscosity_raise=args.viscosity_raise, deterministic=args.deterministic)
         res = diagnose_recording(args.rec_dir, out_dir=args.out, base=args.base, config=cfg, dx=args.dx,
                                  particles_per_cell=args.particles_per_cell, device=args.device,
                                  progress=not args.quiet, effects=effects, view_bodies=not args.no_view_bodies,
@@ -96,5 +96,8 @@ def register(subparsers) -> None:
                    help="when the viscosity's fit ends at the top of the box the explicit step allows and gains held "
                         "out, fit every candidate again with that box FACTOR times higher, on about FACTOR times the "
                         "substeps (default 1: never; for a material far more viscous than the box)")
+    p.add_argument("--deterministic", action="store_true",
+                   help="the same result to the bit on every run, on a GPU too (64-bit integer sums in P2G, "
+                        "at some speed cost; CPU runs are deterministic either way)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_doctor)

@@ -169,6 +169,13 @@ class DoctorConfig:
     5.6-9.3 mm observed-to-simulated against 1.5-1.7 mm the other way (benchmarks/RESULTS.md, session 38; with
     it, 1.45 mm, session 39). The fits keep the carried points."""
     seed: int = 0
+    deterministic: bool = False
+    """Every simulation the same to the bit on every run (``Scene.deterministic``): on a GPU the float sums of
+    P2G otherwise land in a run-dependent order, and a verdict near one of the rules' edges can change from
+    one run to the next (dough lifted by one end, seed 23: gripper slip at 0.05, plasticity at 0.33 and 0.40
+    in three runs; benchmarks/RESULTS.md, session 67). It fixes the answer, not its uncertainty: the
+    confidence and the variants say how firm it is. Costs some speed on a GPU (64-bit integer atomics); the
+    CPU's runs are deterministic either way."""
     viscosity_cap: float = _VISCOSITY_CAP
     """Largest viscosity the candidates try, as a multiple of rho dx c / 3 at the stiffest E of their window
     (:data:`_VISCOSITY_CAP`): the doctor steps explicitly, and every fit steps with the substeps its most
@@ -1094,6 +1101,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     """
     cfg = config or DoctorConfig()
     t_start = time.perf_counter()
+    if cfg.deterministic:
+        scene = dataclasses.replace(scene, deterministic=True)
     T, F = _check_inputs(scene, obs, cfg)
     hidden = [int(t) for t in np.nonzero(~obs.seen[:T])[0]]
     heldout = [t for t in range(F, T) if t not in hidden]  # a frame where the object is wholly hidden is not scored
@@ -1480,7 +1489,8 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
                 for k in range(cfg.variants)]
     variants += [(item[0], item[2] if len(item) > 2 else "body",
                   dataclasses.replace(item[1], motion_margin=scene.motion_margin, material=scene.material,
-                                      table_friction=scene.table_friction, dt_materials=scene.dt_materials))
+                                      table_friction=scene.table_friction, dt_materials=scene.dt_materials,
+                                      deterministic=scene.deterministic))
                  for item in other_bodies if item[1] is not None]
     out = {"variants": [label for label, _, _ in variants] if checked else [], "base": [], "candidates": {},
            "not_built": [item[0] for item in other_bodies if item[1] is None] if checked else [],
