@@ -1942,6 +1942,7 @@ def test_a_deterministic_diagnosis_simulates_every_fit_variant_and_rebuilt_body_
     cfg = DoctorConfig(base_iters=1, candidate_iters=1, popsize=4, variants=0, base_E=3.0e3, deterministic=True)
     res = diagnose(scene, obs, effects=["viscosity"], config=cfg, progress=False)
     assert res["candidates"] and made and all(d and fixed for _, d, fixed in made), made
+    assert res["deterministic"] is True
     # the variants' check, on a scene the diagnosis made deterministic, with a body rebuilt elsewhere
     made.clear()
     det = dataclasses.replace(scene, deterministic=True)

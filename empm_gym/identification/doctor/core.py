@@ -1132,7 +1132,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
               "hidden_frames": hidden, "fps": obs.fps,
               "noise_sigma_m": noise, "observed_motion_m": motion, "driven_motion_m": driven, "grid": grid,
               "control_lag": {k: _finite_or_none(v) if isinstance(v, float) else v for k, v in lag.items()},
-              "notes": grid_notes}
+              "deterministic": bool(scene.deterministic), "notes": grid_notes}
     still = max(3.0 * noise, 2e-3)
     if motion < still and driven < still:
         result.update(effect="none", decidable=False, confidence=0.0,
