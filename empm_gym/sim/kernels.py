@@ -669,7 +669,7 @@ vec4l = wp.types.vector(length=4, dtype=wp.int64)
 # back into floats for the grid update. The CPU branch adds the same integers one particle at a time.
 @wp.func_native(
     snippet="""
-""" + """#if defined(__CUDA_ARCH__)
+#if defined(__CUDA_ARCH__)
 """ + _WARP_LANES + """
     float s0 = value[0], s1 = value[1], s2 = value[2], s3 = value[3];
 """ + _segment_sum(["s0", "s1", "s2", "s3"]) + """

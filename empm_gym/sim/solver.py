@@ -290,6 +290,7 @@ class SolverMPM:
         # identification fit taped through it gave non-finite material gradients in blocks of 32 threads (not
         # reproduced on the CPU, not yet understood)
         native = not fused and not self.config.deterministic
+        fixed = False  # whether P2G summed into the fixed-point grid (then turned into floats below)
         if native:
             wp.launch(K.p2g_native_kernel, dim=m.particle_count,
                       inputs=[*particles, origin, m.dx, m.inv_dx, res, dt, self._packed], outputs=[g.mvm, g.columns],
@@ -319,7 +320,7 @@ class SolverMPM:
                   outputs=[g.active, g.active_count], device=m.device, record_tape=False)
         threads = self._grid_threads or max(int(g.active_count.numpy()[0]) * m.grid_res[2], 1)
         threads = max(threads, m.world_count * m.ee_count)  # its first threads also move the end-effectors
-        if fused and self._fixed is not None and self._order is not None:
+        if fixed:
             wp.launch(K.fixed_grid_to_float_kernel, dim=threads,
                       inputs=[self._fixed, g.active, g.active_count, res, 1.0 / self._fixed_scale[0],
                               1.0 / self._fixed_scale[1], threads], outputs=[g.mvm], device=m.device,
