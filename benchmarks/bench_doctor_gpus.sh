@@ -53,6 +53,7 @@ with open(os.environ["OUT"] + "/slim.jsonl", "w") as f:
         s["features"] = (r.get("evidence") or {}).get("features")
         s["features_with_effect"] = (r.get("evidence") or {}).get("features_with_effect")
         s["control_lag"] = r.get("control_lag")
+        s["heldout_per_frame"] = r.get("heldout_per_frame")  # per-frame losses: a later rule's bootstrap can rescore
         f.write(json.dumps(s) + "\n")
 PY
 cat $W/res/*.jsonl > $OUT/rows.jsonl 2>/dev/null

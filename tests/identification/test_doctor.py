@@ -884,6 +884,93 @@ def test_a_gain_must_also_hold_on_the_body_trimmed_to_the_measured_surface():
     del stored["candidates"]["viscosity"]["trimmed"]
     assert select_verdict(cands, stored)[0] == "viscosity"
 
+def test_a_gain_failing_on_a_rebuilt_body_the_doctors_body_fits_significantly_better_is_set_aside():
+    """A rebuilt body (without a camera, or trimmed) whose base model the doctor's body beats held out by the
+    doctor's own test (``body_unlike``) cannot refute a gain: a failure there is set aside and the rule counts the
+    rest; a gain that holds there still counts, a failing body that fits as well still refutes, and stored tests
+    without the field count as before (varied seed 22's rope squeezed in a ring, session 69)."""
+    from empm_gym.identification.data import TRIMMED_BODY
+    from empm_gym.identification.doctor.core import _robust, select_verdict
+
+    def tests(disc, body, unlike):
+        return ([{"variant": f"grid shifted and particles resampled ({i + 1})", "kind": "discretisation",
+                  "gain": g, "threshold": 0.04} for i, g in enumerate(disc)]
+                + [{"variant": f"without camera {i}", "kind": "body", "gain": g, "threshold": 0.04, "body_unlike": u}
+                   for i, (g, u) in enumerate(zip(body, unlike))])
+
+    seed22 = tests([0.396, 0.408], [0.059, 0.114, 0.005], [True, True, True])
+    for t in seed22[2:]:  # its refits there ended at the bottom of the viscosity's box
+        t["toward_absence"] = ["viscosity"]
+    assert not _robust([{k: v for k, v in t.items() if k != "body_unlike"} for t in seed22])["robust"]  # as stored
+    got = _robust(seed22)
+    assert got["robust"] and got["set_aside"] == ["without camera 0", "without camera 1", "without camera 2"]
+    assert got["holds_on"].startswith("2 of 2 variants ('without camera 0', 'without camera 1', 'without camera 2' "
+                                      "set aside: the doctor's body fits"), got["holds_on"]
+    # one failing body that fits as well as the doctor's still refutes the gain (with a grid's miss: two in five)
+    assert not _robust(tests([0.396, 0.01], [0.01, 0.114, 0.2], [False, True, True]))["robust"]
+    assert not _robust(tests([0.396, 0.408], [0.01, 0.01, 0.2], [False, False, True]))["robust"]  # 2 in five
+    # set aside, the rest must still hold: one grid and one body failing of four counted
+    assert not _robust(tests([0.396, 0.01], [0.01, 0.01, 0.2], [False, True, False]))["robust"]
+    # an unlike body the gain holds on is counted: it does not thin the evidence for the gain
+    kept = _robust(tests([0.396, 0.408], [0.3, 0.01, 0.2], [True, False, True]))
+    assert kept["robust"] and kept["set_aside"] == [] and kept["holds_on"] == "4 of 5 variants"
+    # the trimmed body alike: refuting where it fits as well, set aside where the doctor's body fits better
+    trimmed = {"variant": TRIMMED_BODY, "kind": "trimmed", "gain": -0.02, "threshold": 0.04}
+    fine = tests([0.396, 0.408], [0.3, 0.25, 0.2], [False, False, False])
+    assert not _robust(fine, trimmed)["robust"]
+    aside = _robust(fine, {**trimmed, "body_unlike": True})
+    assert aside["robust"] and aside["set_aside"] == [TRIMMED_BODY]
+    # the verdict on stored variants follows
+    cands = [{"effect": "viscosity", "params": {}, "heldout": {"loss": 0.005}, "added": 1,
+              "gain": {"gain": 0.46, "lower": 0.40, "upper": 0.48, "threshold": 0.04, "significant": True}}]
+    assert select_verdict(cands, {"variants": ["v"], "candidates": {"viscosity": {"tests": seed22}}})[0] == "viscosity"
+    seed22[2]["body_unlike"] = False
+    assert select_verdict(cands, {"variants": ["v"], "candidates": {"viscosity": {"tests": seed22}}})[0] is None
+
+
+def test_the_variants_check_compares_each_rebuilt_body_with_the_doctors_held_out(monkeypatch):
+    """Each rebuilt body's base model is compared with the doctor's body's on the held-out frames by the doctor's
+    paired test (simulated here): a body displaced by 1.5 cm from the measured block fits significantly worse and
+    its tests say ``body_unlike``; the doctor's own body given again as a rebuilt one does not. The refits are
+    fixed (the true E, a viscosity at 0 that gains nothing), so the gain fails on both bodies: set aside on the
+    displaced one only."""
+    from empm_gym.identification.doctor import core
+    from empm_gym.sim import MaterialConfig
+
+    truth = MaterialConfig(E=3.0e3, nu=0.3, density=1000.0)
+    scene, obs = _pushed_block(truth)
+    scene = dataclasses.replace(scene, dt_materials=core._clock(["viscosity"], truth, (1.0e3, 9.0e3), scene.dx))
+    T, F = 13, 9
+    heldout = list(range(F, T))
+    cfg = DoctorConfig(candidate_iters=1, variant_iters=1, popsize=4, seed=1, variants=0)
+    base, visc = (core._fit_candidate(name, scene, obs, truth, (1.0e3, 9.0e3), F, cfg, False)
+                  for name in ("base", "viscosity"))
+
+    def fixed(specs, obs, progress, desc):
+        return [core._Fit(name, {"E": 3.0e3, **({} if name == "base" else {"viscosity": 0.0})},
+                          start_mat.replace(E=3.0e3), 0.5, 0.0, 0.0, added=len(ps), scene=sc, bounds=bounds,
+                          start_material=start_mat)
+                for name, _, kw, (ps, bounds, start_mat, sc) in specs]
+
+    monkeypatch.setattr(core, "_fit_candidates", fixed)
+    doctors = dataclasses.replace(base, params={"E": 3.0e3}, material=base.material.replace(E=3.0e3))
+    X = core._simulate_fits([doctors], T)
+    base_heldout = core._per_frame_losses(core.heldout_objective(scene, obs, T, cfg), X[:, 0])["loss"][heldout]
+    moved = dataclasses.replace(scene, particles=scene.particles + np.array([0.015, 0.0, 0.0]))
+    out = core._check_variants([visc], scene, obs, base, F, T, heldout, cfg, False,
+                               other_bodies=[("the same body", scene), ("a displaced body", moved)],
+                               base_heldout=base_heldout)
+    same, far = out["base"]
+    assert same["doctors_body_gain"]["gain"] == pytest.approx(0.0, abs=1e-6)
+    assert not same["doctors_body_gain"]["significant"]
+    assert far["doctors_body_gain"]["significant"] and far["doctors_body_gain"]["lower"] > 0.04
+    tests = out["candidates"]["viscosity"]["tests"]
+    assert [t["body_unlike"] for t in tests] == [False, True] and not any(t["holds"] for t in tests)
+    rec = out["candidates"]["viscosity"]
+    assert rec["set_aside"] == ["a displaced body"] and not rec["robust"]  # the same body's failure refutes it
+    assert rec["holds_on"].startswith("0 of 1 variants")
+
+
 def test_fitted_values_at_their_search_bound_are_flagged():
     """A fit's parameter at a bound of its box (log-scaled: within 5 %; linear: within 2.5 % of the width) is
     listed, a value inside is not, whatever the sign of a linear parameter."""
