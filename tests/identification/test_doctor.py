@@ -884,9 +884,9 @@ def test_a_gain_must_also_hold_on_the_body_trimmed_to_the_measured_surface():
     del stored["candidates"]["viscosity"]["trimmed"]
     assert select_verdict(cands, stored)[0] == "viscosity"
 
-def test_a_gain_failing_on_a_rebuilt_body_the_doctors_body_fits_significantly_better_is_set_aside():
+def test_a_gain_failing_on_a_rebuilt_body_the_doctors_body_fits_significantly_better_is_not_counted():
     """A rebuilt body (without a camera, or trimmed) whose base model the doctor's body beats held out by the
-    doctor's own test (``body_unlike``) cannot refute a gain: a failure there is set aside and the rule counts the
+    doctor's own test (``body_unlike``) cannot refute a gain: a failure there is not counted and the rule counts the
     rest; a gain that holds there still counts, a failing body that fits as well still refutes, and stored tests
     without the field count as before (varied seed 22's rope squeezed in a ring, session 69)."""
     from empm_gym.identification.data import TRIMMED_BODY
@@ -903,23 +903,23 @@ def test_a_gain_failing_on_a_rebuilt_body_the_doctors_body_fits_significantly_be
         t["toward_absence"] = ["viscosity"]
     assert not _robust([{k: v for k, v in t.items() if k != "body_unlike"} for t in seed22])["robust"]  # as stored
     got = _robust(seed22)
-    assert got["robust"] and got["set_aside"] == ["without camera 0", "without camera 1", "without camera 2"]
+    assert got["robust"] and got["not_counted"] == ["without camera 0", "without camera 1", "without camera 2"]
     assert got["holds_on"].startswith("2 of 2 variants ('without camera 0', 'without camera 1', 'without camera 2' "
-                                      "set aside: the doctor's body fits"), got["holds_on"]
+                                      "not counted: the doctor's body fits"), got["holds_on"]
     # one failing body that fits as well as the doctor's still refutes the gain (with a grid's miss: two in five)
     assert not _robust(tests([0.396, 0.01], [0.01, 0.114, 0.2], [False, True, True]))["robust"]
     assert not _robust(tests([0.396, 0.408], [0.01, 0.01, 0.2], [False, False, True]))["robust"]  # 2 in five
-    # set aside, the rest must still hold: one grid and one body failing of four counted
+    # with it not counted, the rest must still hold: one grid and one body failing of four counted
     assert not _robust(tests([0.396, 0.01], [0.01, 0.01, 0.2], [False, True, False]))["robust"]
     # an unlike body the gain holds on is counted: it does not thin the evidence for the gain
     kept = _robust(tests([0.396, 0.408], [0.3, 0.01, 0.2], [True, False, True]))
-    assert kept["robust"] and kept["set_aside"] == [] and kept["holds_on"] == "4 of 5 variants"
-    # the trimmed body alike: refuting where it fits as well, set aside where the doctor's body fits better
+    assert kept["robust"] and kept["not_counted"] == [] and kept["holds_on"] == "4 of 5 variants"
+    # the trimmed body alike: refuting where it fits as well, not counted where the doctor's body fits better
     trimmed = {"variant": TRIMMED_BODY, "kind": "trimmed", "gain": -0.02, "threshold": 0.04}
     fine = tests([0.396, 0.408], [0.3, 0.25, 0.2], [False, False, False])
     assert not _robust(fine, trimmed)["robust"]
     aside = _robust(fine, {**trimmed, "body_unlike": True})
-    assert aside["robust"] and aside["set_aside"] == [TRIMMED_BODY]
+    assert aside["robust"] and aside["not_counted"] == [TRIMMED_BODY]
     # the verdict on stored variants follows
     cands = [{"effect": "viscosity", "params": {}, "heldout": {"loss": 0.005}, "added": 1,
               "gain": {"gain": 0.46, "lower": 0.40, "upper": 0.48, "threshold": 0.04, "significant": True}}]
@@ -932,7 +932,7 @@ def test_the_variants_check_compares_each_rebuilt_body_with_the_doctors_held_out
     """Each rebuilt body's base model is compared with the doctor's body's on the held-out frames by the doctor's
     paired test (simulated here): a body displaced by 1.5 cm from the measured block fits significantly worse and
     its tests say ``body_unlike``; the doctor's own body given again as a rebuilt one does not. The refits are
-    fixed (the true E, a viscosity at 0 that gains nothing), so the gain fails on both bodies: set aside on the
+    fixed (the true E, a viscosity at 0 that gains nothing), so the gain fails on both bodies: not counted on the
     displaced one only."""
     from empm_gym.identification.doctor import core
     from empm_gym.sim import MaterialConfig
@@ -967,7 +967,7 @@ def test_the_variants_check_compares_each_rebuilt_body_with_the_doctors_held_out
     tests = out["candidates"]["viscosity"]["tests"]
     assert [t["body_unlike"] for t in tests] == [False, True] and not any(t["holds"] for t in tests)
     rec = out["candidates"]["viscosity"]
-    assert rec["set_aside"] == ["a displaced body"] and not rec["robust"]  # the same body's failure refutes it
+    assert rec["not_counted"] == ["a displaced body"] and not rec["robust"]  # the same body's failure refutes it
     assert rec["holds_on"].startswith("0 of 1 variants")
 
 

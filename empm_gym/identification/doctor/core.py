@@ -1340,7 +1340,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     if unchecked is not None and robustness["variants"]:
         # the variants are evidence too: the share of them that agree with the verdict
         def share(name):
-            tests = _counted(robustness["candidates"].get(name, {}).get("tests", []))
+            tests = _counted_tests(robustness["candidates"].get(name, {}).get("tests", []))
             return float(np.mean([t["holds"] for t in tests])) if tests else 0.0
         confidence = (confidence * share(winner.name) * first_share if winner is not None else
                       1.0 - max(share(n) for n in robustness["candidates"]))
@@ -1489,7 +1489,7 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
     base model is compared with it by the doctor's own test (:func:`paired_gain_test`, one parameter's penalty):
     where the doctor's body fits the held-out frames significantly better, that body is unlike the object as the
     cameras measured it (``base[...]["doctors_body_gain"]``, and ``body_unlike`` on its tests), and a gain
-    failing there is set aside by :func:`_robust`."""
+    failing there is not counted by :func:`_robust` (:func:`_not_counted`)."""
     if callable(other_bodies):  # built only when a candidate needs checking (perception takes seconds)
         other_bodies = other_bodies() if checked else ()
     variants = [(f"grid shifted and particles resampled ({k + 1})", "discretisation", _variant_scene(scene, k))
@@ -1748,15 +1748,15 @@ def _robust(tests: List[dict], trimmed: Optional[dict] = None) -> dict:
     no `none` an effect; over every stored run (1406 rows, older code included) it named 13 more effects right
     and gave 6 more of the 497 `none` rows an effect, all of sessions 35 and before (two on the coarser grid of
     dough pressed and released, or squeezed by a ring; four pushed across the table with session 14's code)."""
-    aside = [t["variant"] for t in tests if _set_aside(t)]
-    tests = _counted(tests)
+    aside = [t["variant"] for t in tests if _not_counted(t)]
+    tests = _counted_tests(tests)
     kind = [_variant_kind(t) for t in tests]
     body = [t for t, k in zip(tests, kind) if k == "body"]
     failed = [t for t in tests if not _holds(t)]
     robust = (len(failed) <= VARIANT_MISSES_PER_FIVE * len(tests) // 5
               and (not body or sum(map(_holds, body)) > len(body) / 2))
     holds_on = f"{sum(map(_holds, tests))} of {len(tests)} variants" + (
-        f" ({', '.join(repr(v) for v in aside)} set aside: the doctor's body fits the held-out frames significantly "
+        f" ({', '.join(repr(v) for v in aside)} not counted: the doctor's body fits the held-out frames significantly "
         f"better than {'that body' if len(aside) == 1 else 'those bodies'}, and the gain fails there)"
         if aside else "")
     worst = min(failed, key=lambda t: (_variant_kind(t) != "discretisation", np.nan_to_num(_gain(t), nan=-1e9)),
@@ -1764,9 +1764,9 @@ def _robust(tests: List[dict], trimmed: Optional[dict] = None) -> dict:
     miss = "" if worst is None else _miss_text(f"'{worst['variant']}'", worst)
     why = "" if robust or not miss else f"it holds on {holds_on}; {miss}"
     out = {"robust": robust, "holds_on": holds_on, "why": why, "missed": miss if robust else "",
-           "robust_without_trimmed": robust, "set_aside": aside}
-    if trimmed is not None and _set_aside(trimmed):
-        out["set_aside"] = aside + [trimmed["variant"]]
+           "robust_without_trimmed": robust, "not_counted": aside}
+    if trimmed is not None and _not_counted(trimmed):
+        out["not_counted"] = aside + [trimmed["variant"]]
     elif trimmed is not None and not _holds(trimmed):
         out.update(robust=False, missed="", why=f"it holds on {holds_on}" + (f" ({miss})" if miss else "")
                    + f", but {_miss_text(f'the {TRIMMED_BODY}', trimmed)}")
@@ -1774,7 +1774,7 @@ def _robust(tests: List[dict], trimmed: Optional[dict] = None) -> dict:
     return out
 
 
-def _set_aside(t: dict) -> bool:
+def _not_counted(t: dict) -> bool:
     """A test on a rebuilt body (a view-jackknife body or the trimmed one) that the gain fails on, where the
     doctor's body fits the held-out frames significantly better than that body's base model (``body_unlike``, set
     by :func:`_check_variants`; tests stored before the field count as they did).
@@ -1784,13 +1784,13 @@ def _set_aside(t: dict) -> bool:
     while a gain that holds there still holds. On the rope squeezed in a ring with a hidden viscosity (varied seed
     22, session 60) the three bodies rebuilt without one camera fitted 41-72 % worse held out than the doctor's, the
     viscosity's refits there ended at the bottom of its box, and the viscosity, 40-41 % ahead on both shifted
-    grids, was refused; set aside, it is named (benchmarks/RESULTS.md, session 69)."""
+    grids, was refused (benchmarks/RESULTS.md, session 69)."""
     return bool(t.get("body_unlike")) and not _holds(t)
 
 
-def _counted(tests: List[dict]) -> List[dict]:
-    """The variants' tests that :func:`_robust` counts: all but those set aside (:func:`_set_aside`)."""
-    return [t for t in tests if not _set_aside(t)]
+def _counted_tests(tests: List[dict]) -> List[dict]:
+    """The variants' tests that :func:`_robust` counts: all but those :func:`_not_counted`."""
+    return [t for t in tests if not _not_counted(t)]
 
 
 def _miss_text(where: str, t: dict) -> str:
@@ -2389,8 +2389,8 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
     vrows = [{"candidate": name, "variant": t["variant"], "fitted": ", ".join(f"{k}={v:.4g}" for k, v in t["params"].items()),
               "held-out loss gain [%]": 100 * t["gain"], "threshold [%]": 100 * t["threshold"],
               "holds": "no: ends where the effect vanishes" if t.get("toward_absence") else t["holds"],
-              "set aside": "yes: the doctor's body fits the held-out frames significantly better" if _set_aside(t)
-              else ""}
+              "counted": "no: the doctor's body fits the held-out frames significantly better" if _not_counted(t)
+              else "yes"}
              for name, rec in var.get("candidates", {}).items() for t in rec["tests"] + (
                  [rec["trimmed"]] if rec.get("trimmed") else [])]
     if vrows:
