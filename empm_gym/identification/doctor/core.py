@@ -1784,7 +1784,8 @@ def _not_counted(t: dict) -> bool:
     while a gain that holds there still holds. On the rope squeezed in a ring with a hidden viscosity (varied seed
     22, session 60) the three bodies rebuilt without one camera fitted 41-72 % worse held out than the doctor's, the
     viscosity's refits there ended at the bottom of its box, and the viscosity, 40-41 % ahead on both shifted
-    grids, was refused (benchmarks/RESULTS.md, session 69)."""
+    grids, was refused; run again (session 69) those gaps were 29-42 % on average but not significant frame by
+    frame, the bodies counted and the verdict stayed `none` (benchmarks/RESULTS.md, session 69)."""
     return bool(t.get("body_unlike")) and not _holds(t)
 
 
