@@ -236,6 +236,43 @@ def _pushed_block(truth):
     return scene, obs
 
 
+def test_a_candidate_whose_search_stayed_at_the_base_model_is_searched_again_from_a_better_point_of_its_box():
+    """A plastic block (E 20 kPa, yield 1 kPa) fits an elastic E 5 times softer; its plasticity candidate, searched
+    around that E, can stay at the base model (the rope of seed 20, session 70). A lattice over the candidate's
+    box (E across its window, with the yield at its first generation's scan) finds a point that fits better, and
+    the candidate is searched again from there: its fitting loss falls to under a third. A fit that is already
+    better than every point of its lattice is left as it is, and so is the base model's refit. doctor.json says
+    what the lattice found."""
+    from empm_gym.identification.doctor import core
+    from empm_gym.identification.offline import fit_losses
+    from empm_gym.sim import MaterialConfig
+
+    truth = MaterialConfig(E=2.0e4, nu=0.3, density=1000.0, yield_stress=1.0e3)
+    scene, obs = _swinging_block(truth)
+    base = truth.replace(yield_stress=None, E=4.0e3)
+    cfg, window, F = DoctorConfig(candidate_iters=3, popsize=6, seed=1), (4.0e3 / 3, 1.2e4), 12
+    sc = dataclasses.replace(scene, dt_materials=core._clock(["plasticity"], base, window, scene.dx))
+    stuck = []
+    for name, params in (("base", {"E": 4.0e3}), ("plasticity", {"E": 4.0e3, "yield_stress": 1.0e6})):
+        _, fsc, _, (ps, bounds, start_mat, csc) = core._candidate_spec(name, sc, base, window, F, cfg)
+        loss, = fit_losses(obs, fsc, [params], frames=F, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed)
+        stuck.append(core._Fit(name, params, start_mat, 0.5, loss, 0.0, added=len(ps), scene=csc, bounds=bounds,
+                               start_material=start_mat))
+    pts = core._probe_points(stuck[1], cfg.popsize)
+    assert len(pts) == 8 and sorted({p["E"] for p in pts}) == pytest.approx(
+        np.geomspace(window[0] * 1.01, window[1] / 1.01, 7)[[0, 2, 4, 6]])
+    kept, found = core._probed(stuck, sc, obs, base, F, cfg, False)
+    assert kept is stuck[0] and kept.probe is None
+    assert found.probe["searched_again"] and found.probe["best_loss"] < stuck[1].fit_loss * (1 - core.PROBE_MARGIN)
+    assert found.fit_loss <= found.probe["best_loss"] and found.fit_loss < stuck[1].fit_loss / 3
+    assert 0.3 * truth.E < found.params["E"] and found.params["yield_stress"] < 5.0 * truth.yield_stress
+    assert core._fit_dict(found)["probe"]["fit_loss_before"] == stuck[1].fit_loss
+    # found, the fit is better than its whole lattice: nothing to search again
+    params, loss = dict(found.params), found.fit_loss
+    _, again = core._probed([stuck[0], found], sc, obs, base, F, cfg, False)
+    assert again is found and not again.probe["searched_again"] and (again.params, again.fit_loss) == (params, loss)
+
+
 def test_a_refit_on_a_variant_at_the_edge_of_its_window_is_widened():
     """A refit on a variant searches E in its fit's window on the doctor's body; a variant can move the optimum
     beyond it (dough lifted at both ends: the base model's 8.4 kPa went to the window's edge, 21.5 kPa, on a
