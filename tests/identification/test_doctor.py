@@ -239,7 +239,7 @@ def _pushed_block(truth):
 def test_a_candidate_whose_search_stayed_at_the_base_model_is_searched_again_from_a_better_point_of_its_box():
     """A plastic block (E 20 kPa, yield 1 kPa) fits an elastic E 5 times softer; its plasticity candidate, searched
     around that E, can stay at the base model (the rope of seed 20, session 70). A lattice over the candidate's
-    box (E across its window, with the yield at its first generation's scan) finds a point that fits better, and
+    box (E across its window, the yield at strains spread over 0.01 to 1 of each E) finds a point that fits better, and
     the candidate is searched again from there: its fitting loss falls to under a third. A fit that is already
     better than every point of its lattice is left as it is, and so is the base model's refit. doctor.json says
     what the lattice found."""
@@ -258,9 +258,17 @@ def test_a_candidate_whose_search_stayed_at_the_base_model_is_searched_again_fro
         loss, = fit_losses(obs, fsc, [params], frames=F, l_trk=cfg.l_trk, max_points=cfg.max_points, seed=cfg.seed)
         stuck.append(core._Fit(name, params, start_mat, 0.5, loss, 0.0, added=len(ps), scene=csc, bounds=bounds,
                                start_material=start_mat))
+    # the lattice: four E across the window, the yield at strains 0.01 to 1 of each (clipped to its box, once)
     pts = core._probe_points(stuck[1], cfg.popsize)
-    assert len(pts) == 8 and sorted({p["E"] for p in pts}) == pytest.approx(
-        np.geomspace(window[0] * 1.01, window[1] / 1.01, 7)[[0, 2, 4, 6]])
+    Es = np.geomspace(window[0] * 1.01, window[1] / 1.01, 7)[[0, 2, 4, 6]]
+    assert sorted({p["E"] for p in pts}) == pytest.approx(Es)
+    want = {(E, float(np.clip(E * r, *stuck[1].bounds["yield_stress"]))) for E in Es for r in np.geomspace(0.01, 1, 9)}
+    assert len(pts) == len(want) < 36 and {(p["E"], p["yield_stress"]) for p in pts} == want
+    # a candidate with a dimensionless parameter takes its first generation's scan at each E
+    visc = dataclasses.replace(stuck[1], name="fracture", params={"E": 4.0e3, "fracture_strain": 1.5},
+                               bounds={"E": window, "fracture_strain": (0.02, 1.5)})
+    scan = [st["fracture_strain"] for st in core._effect_starts(visc.bounds, 4.0e3, cfg.popsize)[1:]]
+    assert [p["fracture_strain"] for p in core._probe_points(visc, cfg.popsize)] == scan * 4
     kept, found = core._probed(stuck, sc, obs, base, F, cfg, False)
     assert kept is stuck[0] and kept.probe is None
     assert found.probe["searched_again"] and found.probe["best_loss"] < stuck[1].fit_loss * (1 - core.PROBE_MARGIN)

@@ -970,19 +970,39 @@ def _widened(items: Sequence[Tuple["_Fit", Scene, MaterialConfig]], obs: Observa
 PROBE_MARGIN = 0.01
 
 
+#: Effect parameters that the probe lattice (:func:`_probe_points`) scans in units of E: (lowest, highest ratio to
+#: E, values). A yield stress is scanned as a yield strain: plastic flow lets a stiffer body show the same
+#: deformation, so the yield that explains a recording moves with E, and the loss's valley runs diagonally through
+#: (E, yield). On the plastic ropes squeezed into a ring of seeds 20 and 21 (benchmarks/RESULTS.md, session 71) it
+#: lies at a yield strain of 0.18 from E 14 to 20 kPa, 4-6 % below the base model, and rises 9-30 % a factor 1.8
+#: to either side: the scan steps by that factor, from strains that yield in any handling (0.01) to ones the
+#: recordings never reach (1).
+_PROBE_RATIOS = {"yield_stress": (0.01, 1.0, 9)}
+
+
 def _probe_points(f: "_Fit", popsize: int) -> List[Dict[str, float]]:
     """A coarse lattice over candidate ``f``'s box (:func:`_probed`): E at four points spread in log E over its
     window, at its edges (just inside) and a third of the way in from each, the middle left out (the first
     generation's scan holds the base fit's E, :func:`_effect_starts`); with each E, a candidate with one effect
-    parameter takes that parameter at the first generation's scan of it, and one with more, its fitted values."""
+    parameter takes that parameter at the first generation's scan of it, or, for one of :data:`_PROBE_RATIOS`,
+    at its ratios to that E (clipped to the box); one with more, its fitted values."""
     lo, hi = f.bounds["E"]
     Es = np.geomspace(lo * 1.01, hi / 1.01, 7)[[0, 2, 4, 6]] if hi > lo * 1.03 else []
     ps = [p for p in f.params if p != "E"]
-    if len(ps) == 1:
-        sets = [{k: v for k, v in st.items() if k != "E"} for st in _effect_starts(f.bounds, lo, popsize)[1:]]
-    else:
-        sets = [{p: f.params[p] for p in ps}]
-    return [{"E": float(E), **st} for E in Es for st in sets]
+    out = []
+    for E in Es:
+        if len(ps) == 1 and ps[0] in _PROBE_RATIOS:
+            (p,), (r_lo, r_hi, n) = ps, _PROBE_RATIOS[ps[0]]
+            sets = [{p: float(np.clip(E * r, *f.bounds[p]))} for r in np.geomspace(r_lo, r_hi, n)]
+        elif len(ps) == 1:
+            sets = [{k: v for k, v in st.items() if k != "E"} for st in _effect_starts(f.bounds, lo, popsize)[1:]]
+        else:
+            sets = [{p: f.params[p] for p in ps}]
+        for st in sets:
+            pt = {"E": float(E), **st}
+            if pt not in out:
+                out.append(pt)
+    return out
 
 
 def _probed(fits: Sequence["_Fit"], scene: Scene, obs: Observations, base_material: MaterialConfig, F: int,
