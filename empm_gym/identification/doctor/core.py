@@ -17,7 +17,9 @@ Pipeline (:func:`diagnose`):
    simulation (:func:`~empm_gym.identification.offline.identify_lockstep`: the same fits as one by one, at a
    fraction of the launches). The base model is refitted the same way (the null candidate) and is the base model
    from then on, taken at a candidate's E instead where the elastic model fits the fitting frames better there
-   (:func:`_best_base`): a candidate must gain by its effect, not by a second search of E. A fit whose E ends at an
+   (:func:`_best_base`): a candidate must gain by its effect, not by a second search of E. Each candidate's fit is
+   checked against a lattice over its box, and searched again from a point of it that fits 1 % better
+   (:func:`_probed`: an effect can move the E that explains a recording off the first generation's scan). A fit whose E ends at an
    edge of that window is fitted again with the window stretched to the base box on that side, and when the
    base fit itself ends at a bound of its box every candidate searches the whole box (:func:`_widened`). The
    base model's refit, every candidate and every variant refit step with one clock, the substeps per frame that
