@@ -2478,7 +2478,9 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
              second_sim=None if best_w is None else X[:, best_w], second_name=f"simulated_{effect}")
     rows = [{"candidate": c["effect"], "added parameters": c["added_params"],
              "fitted": fitted_text(c),
-             "E searched [Pa]": "" if not c.get("E_window") else "{:.3g} to {:.3g}".format(*c["E_window"]),
+             "E searched [Pa]": ("" if not c.get("E_window") else "{:.3g} to {:.3g}".format(*c["E_window"]))
+             + ("; searched again from a better point of a lattice over its box" if (c.get("probe") or {}).get(
+                 "searched_again") else ""),
              "held-out Chamfer [mm]": 1e3 * c["heldout"]["chamfer_m"],
              "held-out loss gain [%]": 100 * (c["gain"] or {}).get("gain", float("nan")),
              "95 % interval [%]": interval_text(c["gain"]),
