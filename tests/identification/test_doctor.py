@@ -269,6 +269,12 @@ def test_a_candidate_whose_search_stayed_at_the_base_model_is_searched_again_fro
                                bounds={"E": window, "fracture_strain": (0.02, 1.5)})
     scan = [st["fracture_strain"] for st in core._effect_starts(visc.bounds, 4.0e3, cfg.popsize)[1:]]
     assert [p["fracture_strain"] for p in core._probe_points(visc, cfg.popsize)] == scan * 4
+    # one with more parameters keeps its fitted values at each E; a window too narrow to spread E has no lattice
+    field = dataclasses.replace(stuck[1], name="heterogeneous_stiffness",
+                                params={"E": 4.0e3, "stiffness_slope_1": 0.3, "stiffness_slope_2": -0.2},
+                                bounds={"E": window, "stiffness_slope_1": (-1.2, 1.2), "stiffness_slope_2": (-1.2, 1.2)})
+    assert [(p["stiffness_slope_1"], p["stiffness_slope_2"]) for p in core._probe_points(field, 8)] == [(0.3, -0.2)] * 4
+    assert core._probe_points(dataclasses.replace(visc, bounds={**visc.bounds, "E": (4.0e3, 4.1e3)}), 8) == []
     kept, found = core._probed(stuck, sc, obs, base, F, cfg, False)
     assert kept is stuck[0] and kept.probe is None
     assert found.probe["searched_again"] and found.probe["best_loss"] < stuck[1].fit_loss * (1 - core.PROBE_MARGIN)
