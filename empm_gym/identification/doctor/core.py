@@ -992,15 +992,17 @@ def _probe_points(f: "_Fit", popsize: int) -> List[Dict[str, float]]:
     lo, hi = f.bounds["E"]
     Es = np.geomspace(lo * 1.01, hi / 1.01, 7)[[0, 2, 4, 6]] if hi > lo * 1.03 else []
     ps = [p for p in f.params if p != "E"]
+    if len(ps) != 1:
+        fixed = [{p: f.params[p] for p in ps}]
+    elif ps[0] not in _PROBE_RATIOS:
+        fixed = [{k: v for k, v in st.items() if k != "E"} for st in _effect_starts(f.bounds, lo, popsize)[1:]]
     out = []
     for E in Es:
         if len(ps) == 1 and ps[0] in _PROBE_RATIOS:
             (p,), (r_lo, r_hi, n) = ps, _PROBE_RATIOS[ps[0]]
             sets = [{p: float(np.clip(E * r, *f.bounds[p]))} for r in np.geomspace(r_lo, r_hi, n)]
-        elif len(ps) == 1:
-            sets = [{k: v for k, v in st.items() if k != "E"} for st in _effect_starts(f.bounds, lo, popsize)[1:]]
         else:
-            sets = [{p: f.params[p] for p in ps}]
+            sets = fixed
         for st in sets:
             pt = {"E": float(E), **st}
             if pt not in out:
@@ -1033,15 +1035,15 @@ def _probed(fits: Sequence["_Fit"], scene: Scene, obs: Observations, base_materi
         pts = _probe_points(f, cfg.popsize) if i and f.scene is not None else []
         if pts:
             sc = _fit_scene(f.scene, f.start_material, tuple(f.params))
-            todo.append((i, pts, (sc, dict(params=tuple(f.params), method="cmaes", init=dict(f.params),
+            todo.append((i, (sc, dict(params=tuple(f.params), method="cmaes", init=dict(f.params),
                                            bounds=f.bounds, iters=1, frames=F, popsize=len(pts) + 1,
                                            sigma0=cfg.sigma0, l_trk=cfg.l_trk, max_points=cfg.max_points,
                                            seed=cfg.seed, extra_starts=pts))))
     if not todo:
         return list(fits)
-    lattice = identify_lockstep(obs, [t[2] for t in todo], progress=progress, desc="doctor: probes")
+    lattice = identify_lockstep(obs, [fit for _, fit in todo], progress=progress, desc="doctor: probes")
     out, again = list(fits), []
-    for (i, _, _), res in zip(todo, lattice):
+    for (i, _), res in zip(todo, lattice):
         f = out[i]
         f.wall_s += float(res.wall_time_s)
         best = float(res.loss)
