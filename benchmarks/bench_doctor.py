@@ -368,8 +368,9 @@ def rescore(paths):
     on the same fits. A recording found in several files is scored from the last of them (a run of a few
     recordings again, given after the run it completes)."""
     from empm_gym.identification.doctor import DoctorConfig
-    from empm_gym.identification.doctor.core import (SIGNATURE_FEATURES, _friction_equivalent, select_verdict,
-                                                     signature_contradicts, toward_absence)
+    from empm_gym.identification.doctor.core import (SIGNATURE_FEATURES, _friction_equivalent, first_places,
+                                                     select_verdict, signature_contradicts, split_verdict,
+                                                     toward_absence)
     from empm_gym.sim.effects import PARAMETERS
 
     factor = DoctorConfig().friction_equivalence
@@ -418,6 +419,8 @@ def rescore(paths):
                         name: {**rec, "tests": [vanishing(t) for t in rec.get("tests", [])]}
                         for name, rec in variants["candidates"].items()}}
                 win, first, _ = select_verdict(cands, variants)
+                if split_verdict(*first_places(cands, variants, win)[::2]):
+                    win = None  # no majority of the discretisations puts it first (session 72's rule)
                 res = {**res, "candidates": cands, "effect": win or "none", "effect_before_variants": first or "none"}
             rows.pop(res["recording"], None)
             rows[res["recording"]] = _row(res, res["truth"], res["recording"], res["script"], res.get("signature_m"),

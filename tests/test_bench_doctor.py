@@ -585,3 +585,34 @@ def test_floors_take_only_the_given_objects_problems_each_with_its_own_material(
     put("mystery", truth="fracture")
     with pytest.raises(SystemExit, match="mystery.pkl does not say which object"):
         list(bench._effect_problems(tmp_path, "dough"))
+
+
+def test_rescore_calls_a_verdict_first_on_no_more_than_half_of_the_discretisations_none(bench, tmp_path):
+    """A dump whose verdict came first on 1 of 5 discretisations (seed 23's dough lifted by one end without an
+    effect, session 71: gripper slip, a stiffness field that fails on one grid first on the others) rescores as
+    none under session 72's split rule; the same dump with the slip first on 3 of 5 keeps it."""
+    labels = ["grid (1)", "grid (2)", "without camera 0", "without camera 1"]
+
+    def test(gain):
+        return {"gain": gain, "lower": gain - 0.1, "upper": gain + 0.1, "threshold": 0.04, "significant": True}
+
+    def tests(gains):
+        return {"tests": [{"variant": v, "gain": g, "threshold": 0.04,
+                           "kind": "discretisation" if v.startswith("grid") else "body"} for v, g in zip(labels, gains)]}
+
+    def res(name, field_gains):
+        return {"recording": name, "script": "lift-end", "truth": "none", "effect": "gripper_slip",
+                "confidence": 0.05, "wall_s": 1.0,
+                "base": {"heldout": {"chamfer_m": 2e-3, "loss": 6.1e-3}, "params": {"E": 1.5e4}},
+                "candidates": [{"effect": "heterogeneous_stiffness", "heldout": {"chamfer_m": 1.6e-3, "loss": 3.5e-3},
+                                "gain": test(0.434), "toward_absence": []},
+                               {"effect": "gripper_slip", "heldout": {"chamfer_m": 1.7e-3, "loss": 4.2e-3},
+                                "gain": test(0.319), "toward_absence": []}],
+                "variants": {"variants": labels, "base_E": 1.5e4, "base": [], "candidates": {
+                    "heterogeneous_stiffness": tests(field_gains),
+                    "gripper_slip": tests([0.065, 0.139, 0.443, 0.365])}}}
+
+    rows = [res("split", [-0.01, 0.175, 0.470, 0.421]), res("most", [-0.01, 0.100, 0.400, 0.421])]
+    (tmp_path / "dump.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    got = {r["recording"]: r["verdict"] for r in bench.rescore([tmp_path / "dump.jsonl"])}
+    assert got == {"split": "none", "most": "gripper_slip"}

@@ -451,8 +451,9 @@ def test_a_stronger_candidate_that_fails_on_one_grid_lowers_the_verdicts_confide
     """Block pulled apart with a hidden fracture (session 33, one H200): fracture gained 43.9 % held out and more
     than the stiffness field on both rebuilt bodies, but its refit on one shifted grid stayed at the base model;
     the field held everywhere and was named with confidence 1.00. The verdict stays the field (what holds on
-    every variant); its first places are counted against fracture too: 2 of 5."""
-    from empm_gym.identification.doctor.core import _contenders, _first_on, select_verdict
+    every variant) in the ranking; its first places are counted against fracture too: 2 of 5, no majority of the
+    discretisations, so since session 72 the verdict is split and none is named (``split_verdict``)."""
+    from empm_gym.identification.doctor.core import _contenders, _first_on, first_places, select_verdict, split_verdict
 
     labels = ["grid (1)", "grid (2)", "without camera 0", "without camera 1"]
 
@@ -476,6 +477,48 @@ def test_a_stronger_candidate_that_fails_on_one_grid_lowers_the_verdicts_confide
     body = {c["effect"]: c["gain"]["gain"] for c in cands}
     assert _first_on(win, contenders, body, variants) == (pytest.approx(2 / 5), ["fracture"], 5)
     assert _first_on(win, passing, body, variants) == (1.0, [], 0)  # the old count: no rival at all
+    share, others, n, yielded = first_places(cands, variants, win)
+    assert (share, others, n, yielded) == (pytest.approx(2 / 5), ["fracture"], 5, [])
+    assert split_verdict(share, n)
+
+
+def test_a_verdict_first_on_no_more_than_half_of_the_discretisations_is_split_and_not_named():
+    """Seed 23's dough lifted by one end without any effect (session 71, one H200): gripper slip held on every
+    variant and was ranked first; the stiffness field gained more on the doctor's body and on 3 of the 4 variants
+    but failed on one shifted grid, so gripper slip came first on 1 of 5 discretisations and was named (confidence
+    0.05). A verdict first on at most half of its discretisations is split (``split_verdict``): the diagnosis and
+    the benchmark's rescore call it none. Where the slip comes first on 3 of 5 it is named; half of an even count
+    is no majority; a verdict compared nowhere (no rival refitted on the variants) is not split."""
+    from empm_gym.identification.doctor.core import first_places, select_verdict, split_verdict
+
+    labels = ["grid (1)", "grid (2)", "without camera 0", "without camera 1"]
+
+    def cand(name, gain, loss):
+        return {"effect": name, "heldout": {"loss": loss}, "equivalent_to_base": False,
+                "gain": {"gain": gain, "lower": gain - 0.1, "upper": gain + 0.1, "threshold": 0.04}}
+
+    def tests(gains):
+        return {"tests": [{"variant": v, "gain": g, "threshold": 0.04, "kind": "discretisation" if v.startswith("grid")
+                           else "body"} for v, g in zip(labels, gains)]}
+
+    cands = [cand("heterogeneous_stiffness", 0.434, 0.00347), cand("gripper_slip", 0.319, 0.00418),
+             cand("fracture", 0.034, 0.00593)]
+    slip = tests([0.065, 0.139, 0.443, 0.365])
+
+    def verdict(field_gains):
+        variants = {"variants": labels, "base_E": 1.5e4, "base": [], "candidates": {
+            "heterogeneous_stiffness": tests(field_gains), "gripper_slip": slip}}
+        win, before, _ = select_verdict(cands, variants)
+        share, others, n, _ = first_places(cands, variants, win)
+        return win, before, round(share * n), n, others, split_verdict(share, n)
+
+    # the field fails on the first grid: the slip ranks first, but first on 1 of 5 discretisations
+    assert verdict([-0.01, 0.175, 0.470, 0.421]) == (
+        "gripper_slip", "heterogeneous_stiffness", 1, 5, ["heterogeneous_stiffness"], True)
+    assert verdict([-0.01, 0.100, 0.470, 0.421])[2:] == (2, 5, ["heterogeneous_stiffness"], True)
+    assert verdict([-0.01, 0.100, 0.400, 0.421])[2:] == (3, 5, ["heterogeneous_stiffness"], False)
+    assert split_verdict(0.5, 6) and not split_verdict(4 / 6, 6) and not split_verdict(1.0, 0)
+    assert first_places(cands, None, "gripper_slip")[:3] == (1.0, [], 0)
 
 
 def test_a_first_candidate_fitted_outside_the_plausible_range_yields_to_a_plausible_one_about_as_good():
