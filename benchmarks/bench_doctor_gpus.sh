@@ -40,6 +40,7 @@ python3 - <<'PY'
 import json, glob, os
 keys = ["base", "base_bound_check", "candidates", "clock", "confidence", "effect", "effect_before_variants", "first_elsewhere", "first_on", "grid",
         "implausible", "indistinguishable_from", "noise_sigma_m", "not_ruled_out", "notes", "parted", "reason", "recording", "schema",
+        "split",
         "viscosity_box_raised",
         "script", "signature_m",
         "stage_wall_s",
