@@ -447,6 +447,22 @@ def test_a_winner_that_other_discretisations_rank_second_is_no_confident_verdict
     assert _first_on("plasticity", ["plasticity"], body, variants) == (1.0, [], 0)
 
 
+#: Two shifted grids and two bodies rebuilt without a camera: the variants of the verdict tests below.
+_FOUR_VARIANTS = ["grid (1)", "grid (2)", "without camera 0", "without camera 1"]
+
+
+def _variant_tests(gains):
+    """A candidate's refits on :data:`_FOUR_VARIANTS` with held-out ``gains`` (penalty 4 %)."""
+    return {"tests": [{"variant": v, "gain": g, "threshold": 0.04, "kind": "discretisation" if v.startswith("grid")
+                       else "body"} for v, g in zip(_FOUR_VARIANTS, gains)]}
+
+
+def _gain_candidate(name, gain, loss, half):
+    """A candidate of ``doctor.json`` with held-out ``gain`` (interval +- ``half``) and held-out ``loss``."""
+    return {"effect": name, "heldout": {"loss": loss}, "equivalent_to_base": False,
+            "gain": {"gain": gain, "lower": gain - half, "upper": gain + half, "threshold": 0.04}}
+
+
 def test_a_stronger_candidate_that_fails_on_one_grid_lowers_the_verdicts_confidence():
     """Block pulled apart with a hidden fracture (session 33, one H200): fracture gained 43.9 % held out and more
     than the stiffness field on both rebuilt bodies, but its refit on one shifted grid stayed at the base model;
@@ -455,15 +471,10 @@ def test_a_stronger_candidate_that_fails_on_one_grid_lowers_the_verdicts_confide
     discretisations, so since session 72 the verdict is split and none is named (``split_verdict``)."""
     from empm_gym.identification.doctor.core import _contenders, _first_on, first_places, select_verdict, split_verdict
 
-    labels = ["grid (1)", "grid (2)", "without camera 0", "without camera 1"]
+    labels, tests = _FOUR_VARIANTS, _variant_tests
 
     def cand(name, gain, loss):
-        return {"effect": name, "heldout": {"loss": loss}, "equivalent_to_base": False,
-                "gain": {"gain": gain, "lower": gain - 0.05, "upper": gain + 0.05, "threshold": 0.04}}
-
-    def tests(gains):
-        return {"tests": [{"variant": v, "gain": g, "threshold": 0.04, "kind": "discretisation" if v.startswith("grid")
-                           else "body"} for v, g in zip(labels, gains)]}
+        return _gain_candidate(name, gain, loss, 0.05)
 
     cands = [cand("fracture", 0.439, 0.0030), cand("heterogeneous_stiffness", 0.188, 0.0042),
              cand("table_friction", 0.002, 0.0050)]
@@ -491,15 +502,10 @@ def test_a_verdict_first_on_no_more_than_half_of_the_discretisations_is_split_an
     is no majority; a verdict compared nowhere (no rival refitted on the variants) is not split."""
     from empm_gym.identification.doctor.core import first_places, select_verdict, split_verdict
 
-    labels = ["grid (1)", "grid (2)", "without camera 0", "without camera 1"]
+    labels, tests = _FOUR_VARIANTS, _variant_tests
 
     def cand(name, gain, loss):
-        return {"effect": name, "heldout": {"loss": loss}, "equivalent_to_base": False,
-                "gain": {"gain": gain, "lower": gain - 0.1, "upper": gain + 0.1, "threshold": 0.04}}
-
-    def tests(gains):
-        return {"tests": [{"variant": v, "gain": g, "threshold": 0.04, "kind": "discretisation" if v.startswith("grid")
-                           else "body"} for v, g in zip(labels, gains)]}
+        return _gain_candidate(name, gain, loss, 0.1)
 
     cands = [cand("heterogeneous_stiffness", 0.434, 0.00347), cand("gripper_slip", 0.319, 0.00418),
              cand("fracture", 0.034, 0.00593)]
