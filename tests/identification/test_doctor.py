@@ -500,7 +500,7 @@ def test_a_verdict_first_on_no_more_than_half_of_the_discretisations_is_split_an
     0.05). A verdict first on at most half of its discretisations is split (``split_verdict``): the diagnosis and
     the benchmark's rescore call it none. Where the slip comes first on 3 of 5 it is named; half of an even count
     is no majority; a verdict compared nowhere (no rival refitted on the variants) is not split."""
-    from empm_gym.identification.doctor.core import first_places, select_verdict, split_verdict
+    from empm_gym.identification.doctor.core import first_places, select_verdict, split_reason, split_verdict
 
     labels, tests = _FOUR_VARIANTS, _variant_tests
 
@@ -525,6 +525,10 @@ def test_a_verdict_first_on_no_more_than_half_of_the_discretisations_is_split_an
     assert verdict([-0.01, 0.100, 0.400, 0.421])[2:] == (3, 5, ["heterogeneous_stiffness"], False)
     assert split_verdict(0.5, 6) and not split_verdict(4 / 6, 6) and not split_verdict(1.0, 0)
     assert first_places(cands, None, "gripper_slip")[:3] == (1.0, [], 0)
+    # the none's reason names both, and says which one fails on a variant
+    assert split_reason("gripper_slip", 0.319, "1 of 5", ["heterogeneous_stiffness"], ["gripper_slip"]).startswith(
+        "gripper_slip lowers the held-out loss by 31.9 % and holds on the variants, but comes first on only 1 of 5 "
+        "discretisations of the body, heterogeneous_stiffness (which fails on some variant) on the others")
 
 
 def test_a_first_candidate_fitted_outside_the_plausible_range_yields_to_a_plausible_one_about_as_good():

@@ -1514,12 +1514,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                       f"{robustness['candidates'][winner.name]['missed']}"
                       if robustness["candidates"].get(winner.name, {}).get("missed") else "")
                    if winner else
-                   (f"{split.name} lowers the held-out loss by {100 * split.test['gain']:.1f} % and holds on the "
-                    f"variants, but comes first on only {first_on} discretisations of the body, "
-                    + " and ".join(n if n in passing else f"{n} (which fails on some variant)"
-                                   for n in first_elsewhere)
-                    + " on the others: which effect explains the recording depends on how the body is "
-                      "discretised, and none is named (read the candidates)"
+                   (split_reason(split.name, split.test["gain"], first_on, first_elsewhere, passing)
                     if split is not None else
                     f"{unchecked.name} lowers the held-out loss beyond noise and its penalty, but "
                     + (f"{robustness['candidates'][unchecked.name]['why']}"
@@ -2142,6 +2137,17 @@ def split_verdict(share: float, n: int) -> bool:
     called gripper slip first on 1 of 5 with a stiffness field that fails on one variant first on the others) and
     right 3 times (2 recordings); the other 822 were right 707 times."""
     return n > 0 and share <= SPLIT_SHARE
+
+
+def split_reason(name: str, gain: float, first_on: str, elsewhere: Sequence[str], passing: Sequence[str]) -> str:
+    """A split verdict's reason (:func:`split_verdict`): candidate ``name``, held-out ``gain`` (a fraction), came
+    first on ``first_on`` (``"k of n"``) discretisations and ``elsewhere`` on the others, those not in ``passing``
+    (the candidates that hold on the variants) marked as failing on some variant."""
+    return (f"{name} lowers the held-out loss by {100 * gain:.1f} % and holds on the variants, but comes first on "
+            f"only {first_on} discretisations of the body, "
+            + " and ".join(n if n in passing else f"{n} (which fails on some variant)" for n in elsewhere)
+            + " on the others: which effect explains the recording depends on how the body is discretised, and "
+              "none is named (read the candidates)")
 
 
 def first_places(candidates: Sequence[dict], variants: Optional[dict], winner: Optional[str]
