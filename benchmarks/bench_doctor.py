@@ -419,7 +419,8 @@ def rescore(paths):
                         name: {**rec, "tests": [vanishing(t) for t in rec.get("tests", [])]}
                         for name, rec in variants["candidates"].items()}}
                 win, first, _ = select_verdict(cands, variants)
-                if split_verdict(*first_places(cands, variants, win)[::2]):
+                share, _, n_disc, _ = first_places(cands, variants, win)
+                if split_verdict(share, n_disc):
                     win = None  # no majority of the discretisations puts it first (session 72's rule)
                 res = {**res, "candidates": cands, "effect": win or "none", "effect_before_variants": first or "none"}
             rows.pop(res["recording"], None)
