@@ -531,6 +531,26 @@ def test_a_verdict_first_on_no_more_than_half_of_the_discretisations_is_split_an
         "discretisations of the body, heterogeneous_stiffness (which fails on some variant) on the others")
 
 
+
+def test_the_report_says_on_how_many_discretisations_the_verdict_comes_first():
+    """report.md's "first places" line, from doctor.json's first_on, first_elsewhere and split: a named verdict
+    with its share and the others first elsewhere, a split one with the candidate that led and why it is not named,
+    nothing where no count was made (no variants, no rival) or nothing led."""
+    from empm_gym.identification.doctor.core import first_places_text
+
+    named = {"effect": "gripper_slip", "first_on": "4 of 5", "first_elsewhere": ["fracture"], "split": None}
+    assert first_places_text(named) == ("gripper_slip is first among the significant candidates on 4 of 5 "
+                                        "discretisations of the body; fracture on the others")
+    assert first_places_text({**named, "first_on": "5 of 5", "first_elsewhere": []}).endswith("of the body")
+    split = {"effect": "none", "first_on": "1 of 5", "first_elsewhere": ["heterogeneous_stiffness", "fracture"],
+             "split": "gripper_slip"}
+    assert first_places_text(split) == (
+        "gripper_slip is first among the significant candidates on 1 of 5 discretisations of the body; "
+        "heterogeneous_stiffness and fracture on the others: no majority puts gripper_slip first, so it is not named "
+        "(split)")
+    assert first_places_text({**named, "first_on": ""}) is None
+    assert first_places_text({"effect": "none", "first_on": "", "first_elsewhere": [], "split": None}) is None
+
 def test_a_first_candidate_fitted_outside_the_plausible_range_yields_to_a_plausible_one_about_as_good():
     """Seed 19's dough pulled apart with a hidden fracture on a moved grid (session 57, one H200): fracture gained
     74.5 % held out (strain 0.24) and gripper slip 73.3 % with a grip friction of 162, far outside the 0 to 15 that

@@ -2169,6 +2169,22 @@ def first_places(candidates: Sequence[dict], variants: Optional[dict], winner: O
     return share, others, n, yielded
 
 
+def first_places_text(result: dict) -> Optional[str]:
+    """``report.md``'s line on the first places (:func:`first_places`) from ``doctor.json``'s ``effect``,
+    ``first_on``, ``first_elsewhere`` and ``split``: on how many discretisations of the body the verdict (or, where
+    it was split, the candidate that led) gains more than every other significant candidate refitted there, and
+    which others come first on the rest; None where no such count was made (no variants, or no rival)."""
+    led = result.get("split") or result.get("effect")
+    if not result.get("first_on") or led in (None, "none"):
+        return None
+    others = list(result.get("first_elsewhere") or [])
+    text = (f"{led} is first among the significant candidates on {result['first_on']} discretisations of the body"
+            + (f"; {' and '.join(others)} on the others" if others else ""))
+    if result.get("split"):
+        text += f": no majority puts {led} first, so it is not named (split)"
+    return text
+
+
 def _contenders(candidates: Sequence[dict], variants: dict) -> List[str]:
     """The candidates against which a verdict's first places are counted (:func:`_first_on`), from ``doctor.json``'s
     ``candidates`` and ``variants``: every one whose held-out gain is significant on the doctor's body, that is
@@ -2563,11 +2579,13 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
         + (", by less than the depth noise" if sig.get("marginal") else "")
         + ("" if sig["trusted"] else " (shown only: this feature does not decide for this effect)")
         + (" -- the verdict is doubted, its confidence halved" if sig["doubted"] else ""))}
+    firsts = first_places_text(result)
+    firsts_text = {} if firsts is None else {"first places": firsts}
     undecided = result.get("not_ruled_out") or []
     undecided_text = {} if not undecided else {
         "not ruled out (the held-out frames neither show nor exclude it)": ", ".join(e["effect"] for e in undecided)}
     write_report_md(d / "report.md", {k: result[k] for k in ("effect", "confidence", "reason", "decidable")} |
-                    undecided_text |
+                    undecided_text | firsts_text |
                     {"base E [Pa]": result["base"]["params"]["E"], "noise sigma [mm]": 1e3 * result["noise_sigma_m"],
                      "worst phase and region (base model)": where.get("worst_cell"),
                      "wall time [s]": f"{result['wall_time_s']:.1f} ("
