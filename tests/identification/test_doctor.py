@@ -551,6 +551,23 @@ def test_the_report_says_on_how_many_discretisations_the_verdict_comes_first():
     assert first_places_text({**named, "first_on": ""}) is None
     assert first_places_text({"effect": "none", "first_on": "", "first_elsewhere": [], "split": None}) is None
 
+
+def test_a_verdict_fitted_outside_the_plausible_range_says_so_in_its_reason():
+    """Seed 22's dough pulled apart with a fracture was named gripper slip at a grip friction of 308 (confidence 0.25,
+    session 66): the doubt stood in a note only, and the reason read like a plain fit. The reason now ends on the
+    value, its range and what it may stand for; within the range it says nothing more."""
+    from empm_gym.identification.doctor.core import implausible_clause, implausible_text
+
+    assert implausible_text({"E": 4.6e5, "grip_friction": 308.34}, {"grip_friction": (0.0, 15.0)}) == (
+        "grip_friction = 308, outside the 0 to 15 that real objects and contacts usually show")
+    assert implausible_clause({"E": 4.6e5, "grip_friction": 308.34}) == (
+        "; but its fit has grip_friction = 308, outside the 0 to 15 that real objects and contacts usually show: it "
+        "may stand in for something the catalogue lacks (read the notes and the runner-up candidates)")
+    assert implausible_clause({"E": 4.6e5, "friction": 2.6}).startswith("; but its fit has friction = 2.6, outside "
+                                                                         "the 0 to 1.5")
+    for ok in ({"E": 4.6e5, "grip_friction": 11.2}, {"E": 2e4, "viscosity": 500.0}, {"E": 2e4, "friction": 1.5}):
+        assert implausible_clause(ok) == "", ok
+
 def test_a_first_candidate_fitted_outside_the_plausible_range_yields_to_a_plausible_one_about_as_good():
     """Seed 19's dough pulled apart with a hidden fracture on a moved grid (session 57, one H200): fracture gained
     74.5 % held out (strain 0.24) and gripper slip 73.3 % with a grip friction of 162, far outside the 0 to 15 that

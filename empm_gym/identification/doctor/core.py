@@ -894,6 +894,21 @@ def implausible_params(params: Dict[str, float]) -> Dict[str, Tuple[float, float
     return out
 
 
+def implausible_text(params: Dict[str, float], implausible: Dict[str, Tuple[float, float]]) -> str:
+    """The fitted values of ``implausible`` (:func:`implausible_params` of ``params``) and their ranges, in words:
+    "grip_friction = 308, outside the 0 to 15 that real objects and contacts usually show"."""
+    return ", ".join(f"{k} = {params[k]:.3g}, outside the {lo:g} to {hi:g} that real objects and contacts usually "
+                     f"show" for k, (lo, hi) in implausible.items())
+
+
+def implausible_clause(params: Dict[str, float]) -> str:
+    """The end of a named verdict's reason where its fitted ``params`` lie outside the plausible range
+    (:func:`implausible_params`), '' where they do not: the doubt stands in the reason, not only in the notes."""
+    odd = implausible_params(params)
+    return (f"; but its fit has {implausible_text(params, odd)}: it may stand in for something the catalogue lacks "
+            f"(read the notes and the runner-up candidates)" if odd else "")
+
+
 def _window_edge(f: "_Fit", box: Tuple[float, float], loose: bool = False) -> int:
     """+1 (-1) when fit ``f``'s E ends at the upper (lower) edge of its refit window and the base model's box
     ``box`` reaches beyond that edge; else 0. At the edge: within :data:`_EDGE_FACTOR` of it, or, ``loose``,
@@ -1477,10 +1492,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     if implausible:
         confidence *= 0.5
         warnings.append(
-            f"{winner.name}'s fit has "
-            + ", ".join(f"{k} = {winner.params[k]:.3g}, outside the {lo:g} to {hi:g} that real objects and contacts "
-                        f"usually show" for k, (lo, hi) in implausible.items())
-            + f": the held-out gain is real, but {winner.name} may stand in for something the catalogue lacks (for a "
+            f"{winner.name}'s fit has {implausible_text(winner.params, implausible)}: the held-out gain is real, but {winner.name} may stand in for something the catalogue lacks (for a "
               f"table friction: adhesion, a grasp that gives, a body that rolls; for a grip friction: a body that "
               f"tears or gives at the grasp; confidence halved); read the runner-up candidates")
     for n in yielded:
@@ -1513,6 +1525,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                    + (f"; it holds on {robustness['candidates'][winner.name]['holds_on']}, not everywhere: "
                       f"{robustness['candidates'][winner.name]['missed']}"
                       if robustness["candidates"].get(winner.name, {}).get("missed") else "")
+                   + implausible_clause(winner.params)
                    if winner else
                    (split_reason(split.name, split.test["gain"], first_on, first_elsewhere, passing)
                     if split is not None else
@@ -2060,10 +2073,8 @@ def yield_note(winner: dict, other: dict) -> Optional[str]:
                f"its fit does not bring its signature ({sc.get('feature')}) closer to the measurement by more than "
                f"the depth noise")
         return head + f"{why}: {winner['effect']}, which its own signature does not doubt, is named before it"
-    return (head + "its fit has "
-            + ", ".join(f"{k} = {other['params'][k]:.3g}, outside the {lo:g} to {hi:g} that real objects and contacts "
-                        f"usually show" for k, (lo, hi) in odd.items())
-            + f": {winner['effect']}, fitted within that range, is named before it")
+    return head + (f"its fit has {implausible_text(other['params'], odd)}: {winner['effect']}, fitted within that "
+                   f"range, is named before it")
 
 
 def _yields_to(first: dict, other: dict) -> bool:
