@@ -1492,7 +1492,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     if implausible:
         confidence *= 0.5
         warnings.append(
-            f"{winner.name}'s fit has {implausible_text(winner.params, implausible)}: the held-out gain is real, but {winner.name} may stand in for something the catalogue lacks (for a "
+            f"{winner.name}'s fit has {implausible_text(winner.params, implausible)}: the held-out gain is real, "
+            f"but {winner.name} may stand in for something the catalogue lacks (for a "
               f"table friction: adhesion, a grasp that gives, a body that rolls; for a grip friction: a body that "
               f"tears or gives at the grasp; confidence halved); read the runner-up candidates")
     for n in yielded:
