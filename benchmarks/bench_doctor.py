@@ -128,7 +128,7 @@ def _effect_params(text, effects):
     would otherwise leave the defaults in place without a word)."""
     from empm_gym.sim.effects import EFFECTS
 
-    known = {p for e in effects if e != "none" for p in EFFECTS[e].param_names}
+    known = {p for e in effects if e != "none" for part in e.split("+") for p in EFFECTS[part].param_names}
     return _name_values(text, "--effect-params", known,
                         lambda k: f"{k!r} is no parameter of the effects made ({', '.join(effects)}); "
                                   f"theirs: {', '.join(sorted(known)) or 'none'}")
@@ -157,12 +157,20 @@ def make(args):
     from empm_gym.identification.data import trimmed_body, view_jackknife_bodies
     from empm_gym.identification.doctor import DEFAULT_DX, load_for_doctor
     from empm_gym.perception.scripts import SCRIPTS
-    from empm_gym.perception.synth import SPRINGMASS_EFFECTS, effect_signature, synthesize
+    from empm_gym.perception.synth import SPRINGMASS_EFFECTS, effect_material, effect_signature, synthesize
     from empm_gym.sim.effects import EFFECTS
 
     sm = args.simulator == "springmass"
     effects = (["none", *(SPRINGMASS_EFFECTS if sm else EFFECTS)] if args.effects == "all" else
                args.effects.split(","))
+    for effect in effects:  # two effects at once: "plasticity+table_friction"
+        parts = effect.split("+")
+        bad = [e for e in parts if e not in EFFECTS and not (e == "none" and len(parts) == 1)]
+        if bad or len(parts) > 2 or len(set(parts)) < len(parts):
+            raise SystemExit(f"--effects: {effect!r} is not none, an effect or two different effects joined by '+' "
+                             f"(effects: {', '.join(EFFECTS)})")
+        if len(parts) == 2 and (args.vary_physics or sm):
+            raise SystemExit(f"--effects {effect}: two effects at once are made without --vary-physics, by the MPM")
     refused = sorted(set(effects) - {"none", *SPRINGMASS_EFFECTS}) if sm else []
     if refused:
         raise SystemExit(f"--simulator springmass makes only none, {', '.join(SPRINGMASS_EFFECTS)}; got "
@@ -180,7 +188,9 @@ def make(args):
     if unknown:
         raise SystemExit(f"--only-scripts / --every-effect-on: unknown script(s) {unknown}; known: {', '.join(SCRIPTS)}")
     for effect in effects:
-        scripts = list(dict.fromkeys([NATURAL[effect], second_script(args.object, effect), FIRST_OTHER[effect]]))
+        parts = effect.split("+")
+        scripts = (list(dict.fromkeys([NATURAL[effect], second_script(args.object, effect), FIRST_OTHER[effect]]))
+                   if len(parts) == 1 else list(dict.fromkeys(NATURAL[e] for e in parts)))  # each one's natural
         scripts = scripts[: args.scripts]
         if effect == "none":
             scripts = list(SCRIPTS)  # an invented effect may hide on any script: none runs on all of them
@@ -190,7 +200,8 @@ def make(args):
             scripts = every_on
         for script in scripts:
             for seed in range(args.first_seed, args.first_seed + args.seeds):
-                eparams = {k: v for k, v in params.items() if effect != "none" and k in EFFECTS[effect].param_names}
+                eparams = {k: v for k, v in params.items()
+                           if effect != "none" and any(k in EFFECTS[e].param_names for e in parts)}
                 name = (("sm_" if sm else "") + ("v_" if args.vary_physics else "")
                         + f"{args.object}-{script}-{seed}-{effect}"
                         + "".join(f"-{k}{v:g}" for k, v in {**base, **eparams}.items()))
@@ -229,10 +240,18 @@ def make(args):
                         _write_problem(out / f"{name}.pkl", prob)
                     print(f"{name}: kept, held-out signature {1e3 * prob['signature_m']:.2f} mm", flush=True)
                     continue
-                synthesize(rec, args.object, script=script, effect=effect, effect_params=eparams or None,
-                           **seed_base, frames=args.frames, cameras=args.cameras, dx=synth_dx,
-                           width=args.width, height=args.height, seed=seed, overwrite=True, progress=False,
-                           tangent_splats=args.tangent_splats, **seed_kw)
+                if len(parts) == 2:  # the first effect in the material, the second added by the synthesiser
+                    first = effect_material(args.object, parts[0], {k: v for k, v in eparams.items() if k in
+                                                                    EFFECTS[parts[0]].param_names} or None,
+                                            **seed_base)[0]
+                    kw = dict(effect=parts[1], material=first,
+                              effect_params={k: v for k, v in eparams.items() if k in EFFECTS[parts[1]].param_names}
+                              or None)
+                else:
+                    kw = dict(effect=effect, effect_params=eparams or None, **seed_base)
+                synthesize(rec, args.object, script=script, **kw, frames=args.frames, cameras=args.cameras,
+                           dx=synth_dx, width=args.width, height=args.height, seed=seed, overwrite=True,
+                           progress=False, tangent_splats=args.tangent_splats, **seed_kw)
                 gt = json.loads((rec / "ground_truth.json").read_text())
                 truth = [e["name"] for e in gt["effects"]]
                 try:
@@ -242,7 +261,7 @@ def make(args):
                     print(f"{name}: skipped, the recording cannot be loaded: {e}", flush=True)
                     continue
                 obs = _subsample(obs, seed, args.max_points)
-                prob = {"scene": scene, "obs": obs, "truth": truth[0] if truth else "none", "script": script,
+                prob = {"scene": scene, "obs": obs, "truth": "+".join(truth) or "none", "script": script,
                         "object": args.object, "seed": seed, "truth_params": eparams, "body_notes": notes,
                         "base_params": seed_base,
                         "synth_dx": synth_dx, "trim_to_surface": args.trim_bodies, "simulator": args.simulator,
@@ -253,9 +272,9 @@ def make(args):
                            if args.view_bodies else {}),
                         **({"trimmed_body": trimmed_body(rec, scene, particles_per_cell=args.ppc)}
                            if args.trimmed_body else {}),
-                        "signature_m": effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
-                                                        effect_params=eparams or None, base_params=seed_base,
-                                                        dx=synth_dx, **seed_kw)}
+                        "signature_m": None if len(parts) == 2 else effect_signature(
+                            args.object, script, effect, frames=args.frames, seed=seed, effect_params=eparams or None,
+                            base_params=seed_base, dx=synth_dx, **seed_kw)}
                 _write_problem(out / f"{name}.pkl", prob)
                 print(f"{name}: {len(scene.particles)} particles, {obs.num_frames} frames "
                       f"({time.perf_counter() - t0:.1f} s)", flush=True)
@@ -276,7 +295,7 @@ def diagnose_all(problems: Path, args):
     from empm_gym.identification.doctor import DoctorConfig, diagnose
 
     cfg = DoctorConfig(base_iters=args.iters, candidate_iters=args.iters, popsize=args.popsize, variants=args.variants,
-                       robust_verdict=not args.no_robust, deterministic=args.deterministic)
+                       robust_verdict=not args.no_robust, deterministic=args.deterministic, rounds=args.rounds)
     rows = []
     k, n = (int(v) for v in args.shard.split("/"))
     paths = sorted(Path(problems).glob("*.pkl"))[k::n]
@@ -316,8 +335,13 @@ def diagnose_all(problems: Path, args):
         sig = float("nan") if row["signature_m"] is None else 1e3 * row["signature_m"]
         print(f"{path.stem:48s} truth {truth:24s} (signature {sig:5.2f} mm) verdict {verdict:24s} "
               f"conf {row['confidence']:.2f} held-out Chamfer reduction (true effect) {100 * red:6.1f} %  "
-              f"{wall:6.1f} s", flush=True)
-    summarise(rows)
+              f"{wall:6.1f} s" + (f"  effects named in {args.rounds} rounds: {' + '.join(row['effects']) or 'none'}"
+                                  if args.rounds > 1 else ""), flush=True)
+    single = [r for r in rows if "+" not in r["truth"]]
+    if single:
+        summarise(single)
+    if args.rounds > 1:
+        summarise_rounds(rows)
 
 
 def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: float, parted=None) -> dict:
@@ -336,7 +360,7 @@ def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: flo
         before_trim = select_verdict(res["candidates"], untrimmed)[0] or "none"
     if res.get("candidates"):
         c_base, l_base = res["base"]["heldout"]["chamfer_m"], res["base"]["heldout"]["loss"]
-    if truth != "none" and res.get("candidates"):
+    if truth != "none" and "+" not in truth and res.get("candidates"):
         c_true = next(c for c in res["candidates"] if c["effect"] == truth)["heldout"]["chamfer_m"]
         red = 1.0 - c_true / c_base
     # the named effect's check against its own signature (doctor.json's evidence; a slim --dump line keeps it at
@@ -349,7 +373,55 @@ def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: flo
             "signature_doubted": sig.get("doubted"), "wall_s": wall_s, "stage_wall_s": res.get("stage_wall_s"),
             "not_ruled_out": [e["effect"] for e in not_ruled_out(res.get("candidates") or [], res["effect"])],
             "parted": parted, "clock_change": (res.get("clock") or {}).get("change"), "before_trim": before_trim,
-            "trim_checked": trim_checked}
+            "trim_checked": trim_checked, **_rounds_columns(res, c_base)}
+
+
+def _rounds_columns(res: dict, c_base: float) -> dict:
+    """A diagnosis in rounds (``res["rounds"]``, :attr:`DoctorConfig.rounds`): the effects named, each round's
+    verdict and confidence, and the held-out Chamfer of the last model named (round 1's base model where none was);
+    {} for one round."""
+    if "rounds" not in res:
+        return {}
+    final = c_base
+    if res["effect"] != "none" and res.get("candidates"):
+        final = next(c for c in res["candidates"] if c["effect"] == res["effect"])["heldout"]["chamfer_m"]
+    for r in res["rounds"]:
+        if r["effect"] != "none" and r.get("effect_heldout_chamfer_m") is not None:
+            final = r["effect_heldout_chamfer_m"]
+    return {"effects": list(res.get("effects") or []),
+            "round_verdicts": [(res["effect"], res.get("confidence"))] + [(r["effect"], r["confidence"])
+                                                                           for r in res["rounds"]],
+            "final_chamfer_m": final}
+
+
+def summarise_rounds(rows) -> None:
+    """The table of diagnoses in rounds: per recording its effects and those named round by round; for the
+    recordings with two effects how often both were named, for the others how often a further effect was named on
+    top of the right first verdict (an effect invented by a later round)."""
+    rows = [r for r in rows if "effects" in r]
+    if not rows:
+        return
+    print(f"\n=== diagnoses in rounds ({len(rows)} recordings)")
+    for r in rows:
+        truth = [] if r["truth"] == "none" else r["truth"].split("+")
+        verdicts = ", ".join(f"{e} {c:.2f}" for e, c in r["round_verdicts"])
+        print(f"  {r['recording']:48s} truth {' + '.join(truth) or 'none':38s} rounds: {verdicts:48s} held-out "
+              f"Chamfer {1e3 * r['base_chamfer_m']:.2f} -> {1e3 * r['final_chamfer_m']:.2f} mm")
+    two = [r for r in rows if "+" in r["truth"]]
+    if two:
+        both = sum(set(r["effects"]) == set(r["truth"].split("+")) for r in two)
+        first = sum(bool(r["effects"]) and r["effects"][0] in r["truth"].split("+") for r in two)
+        wrong = sum(any(e not in r["truth"].split("+") for e in r["effects"]) for r in two)
+        red = [1.0 - r["final_chamfer_m"] / r["base_chamfer_m"] for r in two]
+        print(f"two effects: both named {both} of {len(two)}; the first verdict one of them {first}; an effect named "
+              f"that the recording lacks {wrong}; median held-out Chamfer reduction of the last model named "
+              f"{_median_pct(red)}")
+    one = [r for r in rows if "+" not in r["truth"]]
+    if one:
+        right = [r for r in one if (r["effects"][:1] or ["none"])[0] == r["truth"]]
+        extra = [r["recording"] for r in right if len(r["effects"]) > (r["truth"] != "none")]
+        print(f"one effect or none: the first verdict right on {len(right)} of {len(one)}; of those, a further effect "
+              f"named by a later round on {len(extra)}" + (f" ({', '.join(extra)})" if extra else ""))
 
 
 def _write_problem(path: Path, prob: dict) -> None:
@@ -958,6 +1030,9 @@ def _parser():
     p.add_argument("--device", default="cpu")
     p.add_argument("--variants", type=int, default=2, help="discretisation variants a named effect must hold on")
     p.add_argument("--no-robust", action="store_true", help="record the variants' gains, verdict without them")
+    p.add_argument("--rounds", type=int, default=1,
+                   help="diagnoses in a row (DoctorConfig.rounds): each named effect added to the base model and the "
+                        "others tried on top; for recordings with two effects (--effects a+b)")
     p.add_argument("--deterministic", action="store_true",
                    help="every simulation the same to the bit on every run (DoctorConfig.deterministic)")
     p.add_argument("--view-bodies", action="store_true",

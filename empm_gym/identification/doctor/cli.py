@@ -17,7 +17,8 @@ def _doctor(args) -> int:
     try:
         cfg = DoctorConfig(train_fraction=args.train_fraction, base_iters=args.iters, candidate_iters=args.iters,
                            popsize=args.popsize, variants=args.variants, variant_iters=args.variant_iters,
-                           viscosity_raise=args.viscosity_raise, deterministic=args.deterministic)
+                           viscosity_raise=args.viscosity_raise, deterministic=args.deterministic,
+                           rounds=args.rounds)
         res = diagnose_recording(args.rec_dir, out_dir=args.out, base=args.base, config=cfg, dx=args.dx,
                                  particles_per_cell=args.particles_per_cell, device=args.device,
                                  progress=not args.quiet, effects=effects, view_bodies=not args.no_view_bodies,
@@ -43,6 +44,20 @@ def _doctor(args) -> int:
                   f"{100 * g.get('gain', float('nan')):+.1f} %{test} {word}; fitted {fitted_text(c)}")
     for n in res.get("notes", []):
         print(f"  note: {n}")
+    for r in res.get("rounds", ()):
+        b, e = r["base_heldout_chamfer_m"], r["effect_heldout_chamfer_m"]
+        print(f"round {r['round']} (the base model with {', '.join(r['base_effects'])}): {r['effect']}  (confidence "
+              f"{r['confidence']:.2f})")
+        print(f"  {r['reason']}")
+        if b is not None:
+            print(f"  held-out Chamfer {1e3 * b:.2f} mm" + (f" -> {1e3 * e:.2f} mm with {r['effect']}" if e else ""))
+        if r.get("dir"):
+            print(f"  its report: {r['dir']}/report.md")
+    if "effects" in res:
+        last = next((r["dir"] for r in reversed(res["rounds"]) if r["effect"] != "none" and r.get("dir")), None)
+        where = f"{last}/material.json" if last else res.get("files", {}).get("material")
+        print(f"effects named: {', '.join(res['effects']) or 'none'}" + (f"; the material with all of them: {where}"
+                                                                        if res["effects"] and where else ""))
     print(f"wrote {', '.join(res.get('files', {}).values())}")
     return 0
 
@@ -99,5 +114,9 @@ def register(subparsers) -> None:
     p.add_argument("--deterministic", action="store_true",
                    help="the same result to the bit on every run, on a GPU too (64-bit integer sums in P2G, "
                         "at some speed cost; CPU runs are deterministic either way)")
+    p.add_argument("--rounds", type=int, default=1,
+                   help="diagnoses in a row: where one names an effect, the next fits the base model with it and "
+                        "tries the catalogue's other effects on top, for a recording that lacks more than one "
+                        "(default 1; each round costs about one diagnosis more, its outputs in OUT/round2, ...)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_doctor)

@@ -15,7 +15,8 @@ import numpy as np
 from ..report import _plt, _save
 
 __all__ = ["PHASE_COLOURS", "plot_residual_timeline", "plot_residual_heatmap", "plot_candidate_gains",
-           "plot_heldout_gap", "gap_rows", "gap_summary", "write_report_md"]
+           "plot_heldout_gap", "gap_rows", "gap_summary", "plot_rounds_gap", "rounds_rows", "rounds_section",
+           "write_report_md"]
 
 #: The metrics of the held-out gap (``doctor.json``'s ``gap``): key, axis label, factor from SI, higher is better.
 GAP_METRICS = (("chamfer_m", "Chamfer (mm)", 1e3, False), ("track_median_m", "median tracking error (mm)", 1e3, False),
@@ -245,6 +246,72 @@ def gap_summary(gap: Mapping) -> str:
                      + (f" -> {e * scale:.{1 if scale != 1.0 else 2}f}" if e is not None else "") + unit)
     who = f"base model -> with {gap['effect']}" if "effect" in tot else "base model"
     return f"held-out frames, {who}: " + ", ".join(parts)
+
+
+def rounds_rows(first: Mapping) -> list:
+    """One row per round of a diagnosis in rounds (``first``: the first round's result, with ``rounds``): the
+    effects its base model holds, that model's held-out Chamfer (mm), the verdict, the held-out Chamfer with it,
+    the confidence and the round's report."""
+    rows = [{"round": 1, "base model": "elastic", "held-out Chamfer, base model [mm]":
+             1e3 * first["base"]["heldout"]["chamfer_m"], "verdict": first["effect"],
+             "held-out Chamfer with it [mm]": _named_chamfer_mm(first), "confidence": first["confidence"],
+             "report": "report.md"}]
+    for r in first.get("rounds", ()):
+        b = r.get("base_heldout_chamfer_m")
+        e = r.get("effect_heldout_chamfer_m")
+        rows.append({"round": r["round"], "base model": "elastic + " + " + ".join(r["base_effects"]),
+                     "held-out Chamfer, base model [mm]": np.nan if b is None else 1e3 * b, "verdict": r["effect"],
+                     "held-out Chamfer with it [mm]": np.nan if e is None else 1e3 * e,
+                     "confidence": r["confidence"],
+                     "report": "" if not r.get("dir") else f"{Path(r['dir']).name}/report.md"})
+    return rows
+
+
+def _named_chamfer_mm(result: Mapping) -> float:
+    c = next((c for c in result.get("candidates", ()) if c["effect"] == result["effect"]), None)
+    return np.nan if c is None else 1e3 * c["heldout"]["chamfer_m"]
+
+
+def plot_rounds_gap(rows: Sequence[Mapping], noise_sigma_m: float, path, title: str = ""):
+    """Bars of the held-out Chamfer (mm) of the elastic model and of each model a round named (``rows``:
+    :func:`rounds_rows`), the effects added left to right, with the depth noise as a line: what stays above it
+    after the last round is what no effect of the catalogue explains."""
+    plt = _plt()
+    labels = ["elastic"]
+    values = [rows[0]["held-out Chamfer, base model [mm]"]]
+    for r in rows:
+        if r["verdict"] != "none" and np.isfinite(r["held-out Chamfer with it [mm]"]):
+            labels.append(f"+ {r['verdict'].replace('_', ' ')}\n(round {r['round']}, {r['confidence']:.2f})")
+            values.append(r["held-out Chamfer with it [mm]"])
+    x = np.arange(len(values))
+    fig, ax = plt.subplots(figsize=(max(4.0, 1.8 * len(values) + 1.5), 3.6))
+    ax.bar(x, values, 0.6, color=["0.6"] + ["tab:green"] * (len(values) - 1), label="held-out Chamfer")
+    for i, v in enumerate(values):
+        ax.text(x[i], v, f"{v:.2f}", ha="center", va="bottom", fontsize=8)
+    ax.axhline(1e3 * noise_sigma_m, color="k", ls="--", lw=1, label=f"depth noise ({1e3 * noise_sigma_m:.2f} mm)")
+    ax.set_xticks(x)
+    ax.set_xticklabels(labels, fontsize=8)
+    ax.set_ylabel("held-out Chamfer (mm)")
+    ax.set_ylim(0, 1.25 * max(max(values), 1e3 * noise_sigma_m, 1e-3))
+    ax.set_title(title, fontsize=10)
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(fontsize=8)
+    return _save(plt, fig, path)
+
+
+def rounds_section(first: Mapping, rows: Sequence[Mapping], figure: str) -> str:
+    """The markdown section of ``report.md`` on the later rounds (``rows``: :func:`rounds_rows`; ``figure``: the
+    :func:`plot_rounds_gap` file beside the report)."""
+    named = first.get("effects") or []
+    lines = ["## Further rounds: the named effect in the base model, the catalogue's others tried again", "",
+             "Each round fits the base model with every effect named before it (at its fitted values, E fitted "
+             "again) and judges the catalogue's other effects by the same rules: a round names another effect "
+             "only if it still gains beyond noise, its penalty and the variants.", "",
+             f"**Effects named: {', '.join(named) if named else 'none'}**", "", _table_md(rows)]
+    for r in first.get("rounds", ()):
+        lines += [f"- round {r['round']}: {r['effect']} ({r['confidence']:.2f}): {_fmt(r['reason'])}"]
+    lines += ["", f"![held-out Chamfer round by round]({figure})", ""]
+    return "\n".join(lines)
 
 
 # ----------------------------------------------------------------------------- markdown
