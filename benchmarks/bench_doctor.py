@@ -274,11 +274,27 @@ def make(args):
                            if args.trimmed_body else {}),
                         "signature_m": None if len(parts) == 2 else effect_signature(
                             args.object, script, effect, frames=args.frames, seed=seed, effect_params=eparams or None,
-                            base_params=seed_base, dx=synth_dx, **seed_kw)}
+                            base_params=seed_base, dx=synth_dx, **seed_kw),
+                        # two effects: how much each shows on top of the other (what a second round can see)
+                        **({"signatures": pair_signatures(args.object, script, parts, eparams, seed_base,
+                                                          frames=args.frames, seed=seed, dx=synth_dx, **seed_kw)}
+                           if len(parts) == 2 else {})}
                 _write_problem(out / f"{name}.pkl", prob)
                 print(f"{name}: {len(scene.particles)} particles, {obs.num_frames} frames "
                       f"({time.perf_counter() - t0:.1f} s)", flush=True)
     return out
+
+
+def pair_signatures(obj: str, script: str, parts, eparams: dict, base: dict, **kwargs) -> dict:
+    """``{effect: signature [m]}`` of each of two effects on top of the other (:func:`effect_signature` with the
+    other effect in the base material): what a recording with both shows of the one a first round did not name."""
+    from empm_gym.perception.synth import effect_material, effect_signature
+    from empm_gym.sim.effects import EFFECTS
+
+    own = {e: {k: v for k, v in eparams.items() if k in EFFECTS[e].param_names} or None for e in parts}
+    return {e: effect_signature(obj, script, e, effect_params=own[e], material=effect_material(
+                obj, other, own[other], **base)[0], **kwargs)
+            for e, other in (parts, parts[::-1])}
 
 
 def _subsample(obs, seed: int, max_points: int):
@@ -324,9 +340,12 @@ def diagnose_all(problems: Path, args):
             (Path(args.dump) / f"{path.stem}.json").write_text(json.dumps(_jsonable(
                 {**res, "recording": path.stem, "truth": prob["truth"], "script": prob["script"],
                  "signature_m": prob.get("signature_m"), "parted": prob.get("parted"),
+                 **({"signatures": prob["signatures"]} if "signatures" in prob else {}),
                  "wall_s": wall})))
         truth, verdict = prob["truth"], res["effect"]
         row = _row(res, truth, path.stem, prob["script"], prob.get("signature_m"), wall, prob.get("parted"))
+        if "signatures" in prob:
+            row["signatures"] = prob["signatures"]
         red = row["reduction"]
         rows.append(row)
         if args.jsonl:
@@ -337,11 +356,7 @@ def diagnose_all(problems: Path, args):
               f"conf {row['confidence']:.2f} held-out Chamfer reduction (true effect) {100 * red:6.1f} %  "
               f"{wall:6.1f} s" + (f"  effects named in {args.rounds} rounds: {' + '.join(row['effects']) or 'none'}"
                                   if args.rounds > 1 else ""), flush=True)
-    single = [r for r in rows if "+" not in r["truth"]]
-    if single:
-        summarise(single)
-    if args.rounds > 1:
-        summarise_rounds(rows)
+    summarise(rows)
 
 
 def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: float, parted=None) -> dict:
@@ -373,7 +388,8 @@ def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: flo
             "signature_doubted": sig.get("doubted"), "wall_s": wall_s, "stage_wall_s": res.get("stage_wall_s"),
             "not_ruled_out": [e["effect"] for e in not_ruled_out(res.get("candidates") or [], res["effect"])],
             "parted": parted, "clock_change": (res.get("clock") or {}).get("change"), "before_trim": before_trim,
-            "trim_checked": trim_checked, **_rounds_columns(res, c_base)}
+            "trim_checked": trim_checked, **_rounds_columns(res, c_base),
+            **({"signatures": res["signatures"]} if res.get("signatures") else {})}
 
 
 def _rounds_columns(res: dict, c_base: float) -> dict:
@@ -416,6 +432,14 @@ def summarise_rounds(rows) -> None:
         print(f"two effects: both named {both} of {len(two)}; the first verdict one of them {first}; an effect named "
               f"that the recording lacks {wrong}; median held-out Chamfer reduction of the last model named "
               f"{_median_pct(red)}")
+        # the effect the first round did not name, and how much it shows on top of the one it named
+        rest = [(r, next(e for e in r["truth"].split("+") if e != r["effects"][0])) for r in two
+                if r.get("signatures") and r["effects"] and r["effects"][0] in r["truth"].split("+")]
+        shown = [(r, e) for r, e in rest if r["signatures"][e] >= EXPRESSED_M]
+        if rest:
+            print(f"  the other effect, where it shows by {1e3 * EXPRESSED_M:g} mm or more held out on top of the first: "
+                  f"named {sum(e in r['effects'] for r, e in shown)} of {len(shown)}; where it shows less: named "
+                  f"{sum(e in r['effects'] for r, e in rest if (r, e) not in shown)} of {len(rest) - len(shown)}")
     one = [r for r in rows if "+" not in r["truth"]]
     if one:
         right = [r for r in one if (r["effects"][:1] or ["none"])[0] == r["truth"]]
@@ -780,7 +804,16 @@ def _clock_damping(rows, penalty: Optional[float] = None) -> None:
 def summarise(rows, floor_rows=()):
     """The tables of result rows: the benchmark's set (each effect on its natural and second script) first,
     then any other recordings (the first runs' second scripts) on their own. With ``floor_rows``
-    (:func:`floors`), the reduction each effect recording could show at most, beside the one it shows."""
+    (:func:`floors`), the reduction each effect recording could show at most, beside the one it shows. Rows of
+    diagnoses in rounds (``--rounds``) are tallied once more in their own table (:func:`summarise_rounds`), the
+    recordings with two effects only there."""
+    in_rounds, rows = rows, [r for r in rows if "+" not in r["truth"]]
+    if rows:
+        _summarise_one(rows, floor_rows)
+    summarise_rounds(in_rounds)
+
+
+def _summarise_one(rows, floor_rows=()):
     bench = [r for r in rows if r["truth"] == "none" or r.get("script") in
              (NATURAL[r["truth"]], second_script(object_of(r["recording"]), r["truth"]))]
     rest = [r for r in rows if r not in bench]

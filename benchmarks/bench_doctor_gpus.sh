@@ -56,7 +56,7 @@ with open(os.environ["OUT"] + "/slim.jsonl", "w") as f:
         s["control_lag"] = r.get("control_lag")
         s["heldout_per_frame"] = r.get("heldout_per_frame")  # per-frame losses: a later rule's bootstrap can rescore
         if "rounds" in r:  # --rounds: the later rounds' summaries (each one's whole result is in the dump)
-            s["effects"] = r["effects"]
+            s["effects"], s["signatures"] = r["effects"], r.get("signatures")
             s["rounds"] = [{k: v for k, v in x.items() if k != "result"} for x in r["rounds"]]
         f.write(json.dumps(s) + "\n")
 PY

@@ -654,6 +654,9 @@ def test_make_with_two_effects_records_both_and_scores_against_both(bench, tmp_p
     with open(tmp_path / "prob" / f"{names[0]}.pkl", "rb") as f:
         prob = pickle.load(f)
     assert prob["truth"] == "plasticity+table_friction" and prob["signature_m"] is None
+    # what each shows on top of the other, for the rounds' tally (a second round can only see that much)
+    assert set(prob["signatures"]) == {"plasticity", "table_friction"}
+    assert all(v >= 0.0 and v == v for v in prob["signatures"].values())
     gt = json.loads((tmp_path / "rec" / names[0] / "ground_truth.json").read_text())
     assert [e["name"] for e in gt["effects"]] == ["plasticity", "table_friction"]
     assert gt["effects"][1]["params"] == {"friction": 0.1}
@@ -682,8 +685,10 @@ def test_diagnoses_in_rounds_are_tallied_against_every_effect_of_the_recording(b
         return {"recording": name, "truth": truth, "effects": effects, "round_verdicts": verdicts,
                 "base_chamfer_m": 0.004, "final_chamfer_m": final}
 
-    bench.summarise_rounds([row("a", "plasticity+table_friction", ["table_friction", "plasticity"], 0.001),
-                            row("b", "gripper_slip+plasticity", ["gripper_slip"], 0.002),
+    bench.summarise_rounds([{**row("a", "plasticity+table_friction", ["table_friction", "plasticity"], 0.001),
+                             "signatures": {"plasticity": 0.0013, "table_friction": 0.05}},
+                            {**row("b", "gripper_slip+plasticity", ["gripper_slip"], 0.002),
+                             "signatures": {"plasticity": 0.0004, "gripper_slip": 0.01}},
                             row("c", "gripper_slip+fracture", ["viscosity"], 0.003),
                             row("d", "plasticity", ["plasticity"], 0.002),
                             row("e", "table_friction", ["table_friction", "viscosity"], 0.001),
@@ -692,5 +697,7 @@ def test_diagnoses_in_rounds_are_tallied_against_every_effect_of_the_recording(b
     out = capsys.readouterr().out
     assert "two effects: both named 1 of 3; the first verdict one of them 2; an effect named that the recording " \
            "lacks 1; median held-out Chamfer reduction of the last model named 50.0 %" in out
+    assert "the other effect, where it shows by 1 mm or more held out on top of the first: named 1 of 1; where it " \
+           "shows less: named 0 of 1" in out
     assert "one effect or none: the first verdict right on 3 of 4; of those, a further effect named by a later round " \
            "on 1 (e)" in out

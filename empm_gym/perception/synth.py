@@ -477,19 +477,20 @@ def _simulate_springmass(mpm_model, material, pos, grip, ee_cfgs, grid, *, fps: 
 
 def effect_signature(object: str, script: str, effect: str, *, frames: int = 30, held_out: float = 0.3,
                      effect_params: Optional[Dict[str, float]] = None,
-                     base_params: Optional[Dict[str, float]] = None, **kwargs) -> float:
+                     base_params: Optional[Dict[str, float]] = None, material=None, **kwargs) -> float:
     """How much a recording can show of ``effect``: the mean Chamfer distance [m], over the last ``held_out``
     of the frames (what a fit holds out), between the particles of ``object`` run through ``script`` with the
     effect (its defaults, updated by ``effect_params``) and without it (``simulate`` kwargs pass on). Below the
     depth noise (about 1 mm) the effect is practically not in the recording. ``base_params`` (E, nu, density)
-    replace the object's base material, as :func:`synthesize`'s arguments of those names do. For benchmarks and
-    tests: it needs the true material."""
+    replace the object's base material, as :func:`synthesize`'s arguments of those names do; ``material`` (a
+    MaterialConfig, with another effect, say) is the base the effect is added to, as :func:`synthesize`'s is. For
+    benchmarks and tests: it needs the true material."""
     from empm_gym.identification.losses import chamfer_numpy
 
     if effect in (None, "none"):
         return 0.0
-    a, b = [simulate(object, effect_material(object, e, p, **(base_params or {}))[0], script=script, frames=frames,
-                     **kwargs)["particles"]
+    a, b = [simulate(object, effect_material(object, e, p, base=material, **(base_params or {}))[0], script=script,
+                     frames=frames, **kwargs)["particles"]
             for e, p in (("none", None), (effect, effect_params))]
     first = min(frames - 1, int(round((1.0 - held_out) * frames)))
     return float(np.mean([chamfer_numpy(a[t], b[t]) for t in range(first, frames)]))
