@@ -2205,7 +2205,11 @@ def test_a_second_round_adds_the_named_effect_to_the_base_model_and_names_anothe
     together, and names the plasticity, which brings the held-out Chamfer down again with both parameters near
     the truth. The table's friction, written into the first round's material at the assumed 0.5, stays a
     candidate. doctor.json keeps each later round's summary, its whole result in its own folder, which holds the
-    material with both effects; report.md shows the rounds."""
+    material with both effects; report.md shows the rounds. (With the grip friction frozen at the first round's
+    1.6, a plasticity gained 17 % here. With the previous round's model in the base fit's first generation, the
+    plasticity's search missed its basin, and its lattice, which took the grip friction beside the yield stress for a
+    second parameter of its own and scanned neither, did not find it: a table friction of 0.17 was named. The
+    lattice scans the added effect's parameter, the base model's own at their fitted values.)"""
     from empm_gym.identification.doctor.core import candidate_params
     from empm_gym.sim import MaterialConfig
     from empm_gym.sim.material_file import read_material
@@ -2236,9 +2240,10 @@ def test_a_second_round_adds_the_named_effect_to_the_base_model_and_names_anothe
     assert plast["heldout"]["chamfer_m"] < 0.5 * r2["base"]["heldout"]["chamfer_m"]
     assert second["base_heldout_chamfer_m"] == r2["base"]["heldout"]["chamfer_m"]
     assert second["effect_heldout_chamfer_m"] == plast["heldout"]["chamfer_m"]
-    # both parameters recovered by the joint fit of the second round
+    # the yield stress recovered, and the grip friction, fitted again beside it, moved from the first round's
+    # toward the truth (0.5): the first round's slip had stood in for part of the yielding
     assert plast["params"]["yield_stress"] == pytest.approx(150.0, rel=0.3)
-    assert 0.25 < plast["params"]["grip_friction"] < 1.0
+    assert 0.5 < plast["params"]["grip_friction"] < 0.8 * slip["params"]["grip_friction"]
     # the files: the summary in doctor.json (the whole result in round2/), the material with both effects
     d = tmp_path / "doc"
     stored = json.loads((d / "doctor.json").read_text())

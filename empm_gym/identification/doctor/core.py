@@ -1034,19 +1034,22 @@ PROBE_MARGIN = 0.01
 _PROBE_RATIOS = {"yield_stress": (0.01, 1.0, 9)}
 
 
-def _probe_points(f: "_Fit", popsize: int) -> List[Dict[str, float]]:
+def _probe_points(f: "_Fit", popsize: int, carried: Sequence[str] = ()) -> List[Dict[str, float]]:
     """A coarse lattice over candidate ``f``'s box (:func:`_probed`): E at four points spread in log E over its
     window, at its edges (just inside) and a third of the way in from each, the middle left out (the first
     generation's scan holds the base fit's E, :func:`_effect_starts`); with each E, a candidate with one effect
     parameter takes that parameter at the first generation's scan of it, or, for one of :data:`_PROBE_RATIOS`,
-    at its ratios to that E (clipped to the box); one with more, its fitted values."""
+    at its ratios to that E (clipped to the box); one with more, its fitted values. The base model's own effect
+    parameters (``carried``, :attr:`DoctorConfig.carried`) stay at their fitted values in every point."""
     lo, hi = f.bounds["E"]
     Es = np.geomspace(lo * 1.01, hi / 1.01, 7)[[0, 2, 4, 6]] if hi > lo * 1.03 else []
-    ps = [p for p in f.params if p != "E"]
+    keep = {p: f.params[p] for p in carried if p in f.params}
+    ps = [p for p in f.params if p != "E" and p not in keep]
     if len(ps) != 1:
         fixed = [{p: f.params[p] for p in ps}]
     elif ps[0] not in _PROBE_RATIOS:
-        fixed = [{k: v for k, v in st.items() if k != "E"} for st in _effect_starts(f.bounds, lo, popsize)[1:]]
+        fixed = [{k: v for k, v in st.items() if k != "E" and k not in keep}
+                 for st in _effect_starts(f.bounds, lo, popsize, keep)[1:]]
     out = []
     for E in Es:
         if len(ps) == 1 and ps[0] in _PROBE_RATIOS:
@@ -1055,7 +1058,7 @@ def _probe_points(f: "_Fit", popsize: int) -> List[Dict[str, float]]:
         else:
             sets = fixed
         for st in sets:
-            pt = {"E": float(E), **st}
+            pt = {"E": float(E), **keep, **st}
             if pt not in out:
                 out.append(pt)
     return out
@@ -1083,7 +1086,7 @@ def _probed(fits: Sequence["_Fit"], scene: Scene, obs: Observations, base_materi
 
     todo = []
     for i, f in enumerate(fits):
-        pts = _probe_points(f, cfg.popsize) if i and f.scene is not None else []
+        pts = _probe_points(f, cfg.popsize, cfg.carried) if i and f.scene is not None else []
         if pts:
             sc = _fit_scene(f.scene, f.start_material, tuple(f.params))
             todo.append((i, (sc, dict(params=tuple(f.params), method="cmaes", init=dict(f.params),
@@ -1316,9 +1319,11 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     own = {p: base_mat.get(p) for p in cfg.carried}  # the base model's own effects, fitted again with E
     own_box = {p: _search_box(p, base_mat.replace(E=cfg.E_bounds[1]), scene.dx, cfg.viscosity_cap) for p in own}
     own = {p: float(np.clip(v, *own_box[p])) for p, v in own.items()}
+    # with effects of its own, the base material itself (the model a previous round named) is a member of the first
+    # generation: the base fit then fits the fitting frames at least as well as that model
+    scan = [{"E": E, **own} for E in _scan_starts((lo, hi), cfg.popsize - 2 - bool(own))]
     base_fit = _fit("base", scene, obs, ("E",) + cfg.carried, {"E": E0, **own}, {"E": (lo, hi), **own_box}, base_mat,
-                    F, cfg, progress, cfg.base_iters,
-                    starts=[{"E": E, **own} for E in _scan_starts((lo, hi), cfg.popsize - 2)])
+                    F, cfg, progress, cfg.base_iters, starts=([{"E": E0, **own}] if own else []) + scan)
     E_base = base_fit.params["E"]
     warnings = []
 

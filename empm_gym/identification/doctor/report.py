@@ -304,9 +304,9 @@ def rounds_section(first: Mapping, rows: Sequence[Mapping], figure: str) -> str:
     :func:`plot_rounds_gap` file beside the report)."""
     named = first.get("effects") or []
     lines = ["## Further rounds: the named effect in the base model, the catalogue's others tried again", "",
-             "Each round fits the base model with every effect named before it (at its fitted values, E fitted "
-             "again) and judges the catalogue's other effects by the same rules: a round names another effect "
-             "only if it still gains beyond noise, its penalty and the variants.", "",
+             "Each round's base model holds every effect named before it, their parameters fitted again with E in "
+             "every fit of the round, and the round judges the catalogue's other effects by the same rules: it "
+             "names another effect only if that still gains beyond noise, its penalty and the variants.", "",
              f"**Effects named: {', '.join(named) if named else 'none'}**", "", _table_md(rows)]
     for r in first.get("rounds", ()):
         lines += [f"- round {r['round']}: {r['effect']} ({r['confidence']:.2f}): {_fmt(r['reason'])}"]
