@@ -13,6 +13,10 @@ effect first, then the others listed) with ``--seeds`` seeds, loads each recordi
 gives one) and pickles what the doctor reads (the scene and the
 observations) plus, for scoring only, the effect named in ``ground_truth.json``. The doctor never sees
 that label. Without ``--problems`` it diagnoses in the same process.
+
+Two effects at once: ``--effects plasticity+table_friction`` makes each pair on the natural script of either effect
+(``--every-effect-on`` for others) and stores how much each shows held out on top of the other; ``--rounds 2``
+diagnoses in rounds (``DoctorConfig.rounds``) and tallies the effects named against both (:func:`summarise_rounds`).
 """
 
 from __future__ import annotations
