@@ -201,15 +201,18 @@ class DoctorConfig:
     carried: Tuple[str, ...] = ()
     """Parameters of the base material's effects fitted again with E in every fit, the base model's included, each
     in its search box from its value in the base material (the rounds after the first, :attr:`rounds`: the effects
-    named before). Frozen at the values one round fitted without the next effect, they left its errors to the next
-    round's candidates: a plastic block whose plasticity fit stopped at E's bound (1.0 kPa against a true 3.0) was
-    given a gripper slip on top, which refitted E to 4.6 kPa. Empty: the base material's effects stay as given."""
+    named before). Frozen at the values one round fitted without the next effect, they leave that fit's errors to
+    the next round's candidates (a plastic block whose plasticity was fitted at E's floor, 1.0 kPa against a true
+    3.0, was given a gripper slip on top that refitted E to 4.6 kPa); fitted again, the next round's base model
+    takes up what its own effects explain. A round still inherits the previous round's basin: the same block, its
+    yield stress refitted, was given the slip at confidence 0.29-0.50 (benchmarks/RESULTS.md, session 74). Empty:
+    the base material's effects stay as given."""
     rounds: int = 1
     """Diagnoses in a row (:func:`diagnose`): a recording may lack more than one effect (a dough that yields and
-    slides on a slicker table). Round k + 1 runs only where round k named an effect, with the effects named so far,
-    at their fitted values, in its base model and the rest of the catalogue as its candidates; every round is judged
-    by the same rules, so a later round says `none` unless another effect still gains beyond noise, its penalty and
-    the variants. 1: one round."""
+    slides on a slicker table). Round k + 1 runs only where round k named an effect, with the effects named so far
+    in its base model (their parameters fitted again, :attr:`carried`) and the rest of the catalogue as its
+    candidates; every round is judged by the same rules, so a later round says `none` unless another effect still
+    gains beyond noise, its penalty and the variants. 1: one round."""
 
     def __post_init__(self):
         if isinstance(self.rounds, bool) or not isinstance(self.rounds, int) or self.rounds < 1:
