@@ -245,12 +245,8 @@ def make(args):
                     print(f"{name}: kept, held-out signature {1e3 * prob['signature_m']:.2f} mm", flush=True)
                     continue
                 if len(parts) == 2:  # the first effect in the material, the second added by the synthesiser
-                    first = effect_material(args.object, parts[0], {k: v for k, v in eparams.items() if k in
-                                                                    EFFECTS[parts[0]].param_names} or None,
-                                            **seed_base)[0]
-                    kw = dict(effect=parts[1], material=first,
-                              effect_params={k: v for k, v in eparams.items() if k in EFFECTS[parts[1]].param_names}
-                              or None)
+                    first = effect_material(args.object, parts[0], _params_of(parts[0], eparams), **seed_base)[0]
+                    kw = dict(effect=parts[1], material=first, effect_params=_params_of(parts[1], eparams))
                 else:
                     kw = dict(effect=effect, effect_params=eparams or None, **seed_base)
                 synthesize(rec, args.object, script=script, **kw, frames=args.frames, cameras=args.cameras,
@@ -293,12 +289,17 @@ def pair_signatures(obj: str, script: str, parts, eparams: dict, base: dict, **k
     """``{effect: signature [m]}`` of each of two effects on top of the other (:func:`effect_signature` with the
     other effect in the base material): what a recording with both shows of the one a first round did not name."""
     from empm_gym.perception.synth import effect_material, effect_signature
+
+    return {e: effect_signature(obj, script, e, effect_params=_params_of(e, eparams), material=effect_material(
+                obj, other, _params_of(other, eparams), **base)[0], **kwargs)
+            for e, other in (parts, parts[::-1])}
+
+
+def _params_of(effect: str, eparams: dict) -> Optional[dict]:
+    """The entries of ``eparams`` that are ``effect``'s parameters (None: none of them)."""
     from empm_gym.sim.effects import EFFECTS
 
-    own = {e: {k: v for k, v in eparams.items() if k in EFFECTS[e].param_names} or None for e in parts}
-    return {e: effect_signature(obj, script, e, effect_params=own[e], material=effect_material(
-                obj, other, own[other], **base)[0], **kwargs)
-            for e, other in (parts, parts[::-1])}
+    return {k: v for k, v in eparams.items() if k in EFFECTS[effect].param_names} or None
 
 
 def _subsample(obs, seed: int, max_points: int):
@@ -400,11 +401,12 @@ def _rounds_columns(res: dict, c_base: float) -> dict:
     """A diagnosis in rounds (``res["rounds"]``, :attr:`DoctorConfig.rounds`): the effects named, each round's
     verdict and confidence, and the held-out Chamfer of the last model named (round 1's base model where none was);
     {} for one round."""
+    from empm_gym.identification.doctor.core import named_candidate
+
     if "rounds" not in res:
         return {}
-    final = c_base
-    if res["effect"] != "none" and res.get("candidates"):
-        final = next(c for c in res["candidates"] if c["effect"] == res["effect"])["heldout"]["chamfer_m"]
+    named = named_candidate(res)
+    final = c_base if named is None else named["heldout"]["chamfer_m"]
     for r in res["rounds"]:
         if r["effect"] != "none" and r.get("effect_heldout_chamfer_m") is not None:
             final = r["effect_heldout_chamfer_m"]

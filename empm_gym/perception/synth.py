@@ -314,13 +314,9 @@ def _effect_param_names(effect: str):
 
 def _effects_of(material) -> List[dict]:
     """ground_truth.json's effects list of a material (table friction only where it differs from 0.5)."""
-    from empm_gym.sim.effects import BASE_TABLE_FRICTION
-
     out = []
-    for n in material.effects():
+    for n in material.added_effects():
         params = {p: material.get(p) for p in _effect_param_names(n)}
-        if n == "table_friction" and params.get("friction") == BASE_TABLE_FRICTION:
-            continue
         out.append({"name": n, "params": {k: float(v) for k, v in params.items() if v is not None}})
     return out
 

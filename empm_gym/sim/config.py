@@ -135,6 +135,13 @@ class MaterialConfig:
                     break
         return tuple(on)
 
+    def added_effects(self) -> Tuple[str, ...]:
+        """:meth:`effects` less a table friction equal to the base model's assumed one
+        (:data:`~empm_gym.sim.effects.BASE_TABLE_FRICTION`): the effects this material adds to the base model."""
+        from .effects import BASE_TABLE_FRICTION
+
+        return tuple(e for e in self.effects() if e != "table_friction" or self.get("friction") != BASE_TABLE_FRICTION)
+
     def replace(self, **values) -> "MaterialConfig":
         """A copy with base fields (E, nu, density) or effect parameters set; ``None`` removes an effect
         parameter."""

@@ -1282,11 +1282,9 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     base_friction = base_mat.get("friction")
     base_friction = BASE_TABLE_FRICTION if base_friction is None else float(base_friction)
     scene = scene.with_material(base_mat, table_friction=base_friction)
-    in_base = set(base_mat.effects())
-    if base_friction == BASE_TABLE_FRICTION:
-        # the assumed table written out (every material.json the doctor writes holds the table's friction): no
-        # measurement of it, so the table's friction stays a candidate
-        in_base.discard("table_friction")
+    # the assumed table written out (every material.json the doctor writes holds the table's friction) is no
+    # measurement of it: the table's friction then stays a candidate
+    in_base = set(base_mat.added_effects())
     names = [e for e in (effects or EFFECTS) if e not in in_base]
     unknown = [e for e in names if e not in EFFECTS]
     if unknown:
@@ -1640,24 +1638,26 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     return result
 
 
+def named_candidate(result: dict) -> Optional[dict]:
+    """The candidate (``doctor.json``'s ``candidates`` entry) of a diagnosis's named effect; None under ``none``."""
+    return next((c for c in result.get("candidates", ()) if c["effect"] == result.get("effect")), None)
+
+
 def named_material(result: dict) -> Optional[MaterialConfig]:
     """The material of a diagnosis's named effect (``result``: :func:`diagnose`'s), the table's friction in it as
     fitted or assumed, as ``material.json`` holds it; None where no effect was named."""
-    if not result.get("decidable", True) or result.get("effect", "none") == "none":
-        return None
-    c = next(c for c in result["candidates"] if c["effect"] == result["effect"])
-    return MaterialConfig.from_dict(c["material"]).replace(friction=c["table_friction"])
+    c = named_candidate(result) if result.get("decidable", True) else None
+    return None if c is None else MaterialConfig.from_dict(c["material"]).replace(friction=c["table_friction"])
 
 
 def round_summary(result: dict, k: int, base: MaterialConfig, out_dir: Optional[Path]) -> dict:
     """What the first round's ``doctor.json`` says of round ``k`` (``result``: that round's :func:`diagnose`):
     its base model's effects, verdict, held-out Chamfer before and after, the material with every effect named so
     far, and where its own outputs are."""
-    named = next((c for c in result.get("candidates", ()) if c["effect"] == result["effect"]), None)
+    named = named_candidate(result)
     base_fit = result.get("base") or {}
     mat = named_material(result)
-    return {"round": k, "base_effects": [e for e in base.effects()
-                                         if e != "table_friction" or base.get("friction") != BASE_TABLE_FRICTION],
+    return {"round": k, "base_effects": list(base.added_effects()),
             "effect": result["effect"], "confidence": result.get("confidence"), "reason": result.get("reason"),
             "decidable": result.get("decidable", True),
             "base_heldout_chamfer_m": (base_fit.get("heldout") or {}).get("chamfer_m"),

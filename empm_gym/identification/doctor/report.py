@@ -268,7 +268,9 @@ def rounds_rows(first: Mapping) -> list:
 
 
 def _named_chamfer_mm(result: Mapping) -> float:
-    c = next((c for c in result.get("candidates", ()) if c["effect"] == result["effect"]), None)
+    from .core import named_candidate
+
+    c = named_candidate(result)
     return np.nan if c is None else 1e3 * c["heldout"]["chamfer_m"]
 
 
