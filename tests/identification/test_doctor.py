@@ -2239,6 +2239,7 @@ def test_a_second_round_adds_the_named_effect_to_the_base_model_and_names_anothe
     assert res["base"]["heldout"]["chamfer_m"] > 10 * slip["heldout"]["chamfer_m"]
     assert plast["heldout"]["chamfer_m"] < 0.5 * r2["base"]["heldout"]["chamfer_m"]
     assert second["base_heldout_chamfer_m"] == r2["base"]["heldout"]["chamfer_m"]
+    assert second["notes"] == [n for n in r2["notes"] if n not in res["notes"]]
     assert second["effect_heldout_chamfer_m"] == plast["heldout"]["chamfer_m"]
     # the yield stress recovered, and the grip friction, fitted again beside it, moved from the first round's
     # toward the truth (0.5): the first round's slip had stood in for part of the yielding
@@ -2288,7 +2289,8 @@ def test_doctor_cli_prints_each_round_and_where_the_material_with_every_effect_i
            "effects": ["gripper_slip", "plasticity"],
            "rounds": [{"round": 2, "base_effects": ["gripper_slip"], "effect": "plasticity", "confidence": 0.9,
                        "reason": "plasticity lowers the held-out loss by 60 %", "base_heldout_chamfer_m": 0.003,
-                       "effect_heldout_chamfer_m": 0.0012, "dir": str(tmp_path / "out" / "round2")}],
+                       "effect_heldout_chamfer_m": 0.0012, "dir": str(tmp_path / "out" / "round2"),
+                       "notes": ["yield_stress = 50 Pa lies at its search bound"]}],
            "files": {"doctor": str(tmp_path / "out" / "doctor.json")}}
     seen = {}
     monkeypatch.setattr(doctor, "diagnose_recording", lambda *a, **k: seen.update(k) or res)
@@ -2296,7 +2298,8 @@ def test_doctor_cli_prints_each_round_and_where_the_material_with_every_effect_i
     assert seen["config"].rounds == 2
     out = capsys.readouterr().out
     assert "round 2 (the base model with gripper_slip): plasticity  (confidence 0.90)" in out
-    assert "held-out Chamfer 3.00 mm -> 1.20 mm with plasticity" in out
+    assert "held-out Chamfer 3.00 mm -> 1.20 mm with plasticity\n  note: yield_stress = 50 Pa lies at its search " \
+           "bound" in out  # a later round's own notes (a value at its bound, ...) are said as well
     assert f"its report: {tmp_path / 'out' / 'round2'}/report.md" in out
     assert f"effects named: gripper_slip, plasticity; the material with all of them: " \
            f"{tmp_path / 'out' / 'round2'}/material.json" in out

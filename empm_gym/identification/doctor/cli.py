@@ -51,6 +51,8 @@ def _doctor(args) -> int:
         print(f"  {r['reason']}")
         if b is not None:
             print(f"  held-out Chamfer {1e3 * b:.2f} mm" + (f" -> {1e3 * e:.2f} mm with {r['effect']}" if e else ""))
+        for n in r.get("notes", ()):
+            print(f"  note: {n}")
         if r.get("dir"):
             print(f"  its report: {r['dir']}/report.md")
     if "effects" in res:

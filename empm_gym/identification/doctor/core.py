@@ -1650,10 +1650,12 @@ def named_material(result: dict) -> Optional[MaterialConfig]:
     return None if c is None else MaterialConfig.from_dict(c["material"]).replace(friction=c["table_friction"])
 
 
-def round_summary(result: dict, k: int, base: MaterialConfig, out_dir: Optional[Path]) -> dict:
+def round_summary(result: dict, k: int, base: MaterialConfig, out_dir: Optional[Path],
+                  first_notes: Sequence[str] = ()) -> dict:
     """What the first round's ``doctor.json`` says of round ``k`` (``result``: that round's :func:`diagnose`):
     its base model's effects, verdict, held-out Chamfer before and after, the material with every effect named so
-    far, and where its own outputs are."""
+    far, where its own outputs are, and its notes that the first round's (``first_notes``) do not hold (a fitted
+    value at its bound, a search smaller than measured, ...)."""
     named = named_candidate(result)
     base_fit = result.get("base") or {}
     mat = named_material(result)
@@ -1663,7 +1665,8 @@ def round_summary(result: dict, k: int, base: MaterialConfig, out_dir: Optional[
             "base_heldout_chamfer_m": (base_fit.get("heldout") or {}).get("chamfer_m"),
             "effect_heldout_chamfer_m": None if named is None else named["heldout"]["chamfer_m"],
             "material": None if mat is None else mat.to_dict(),
-            "dir": None if out_dir is None else str(out_dir), "wall_time_s": result.get("wall_time_s")}
+            "dir": None if out_dir is None else str(out_dir), "wall_time_s": result.get("wall_time_s"),
+            "notes": [n for n in result.get("notes", ()) if n not in first_notes]}
 
 
 def _in_rounds(scene: Scene, obs: Observations, views, *, base: Optional[MaterialConfig], config: DoctorConfig,
@@ -1693,7 +1696,7 @@ def _in_rounds(scene: Scene, obs: Observations, views, *, base: Optional[Materia
         carried = tuple(p for e in named for p in candidate_params(e))
         res = diagnose(scene, obs, views, base=mat, out_dir=sub, effects=left,
                        **{**kw, "config": dataclasses.replace(one, carried=carried)})
-        later.append({**round_summary(res, k, mat, sub), "result": res})
+        later.append({**round_summary(res, k, mat, sub, first.get("notes", ())), "result": res})
     if named_material(res) is not None and res["effect"] not in named:
         named.append(res["effect"])
     first["rounds"], first["effects"] = later, named

@@ -319,6 +319,7 @@ def rounds_section(first: Mapping, rows: Sequence[Mapping], figure: str) -> str:
              f"**Effects named: {', '.join(named) if named else 'none'}**", "", _table_md(rows)]
     for r in first.get("rounds", ()):
         lines += [f"- round {r['round']}: {r['effect']} ({r['confidence']:.2f}): {_fmt(r['reason'])}"]
+        lines += [f"  - note: {_fmt(n)}" for n in r.get("notes", ())]
     lines += ["", f"![held-out Chamfer round by round]({figure})", ""]
     return "\n".join(lines)
 
