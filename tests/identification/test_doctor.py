@@ -1350,6 +1350,8 @@ def test_doctor_cli_marks_fits_at_their_search_bound(tmp_path, capsys, monkeypat
     assert "loss gain -12.0 % ; fitted E=2003" in out  # no interval stored: none printed
     # a fit at the bound where its effect vanishes says that it is not named
     assert "fitted E=2.3e+04, yield_stress=9.9e+05 (at bound, where the effect vanishes: not named)" in out
+    # one round that named an effect points to the rounds, for a recording that lacks two
+    assert "to look for a second missing effect on top of gripper_slip: the same command with --rounds 2" in out
 
 
 def test_variants_are_the_same_body_on_another_discretisation():
@@ -2303,5 +2305,6 @@ def test_doctor_cli_prints_each_round_and_where_the_material_with_every_effect_i
     assert f"its report: {tmp_path / 'out' / 'round2'}/report.md" in out
     assert f"effects named: gripper_slip, plasticity; the material with all of them: " \
            f"{tmp_path / 'out' / 'round2'}/material.json" in out
+    assert "to look for a second missing effect" not in out  # it ran in rounds
     assert main(["doctor", str(tmp_path), "--out", str(tmp_path / "o"), "--rounds", "0"]) == 2
     assert "rounds must be a whole number" in capsys.readouterr().err

@@ -60,6 +60,8 @@ def _doctor(args) -> int:
         where = f"{last}/material.json" if last else res.get("files", {}).get("material")
         print(f"effects named: {', '.join(res['effects']) or 'none'}" + (f"; the material with all of them: {where}"
                                                                         if res["effects"] and where else ""))
+    if args.rounds == 1 and res.get("effect", "none") != "none":
+        print(f"to look for a second missing effect on top of {res['effect']}: the same command with --rounds 2")
     print(f"wrote {', '.join(res.get('files', {}).values())}")
     return 0
 
