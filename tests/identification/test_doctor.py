@@ -1553,6 +1553,13 @@ def test_a_table_friction_near_the_assumed_one_is_not_named():
     assert not _friction_equivalent(0.544, 0.5, 1.0)          # the rule off
     assert not _friction_equivalent(None, 0.5, 1.5)           # no friction fitted
     assert _friction_equivalent(0.25, 0.2, 1.5)               # around the base material's own friction
+    # a later round, after the table friction was named: every candidate refits the base model's friction, which
+    # says nothing of its own effect (every candidate was set aside as the base's table, session 74's pushed rope)
+    from empm_gym.identification.doctor.core import base_table_fit
+    carried = DoctorConfig(carried=("friction",))
+    assert not base_table_fit({"E": 2e4, "yield_stress": 300.0, "friction": 0.051}, 0.048, carried)
+    assert base_table_fit({"E": 2e4, "friction": 0.544}, 0.5, DoctorConfig())  # round 1's table friction
+    assert not base_table_fit({"E": 2e4, "yield_stress": 300.0}, 0.5, DoctorConfig())
 
     def test(gain):
         return {"gain": gain, "lower": gain - 0.005, "upper": gain + 0.005, "threshold": 0.04}

@@ -1403,7 +1403,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
             if f is not fits[0]:
                 f.test = paired_gain_test(per[0]["loss"][heldout], pf["loss"][heldout], added_params=f.added,
                                           penalty_per_param=cfg.penalty_per_param, level=cfg.level, seed=cfg.seed)
-                f.equivalent = _friction_equivalent(f.params.get("friction"), base_friction, cfg.friction_equivalence)
+                f.equivalent = base_table_fit(f.params, base_friction, cfg)
                 f.absent = toward_absence(_own_params(f.params, cfg), f.bounds)
         return sc, fits, loose, objective, X, per
 
@@ -1545,7 +1545,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                    f"{_num(checks['base'])} with the base model, {_num(checks['with_effect'])} with {winner.name})")
             warnings.append(f"{why}: its held-out gain may come from elsewhere in the recording (confidence halved); "
                             f"read the runner-up candidates")
-    implausible = implausible_params(winner.params) if winner is not None else {}
+    # its own parameters: a later round's carried ones were judged when their round named them
+    implausible = implausible_params(_own_params(winner.params, cfg)) if winner is not None else {}
     if implausible:
         confidence *= 0.5
         warnings.append(
@@ -2402,6 +2403,15 @@ def _heldout_gap(per: List[Dict[str, np.ndarray]], fits: List["_Fit"], winner: O
 
 def _nan_list(a) -> list:
     return [_finite_or_none(v) for v in np.asarray(a, np.float64)]
+
+
+def base_table_fit(params: Dict[str, float], base_friction: float, cfg: DoctorConfig) -> bool:
+    """Whether a candidate's fit is the base model's table (``equivalent_to_base``): the table friction it fits as
+    its own parameter lies within ``cfg.friction_equivalence`` of the base model's. A friction the base model
+    carries (:attr:`DoctorConfig.carried`, a later round's, after a round named the table's friction) is refitted
+    in every candidate and says nothing of the candidate's own effect: a round after the table friction was named
+    set aside every candidate this way, whatever its gain (seed 30's rope pushed across the table, session 74)."""
+    return _friction_equivalent(_own_params(params, cfg).get("friction"), base_friction, cfg.friction_equivalence)
 
 
 def _friction_equivalent(mu: Optional[float], base_friction: float, factor: float) -> bool:
