@@ -701,3 +701,28 @@ def test_diagnoses_in_rounds_are_tallied_against_every_effect_of_the_recording(b
            "shows less: named 0 of 1" in out
     assert "one effect or none: the first verdict right on 3 of 4; of those, a further effect named by a later round " \
            "on 1 (e)" in out
+
+
+def test_the_pair_screen_measures_what_pair_signatures_measures(bench, capsys):
+    """``--screen-pairs``: from one simulation per effect set, each effect alone and each of a pair on top of the
+    other, equal to what ``effect_signature`` and ``pair_signatures`` measure for the same material (a screen
+    that added the effects in another way would choose recordings that do not show what it said); the table
+    marks a pair where both show by EXPRESSED_M."""
+    from empm_gym.perception.synth import effect_signature
+
+    kw = dict(frames=4, dx=0.02)
+    eparams = {"friction": 0.1, "yield_stress": 100.0}
+    got = bench.screen_pairs("block", "push-slide", ["plasticity", "table_friction"], eparams, {}, **kw)
+    pair = bench.pair_signatures("block", "push-slide", ["plasticity", "table_friction"], eparams, {}, **kw)
+    assert got["pairs"][("plasticity", "table_friction")] == pair
+    assert got["single"]["table_friction"] == effect_signature("block", "push-slide", "table_friction",
+                                                               effect_params={"friction": 0.1}, **kw)
+    assert got["single"]["table_friction"] > 1e-3  # a slippery table moves the pushed block: not a test of zeros
+    bench.print_screen("block", "push-slide", {"single": {"a": 0.002, "b": 0.0}, "pairs": {("a", "b"): {"a": 0.0015,
+                                                                                                   "b": 0.0012}}})
+    out = capsys.readouterr().out
+    assert "a+b" in out and "a    1.50, b    1.20  both" in out
+    with pytest.raises(SystemExit):
+        bench.main(["--screen-pairs", "push-slide", "--effects", "plasticity"])  # a pair needs two
+    with pytest.raises(SystemExit):
+        bench.main(["--screen-pairs", "push-sliide", "--effects", "plasticity,viscosity"])

@@ -63,7 +63,7 @@ from .cameras import Camera, intrinsics_matrix, look_at
 from .recording import RecordingError, RecordingWriter, end_effector_velocities, quat_angular_velocity
 from .scripts import SCRIPTS, ObjectGeometry, _phases, _smooth, run_script
 
-__all__ = ["synthesize", "simulate", "effect_signature", "effect_material", "default_effect_params", "register",
+__all__ = ["synthesize", "simulate", "effect_signature", "heldout_difference", "effect_material", "default_effect_params", "register",
            "OBJECT_DEFAULTS", "DEFAULT_SCRIPT", "render_view", "add_depth_noise", "camera_ring", "SurfaceEmbedding"]
 
 #: Default material parameters per object (SI: Pa, -, kg/m^3, Pa). They are chosen so that the
@@ -481,13 +481,20 @@ def effect_signature(object: str, script: str, effect: str, *, frames: int = 30,
     replace the object's base material, as :func:`synthesize`'s arguments of those names do; ``material`` (a
     MaterialConfig, with another effect, say) is the base the effect is added to, as :func:`synthesize`'s is. For
     benchmarks and tests: it needs the true material."""
-    from empm_gym.identification.losses import chamfer_numpy
-
     if effect in (None, "none"):
         return 0.0
     a, b = [simulate(object, effect_material(object, e, p, base=material, **(base_params or {}))[0], script=script,
                      frames=frames, **kwargs)["particles"]
             for e, p in (("none", None), (effect, effect_params))]
+    return heldout_difference(a, b, held_out)
+
+
+def heldout_difference(a: np.ndarray, b: np.ndarray, held_out: float = 0.3) -> float:
+    """The mean Chamfer distance [m] between two simulations' particles ``a``, ``b`` [T, N, 3] over the last
+    ``held_out`` of the frames (what a fit holds out): :func:`effect_signature`'s measure."""
+    from empm_gym.identification.losses import chamfer_numpy
+
+    frames = min(len(a), len(b))
     first = min(frames - 1, int(round((1.0 - held_out) * frames)))
     return float(np.mean([chamfer_numpy(a[t], b[t]) for t in range(first, frames)]))
 
