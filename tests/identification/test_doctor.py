@@ -280,7 +280,7 @@ def test_a_candidate_whose_search_stayed_at_the_base_model_is_searched_again_fro
     assert found.probe["searched_again"] and found.probe["best_loss"] < stuck[1].fit_loss * (1 - core.PROBE_MARGIN)
     assert found.fit_loss <= found.probe["best_loss"] and found.fit_loss < stuck[1].fit_loss / 3
     assert 0.3 * truth.E < found.params["E"] and found.params["yield_stress"] < 5.0 * truth.yield_stress
-    assert core._fit_dict(found)["probe"]["fit_loss_before"] == stuck[1].fit_loss
+    assert core._fit_dict(found, DoctorConfig())["probe"]["fit_loss_before"] == stuck[1].fit_loss
     # found, the fit is better than its whole lattice: nothing to search again
     params, loss = dict(found.params), found.fit_loss
     _, again = core._probed([stuck[0], found], sc, obs, base, F, cfg, False)
@@ -616,6 +616,13 @@ def test_a_first_candidate_fitted_outside_the_plausible_range_yields_to_a_plausi
     assert select_verdict(dragged, None)[0] == "table_friction"
     dragged[1]["gain"]["upper"] = 0.175  # the frames no longer clearly prefer the implausible friction
     assert select_verdict(dragged, None)[0] == "heterogeneous_stiffness"
+    # a later round after a gripper slip named at grip friction 162: every candidate carries that friction as the
+    # base model's; it is no fit of theirs, and only their own parameters are judged (fracture's 0.24 plausible)
+    later = [{**c, "params": {**c["params"], "grip_friction": 162.0}, "carried": ["grip_friction"]}
+             for c in (torn(4.0)[0], torn(4.0)[2])]
+    later[1]["gain"].update(gain=0.74, lower=0.735, upper=0.745)  # about as good: would take an implausible first's
+    assert select_verdict(later, None)[0] == "fracture"
+    assert yield_note(later[1], later[0]) is None and _yields_to(later[0], later[1])
 
 
 def test_a_first_candidate_doubted_by_its_own_signature_yields_to_an_undoubted_one_about_as_good():

@@ -909,6 +909,12 @@ def _own_params(params: Dict[str, float], cfg: DoctorConfig) -> Dict[str, float]
     return {k: v for k, v in params.items() if k not in cfg.carried}
 
 
+def own_params(c: dict) -> Dict[str, float]:
+    """A candidate's (``doctor.json``'s ``candidates`` entry) fitted parameters less those it carries as the base
+    model's (its ``carried``, a later round's; :func:`_own_params` of a fit)."""
+    return {k: v for k, v in (c.get("params") or {}).items() if k not in c.get("carried", ())}
+
+
 def set_aside(c: dict) -> bool:
     """A candidate (``doctor.json``'s ``candidates`` entry) that is no missing effect whatever its gain: the base
     model's table (``equivalent_to_base``), a fit that moves its own trusted signature away from the
@@ -1478,7 +1484,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     by_name = {f.name: f for f in cands}
     as_dicts = [{"effect": f.name, "params": f.params, "heldout": f.heldout, "gain": f.test,
                  "equivalent_to_base": f.equivalent, "contradicted_by_signature": f.contradicted,
-                 "signature_check": f.signature, "toward_absence": f.absent}
+                 "signature_check": f.signature, "toward_absence": f.absent, "carried": _carried(f, cfg)}
                 for f in cands]
     to_check = [by_name[n] for n in select_verdict(as_dicts, None)[2][:cfg.variant_top]]
     clock["signatures"] = time.perf_counter() - t_start - sum(clock.values())
@@ -1614,9 +1620,9 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         "first_elsewhere": first_elsewhere,
         "split": None if split is None else split.name,
         "variants": robustness,
-        "base": _fit_dict(base_fit),
+        "base": _fit_dict(base_fit, cfg),
         "base_bound_check": bound_check,
-        "candidates": [_fit_dict(f) for f in ranked],
+        "candidates": [_fit_dict(f, cfg) for f in ranked],
         "evidence": {"features": loc["features"], "features_with_effect": loc["features_best"],
                      "signature_check": checks, "localisation": loc["where"]},
         "gap": _heldout_gap(per, fits, winner, X, scene, views, heldout),
@@ -2180,7 +2186,7 @@ def select_verdict(candidates: Sequence[dict], variants: Optional[dict], yield_r
     by_name = {c["effect"]: c for c in candidates}
     if not yield_rules:  # the order before the yields below (what the diagnosis says was set behind)
         return (passing[0] if passing else None), (sig[0] if sig else None), passing
-    if passing and implausible_params(params[passing[0]]):
+    if passing and implausible_params(own_params(by_name[passing[0]])):
         plausible = [n for n in passing[1:] if _yields_to(by_name[passing[0]], by_name[n])]
         if plausible:
             passing.remove(plausible[0])
@@ -2204,7 +2210,7 @@ def yield_note(winner: dict, other: dict) -> Optional[str]:
     """The note that says why ``winner`` (``doctor.json``'s ``candidates`` entry) is named before ``other``, the
     candidate ranked next, when ``other`` was fitted outside the plausible range, or is doubted by its own
     signature while ``winner`` is not (:func:`_doubted`), and yields to it (:func:`_yields_to`); None otherwise."""
-    odd = implausible_params(other.get("params", {}))
+    odd = implausible_params(own_params(other))
     if not _yields_to(other, winner):
         return None
     head = (f"{other['effect']} passes too and its held-out gain ({100 * other['gain']['gain']:.1f} %) is not "
@@ -2226,7 +2232,7 @@ def _yields_to(first: dict, other: dict) -> bool:
     """Whether candidate ``first`` (``doctor.json``'s ``candidates`` entry), fitted outside the plausible range
     (:func:`implausible_params`), yields the verdict to ``other``: ``other`` is fitted within it and its held-out
     gain's 95 % interval reaches the lower end of ``first``'s (the frames do not clearly prefer ``first``)."""
-    return (not implausible_params(other.get("params", {}))
+    return (not implausible_params(own_params(other))
             and float(other["gain"]["upper"]) >= float(first["gain"]["lower"]))
 
 
@@ -2422,8 +2428,14 @@ def _friction_equivalent(mu: Optional[float], base_friction: float, factor: floa
     return base_friction / factor <= float(mu) <= base_friction * factor
 
 
-def _fit_dict(f: _Fit) -> dict:
-    return {"effect": f.name, "params": f.params, "added_params": f.added, "fit_loss": f.fit_loss,
+def _carried(f: _Fit, cfg: DoctorConfig) -> List[str]:
+    """The names of ``f``'s parameters that are the base model's (:attr:`DoctorConfig.carried`): a later round's."""
+    return [k for k in f.params if k in cfg.carried]
+
+
+def _fit_dict(f: _Fit, cfg: DoctorConfig) -> dict:
+    return {"effect": f.name, "params": f.params, "carried": _carried(f, cfg), "added_params": f.added,
+            "fit_loss": f.fit_loss,
             "heldout": f.heldout, "gain": f.test or None, "equivalent_to_base": f.equivalent,
             "signature_check": f.signature, "contradicted_by_signature": f.contradicted, "toward_absence": f.absent,
             "fit_wall_time_s": round(f.wall_s, 2),
