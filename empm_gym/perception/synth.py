@@ -63,8 +63,9 @@ from .cameras import Camera, intrinsics_matrix, look_at
 from .recording import RecordingError, RecordingWriter, end_effector_velocities, quat_angular_velocity
 from .scripts import SCRIPTS, ObjectGeometry, _phases, _smooth, run_script
 
-__all__ = ["synthesize", "simulate", "effect_signature", "heldout_difference", "effect_material", "default_effect_params", "register",
-           "OBJECT_DEFAULTS", "DEFAULT_SCRIPT", "render_view", "add_depth_noise", "camera_ring", "SurfaceEmbedding"]
+__all__ = ["synthesize", "simulate", "effect_signature", "heldout_difference", "effect_material",
+           "default_effect_params", "register", "OBJECT_DEFAULTS", "DEFAULT_SCRIPT", "render_view", "add_depth_noise",
+           "camera_ring", "SurfaceEmbedding"]
 
 #: Default material parameters per object (SI: Pa, -, kg/m^3, Pa). They are chosen so that the
 #: scripted motion shows them: a soft rubber rope (E / density sets how far the lifted, stretched rope

@@ -903,16 +903,15 @@ def toward_absence(params: Dict[str, float], bounds: Dict[str, Tuple[float, floa
     return out
 
 
-def _own_params(params: Dict[str, float], cfg: DoctorConfig) -> Dict[str, float]:
-    """A fit's ``params`` less the base model's own effect parameters (:attr:`DoctorConfig.carried`): those of the
-    effect it adds, with E."""
-    return {k: v for k, v in params.items() if k not in cfg.carried}
+def _own_params(params: Dict[str, float], carried: Sequence[str]) -> Dict[str, float]:
+    """A fit's ``params`` less the base model's own effect parameters (``carried``: :attr:`DoctorConfig.carried`
+    for a fit, its ``carried`` for ``doctor.json``'s candidates entry): those of the effect it adds, with E."""
+    return {k: v for k, v in params.items() if k not in carried}
 
 
-def own_params(c: dict) -> Dict[str, float]:
-    """A candidate's (``doctor.json``'s ``candidates`` entry) fitted parameters less those it carries as the base
-    model's (its ``carried``, a later round's; :func:`_own_params` of a fit)."""
-    return {k: v for k, v in (c.get("params") or {}).items() if k not in c.get("carried", ())}
+def _candidate_own(c: dict) -> Dict[str, float]:
+    """:func:`_own_params` of a ``doctor.json`` candidates entry (its ``params`` less its ``carried``)."""
+    return _own_params(c.get("params") or {}, c.get("carried", ()))
 
 
 def set_aside(c: dict) -> bool:
@@ -1410,7 +1409,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                 f.test = paired_gain_test(per[0]["loss"][heldout], pf["loss"][heldout], added_params=f.added,
                                           penalty_per_param=cfg.penalty_per_param, level=cfg.level, seed=cfg.seed)
                 f.equivalent = base_table_fit(f.params, base_friction, cfg)
-                f.absent = toward_absence(_own_params(f.params, cfg), f.bounds)
+                f.absent = toward_absence(_own_params(f.params, cfg.carried), f.bounds)
         return sc, fits, loose, objective, X, per
 
     pass_notes: List[str] = []  # what a candidates pass says of its base model (the last pass's are kept)
@@ -1552,7 +1551,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
             warnings.append(f"{why}: its held-out gain may come from elsewhere in the recording (confidence halved); "
                             f"read the runner-up candidates")
     # its own parameters: a later round's carried ones were judged when their round named them
-    implausible = implausible_params(_own_params(winner.params, cfg)) if winner is not None else {}
+    implausible = implausible_params(_own_params(winner.params, cfg.carried)) if winner is not None else {}
     if implausible:
         confidence *= 0.5
         warnings.append(
@@ -1839,7 +1838,8 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
                                  level=cfg.level, seed=cfg.seed)
             test = {"variant": label, "kind": kind, "params": vf.params, "heldout_loss": float(np.mean(lv)), **t,
                     **extra}
-            test["toward_absence"] = toward_absence(_own_params(test["params"], cfg), f.bounds)  # as scored there
+            # as scored there
+            test["toward_absence"] = toward_absence(_own_params(test["params"], cfg.carried), f.bounds)
             test["holds"] = _holds(test)
             if unlike is not None:
                 test["body_unlike"] = unlike
@@ -2186,7 +2186,7 @@ def select_verdict(candidates: Sequence[dict], variants: Optional[dict], yield_r
     by_name = {c["effect"]: c for c in candidates}
     if not yield_rules:  # the order before the yields below (what the diagnosis says was set behind)
         return (passing[0] if passing else None), (sig[0] if sig else None), passing
-    if passing and implausible_params(own_params(by_name[passing[0]])):
+    if passing and implausible_params(_candidate_own(by_name[passing[0]])):
         plausible = [n for n in passing[1:] if _yields_to(by_name[passing[0]], by_name[n])]
         if plausible:
             passing.remove(plausible[0])
@@ -2210,7 +2210,7 @@ def yield_note(winner: dict, other: dict) -> Optional[str]:
     """The note that says why ``winner`` (``doctor.json``'s ``candidates`` entry) is named before ``other``, the
     candidate ranked next, when ``other`` was fitted outside the plausible range, or is doubted by its own
     signature while ``winner`` is not (:func:`_doubted`), and yields to it (:func:`_yields_to`); None otherwise."""
-    odd = implausible_params(own_params(other))
+    odd = implausible_params(_candidate_own(other))
     if not _yields_to(other, winner):
         return None
     head = (f"{other['effect']} passes too and its held-out gain ({100 * other['gain']['gain']:.1f} %) is not "
@@ -2232,7 +2232,7 @@ def _yields_to(first: dict, other: dict) -> bool:
     """Whether candidate ``first`` (``doctor.json``'s ``candidates`` entry), fitted outside the plausible range
     (:func:`implausible_params`), yields the verdict to ``other``: ``other`` is fitted within it and its held-out
     gain's 95 % interval reaches the lower end of ``first``'s (the frames do not clearly prefer ``first``)."""
-    return (not implausible_params(own_params(other))
+    return (not implausible_params(_candidate_own(other))
             and float(other["gain"]["upper"]) >= float(first["gain"]["lower"]))
 
 
@@ -2417,7 +2417,8 @@ def base_table_fit(params: Dict[str, float], base_friction: float, cfg: DoctorCo
     carries (:attr:`DoctorConfig.carried`, a later round's, after a round named the table's friction) is refitted
     in every candidate and says nothing of the candidate's own effect: a round after the table friction was named
     set aside every candidate this way, whatever its gain (seed 30's rope pushed across the table, session 74)."""
-    return _friction_equivalent(_own_params(params, cfg).get("friction"), base_friction, cfg.friction_equivalence)
+    own = _own_params(params, cfg.carried)
+    return _friction_equivalent(own.get("friction"), base_friction, cfg.friction_equivalence)
 
 
 def _friction_equivalent(mu: Optional[float], base_friction: float, factor: float) -> bool:
