@@ -1089,7 +1089,7 @@ def _parser():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--make", default=None, help="synthesise and load the recordings into this folder first")
     p.add_argument("--problems", default=None, help="folder of pickled problems (written by --make, read otherwise)")
-    p.add_argument("--object", default="dough", choices=("dough", "block", "rope"))
+    p.add_argument("--object", default="dough", choices=("dough", "block", "rope", "lump"))
     p.add_argument("--effects", default="all", help="comma-separated effects (and none), default all")
     p.add_argument("--scripts", type=int, default=2, help="scripts per effect: its natural one, then another")
     p.add_argument("--only-scripts", default=None,

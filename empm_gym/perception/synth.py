@@ -10,6 +10,9 @@ N cameras around the table into the recording layout of :mod:`empm_gym.perceptio
 * ``dough``: an elastoplastic block (5 x 5 x 4.5 cm) between two box plates (pushers, grip open =
   frictional contact); script: hold, squeeze by 1 cm per side, hold, release (plates back out), settle.
 * ``block``: an elastic 4 cm cube (E 60 kPa); default script press-release.
+* ``lump``: the dough's material as a rounded lump, the part of an ellipsoid (semi-axes 4.2 x 3.4 x 4.0 cm)
+  above the table (8.4 x 6.8 x 3.8 cm, 111 cm^3): no face, edge or corner of the boxes the other objects are,
+  a shape the doctor's rules were not tuned on; default script press-release.
 
 These are the ``default`` scripts; ``script=`` picks one of :data:`empm_gym.perception.scripts.SCRIPTS`
 (press-release, push-slide, squeeze-lift, pull-apart, squeeze-ring), each of which runs on every object.
@@ -77,12 +80,18 @@ OBJECT_DEFAULTS: Dict[str, dict] = {
     "rope": {"E": 5.0e4, "nu": 0.3, "density": 1100.0, "yield_stress": None},
     "dough": {"E": 2.0e4, "nu": 0.3, "density": 1200.0, "yield_stress": 2.0e3},
     "block": {"E": 6.0e4, "nu": 0.3, "density": 1000.0, "yield_stress": None},
+    "lump": {"E": 2.0e4, "nu": 0.3, "density": 1200.0, "yield_stress": 2.0e3},
 }
 
 _ROPE_LENGTH_M, _ROPE_RADIUS_M, _ROPE_GRIPPER_RADIUS_M = 0.30, 0.012, 0.018
 _DOUGH_SIZE_M = (0.05, 0.05, 0.045)
 _BLOCK_SIZE_M = (0.04, 0.04, 0.04)
 _PLATE_HALF_M = (0.006, 0.035, 0.028)
+#: The lump: the part above the table (z >= 0) of the ellipsoid of these semi-axes centred this far below it.
+#: (8.4 x 6.8 x 3.8 cm, 111 cm^3, the dough's volume; a flatter lump, 3.0 cm high, measured 3.6 cells across
+#: its tapered rim at 5 mm, and the doctor refined its grid to 2.5 mm, 8x the particles.)
+_LUMP_SEMI_AXES_M = (0.042, 0.034, 0.040)
+_LUMP_CENTRE_Z_M = -0.002
 _TABLE_HALF_M = 0.6
 
 
@@ -132,11 +141,31 @@ def _dough_script(T: int):
     return pos, np.zeros((T, 2), np.int32)
 
 
+def _lump_base_semi_axes() -> Tuple[float, float]:
+    """Semi-axes (m) along x and y of the lump's footprint, where its ellipsoid meets the table."""
+    a, b, c = _LUMP_SEMI_AXES_M
+    s = math.sqrt(1.0 - (_LUMP_CENTRE_Z_M / c) ** 2)
+    return a * s, b * s
+
+
+def _lump_size() -> Tuple[float, float, float]:
+    bx, by = _lump_base_semi_axes()
+    return (2 * bx, 2 * by, _LUMP_SEMI_AXES_M[2] + _LUMP_CENTRE_Z_M)
+
+
+def inside_lump(x: np.ndarray) -> np.ndarray:
+    """Whether points ``x`` [N, 3] (m) lie in the lump (inside its ellipsoid and not below the table)."""
+    x = np.asarray(x, np.float64)
+    q = (x - [0.0, 0.0, _LUMP_CENTRE_Z_M]) / np.asarray(_LUMP_SEMI_AXES_M)
+    return (np.einsum("ij,ij->i", q, q) <= 1.0) & (x[:, 2] >= 0.0)
+
+
 _GEOMETRY = {"rope": ObjectGeometry((_ROPE_LENGTH_M, 2 * _ROPE_RADIUS_M, 2 * _ROPE_RADIUS_M)),
-             "dough": ObjectGeometry(_DOUGH_SIZE_M), "block": ObjectGeometry(_BLOCK_SIZE_M)}
+             "dough": ObjectGeometry(_DOUGH_SIZE_M), "block": ObjectGeometry(_BLOCK_SIZE_M),
+             "lump": ObjectGeometry(_lump_size())}
 
 #: Script used when none is named (``--script default``): the historic rope / dough scripts.
-DEFAULT_SCRIPT = {"rope": "default", "dough": "default", "block": "press-release"}
+DEFAULT_SCRIPT = {"rope": "default", "dough": "default", "block": "press-release", "lump": "press-release"}
 
 
 def _script(obj: str, script: str, T: int, dx: float = 0.01):
@@ -235,6 +264,11 @@ def _build(obj: str, material, *, dx: float, ppc: float, table_friction: float, 
     if obj == "rope":
         L, r = _ROPE_LENGTH_M, _ROPE_RADIUS_M
         x, vol = sample_cylinder((-L / 2, 0, r), (L / 2, 0, r), r, dx, ppc, seed=seed, jitter=jitter)
+    elif obj == "lump":  # the lattice over its bounding box, the points inside kept (each its lattice cell's volume)
+        sx, sy, sz = _GEOMETRY[obj].size
+        x, vol = sample_box((-sx / 2, -sy / 2, 0.0), (sx / 2, sy / 2, sz), dx, ppc, seed=seed, jitter=jitter)
+        keep = inside_lump(x)
+        x, vol = x[keep], vol[keep]
     else:
         sx, sy, sz = _GEOMETRY[obj].size
         x, vol = sample_box((-sx / 2, -sy / 2, 0.0), (sx / 2, sy / 2, sz), dx, ppc, seed=seed, jitter=jitter)
@@ -545,6 +579,33 @@ def _box_surface(size, spacing: float):
     return p, np.concatenate(N), None
 
 
+def _lump_surface(spacing: float):
+    """Points [S, 3] (m) about ``spacing`` apart on the lump's surface, with outward unit normals: its
+    ellipsoid above the table (a Fibonacci lattice on the unit sphere, stretched) and its flat footprint."""
+    a, b, c = _LUMP_SEMI_AXES_M
+    p = 1.6075  # Knud Thomsen's approximation of an ellipsoid's area (within about 1 %)
+    area = 4 * math.pi * (((a * b) ** p + (a * c) ** p + (b * c) ** p) / 3.0) ** (1.0 / p)
+    n = int(math.ceil(area / spacing ** 2))
+    i = np.arange(n) + 0.5
+    w = 1.0 - 2.0 * i / n
+    r = np.sqrt(1.0 - w ** 2)
+    phi = math.pi * (1.0 + math.sqrt(5.0)) * i
+    u = np.stack([r * np.cos(phi), r * np.sin(phi), w], -1)
+    pts = u * [a, b, c] + [0.0, 0.0, _LUMP_CENTRE_Z_M]
+    nrm = u / [a, b, c]
+    keep = pts[:, 2] >= 0.0
+    pts, nrm = pts[keep], nrm[keep]
+    bx, by = _lump_base_semi_axes()
+    gx = np.arange(-bx + spacing / 2, bx, spacing)
+    gy = np.arange(-by + spacing / 2, by, spacing)
+    X, Y = np.meshgrid(gx, gy, indexing="ij")
+    inside = (X / bx) ** 2 + (Y / by) ** 2 <= 1.0
+    base = np.stack([X[inside], Y[inside], np.zeros(int(inside.sum()))], -1)
+    pts = np.concatenate([pts, base])
+    nrm = np.concatenate([nrm, np.tile([0.0, 0.0, -1.0], (len(base), 1))])
+    return pts, nrm / np.linalg.norm(nrm, axis=1, keepdims=True), None
+
+
 class SurfaceEmbedding:
     """Dense surface points carried by simulation particles through a local weighted affine fit.
 
@@ -835,7 +896,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
                jitter: float = 0.0) -> Path:
     """Simulate a scripted manipulation and write a synthetic recording with known parameters to ``out_dir``.
 
-    ``object`` is "rope", "dough" or "block"; ``script`` "default" (rope lift-and-stretch, dough squeeze,
+    ``object`` is "rope", "dough", "block" or "lump"; ``script`` "default" (rope lift-and-stretch, dough squeeze,
     block press-release) or a name of :data:`empm_gym.perception.scripts.SCRIPTS`.
 
     Materials: without ``effect`` (and ``material``) the object takes :data:`OBJECT_DEFAULTS` (the dough is
@@ -939,8 +1000,9 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
         sp, sn, u = _rope_surface(surface_spacing_m)
         stripes = 0.5 + 0.5 * np.cos(2 * np.pi * u * 12)
         albedo = np.stack([0.75 - 0.25 * stripes, 0.18 + 0.3 * stripes, 0.12 + 0.1 * stripes], -1)
-    elif object == "dough":
-        sp, sn, _ = _box_surface(_DOUGH_SIZE_M, surface_spacing_m)
+    elif object in ("dough", "lump"):
+        sp, sn, _ = (_box_surface(_DOUGH_SIZE_M, surface_spacing_m) if object == "dough" else
+                     _lump_surface(surface_spacing_m))
         albedo = np.clip(np.array([0.85, 0.72, 0.45]) + rng.normal(0, 0.04, (len(sp), 1)), 0, 1)
     else:
         sp, sn, _ = _box_surface(_BLOCK_SIZE_M, surface_spacing_m)
@@ -1020,6 +1082,8 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
             "table_height_m": 0.0,
             "object_geometry": ({"type": "cylinder", "length_m": _ROPE_LENGTH_M, "radius_m": _ROPE_RADIUS_M,
                                  "axis": "x", "centre": [0.0, 0.0, _ROPE_RADIUS_M]} if object == "rope" else
+                                {"type": "ellipsoid above the table", "semi_axes_m": list(_LUMP_SEMI_AXES_M),
+                                 "centre": [0.0, 0.0, _LUMP_CENTRE_Z_M]} if object == "lump" else
                                 {"type": "box", "size_m": list(_GEOMETRY[object].size),
                                  "lower": [-_GEOMETRY[object].size[0] / 2, -_GEOMETRY[object].size[1] / 2, 0.0]}),
             "end_effectors": [{"shape": c.shape, "radius": c.radius, "half_extents": list(c.half_extents)}

@@ -84,7 +84,15 @@ def _rope_sdf(P):
     return np.where(ax < 0, np.maximum(radial, ax), np.hypot(np.maximum(radial, 0), ax))
 
 
-@pytest.mark.parametrize("obj", ["dough", "rope"])
+def _lump_sdf(P):
+    """Signed distance (first order, exact on the surface) to the lump: its ellipsoid above the table."""
+    c, ax = np.array([0.0, 0.0, S._LUMP_CENTRE_Z_M]), np.array(S._LUMP_SEMI_AXES_M)
+    q = (P - c) / ax
+    g = np.linalg.norm(2.0 * q / ax, axis=1)
+    return np.maximum((np.einsum("ij,ij->i", q, q) - 1.0) / np.maximum(g, 1e-12), -P[:, 2])
+
+
+@pytest.mark.parametrize("obj", ["dough", "rope", "lump"])
 def test_tangent_splats_put_the_rendered_depth_on_the_true_surface_from_every_camera(obj):
     """With ``tangent`` the noise-free depth of the rendered object, back-projected, lies on the object's true
     surface: each surface point's disc is drawn in its tangent plane, and the silhouette has no holes. Flat
@@ -98,6 +106,9 @@ def test_tangent_splats_put_the_rendered_depth_on_the_true_surface_from_every_ca
         sp, sn, _ = S._box_surface(size, 0.0015)
         lo, hi = np.array([-size[0] / 2, -size[1] / 2, 0.0]), np.array([size[0] / 2, size[1] / 2, size[2]])
         sdf, tol = (lambda P: _box_sdf(P, lo, hi)), 1e-5           # flat faces: exact
+    elif obj == "lump":
+        sp, sn, _ = S._lump_surface(0.0015)
+        sdf, tol = _lump_sdf, 1e-4                                 # curvature radii of 3 cm and more
     else:
         sp, sn, _ = S._rope_surface(0.0015)
         sdf, tol = _rope_sdf, 1e-4                                 # a tangent plane on a 12 mm radius: 0.05 mm
@@ -112,6 +123,29 @@ def test_tangent_splats_put_the_rendered_depth_on_the_true_surface_from_every_ca
                 assert abs(np.median(d)) < tol and np.percentile(np.abs(d), 90) < 2 * tol, (cam.name, np.median(d))
             else:
                 assert 3e-4 < np.median(d) < 1e-3, (cam.name, np.median(d))
+
+
+def test_the_lump_is_the_part_of_its_ellipsoid_above_the_table():
+    """The lump's particles fill the ellipsoid's cap above the table to its analytic volume, (a b / c^2) pi h^2
+    (3 c - h) / 3 with h the cap's height; its surface points lie on the ellipsoid or on the footprint (z = 0),
+    about the asked spacing apart, with outward normals; the scripts take its bounding box."""
+    from scipy.spatial import cKDTree
+
+    a, b, c = S._LUMP_SEMI_AXES_M
+    h = c + S._LUMP_CENTRE_Z_M
+    exact = a * b / c**2 * np.pi * h**2 * (3 * c - h) / 3
+    m, _ = S.effect_material("lump", "none")
+    sim = S.simulate("lump", m, script="press-release", frames=2, dx=0.005)
+    x0 = sim["particles"][0]
+    assert abs(sim["volumes"].sum() / exact - 1.0) < 0.03
+    assert S.inside_lump(x0).all() and x0[:, 2].min() > 0.0
+    sx, sy, sz = S._GEOMETRY["lump"].size
+    assert np.isclose(sz, h) and np.ptp(x0[:, 0]) < sx and np.ptp(x0[:, 1]) < sy and x0[:, 2].max() < sz
+    p, n, _ = S._lump_surface(0.0015)
+    assert np.abs(_lump_sdf(p)).max() < 1e-9
+    assert np.all(np.einsum("ij,ij->i", p - [0.0, 0.0, 0.3 * h], n) > 0)
+    spacing = np.median(cKDTree(p).query(p, k=2)[0][:, 1])
+    assert 0.0012 < spacing < 0.0018, spacing
 
 
 def test_a_tangent_disc_narrower_than_a_pixel_still_draws_the_pixel_under_its_centre():
