@@ -597,7 +597,7 @@ def problem_object(path: Path, prob: dict) -> Optional[str]:
     begins with (``--make`` names them ``[v_]<object>-<script>-<seed>-<effect>``), else None."""
     if prob.get("object"):
         return prob["object"]
-    m = re.match(r"(?:v_)?(dough|rope|block)-", Path(path).stem)
+    m = re.match(r"(?:v_)?(dough|rope|block|lump)-", Path(path).stem)
     return m.group(1) if m else None
 
 
@@ -617,7 +617,7 @@ def _effect_problems(problems: Path, obj: str, with_none: bool = False):
         made_of = problem_object(path, prob)
         if made_of is None:
             raise SystemExit(f"{path.name} does not say which object it was made of (no 'object' in it, and its name "
-                             f"does not begin with dough-, rope- or block-)")
+                             f"does not begin with dough-, rope-, block- or lump-)")
         if made_of != obj:
             continue
         mat, _ = effect_material(obj, prob["truth"], prob.get("truth_params") or None, **prob.get("base_params", {}))
