@@ -1184,7 +1184,9 @@ HIDDEN = [
 #: run from test_doctor_e2e.py, a file of its own, so that the two CI workers (pytest-xdist, --dist loadfile)
 #: share the doctor's end-to-end runs
 HIDDEN_2 = [
-    ("table_friction", "push-slide"),
+    # on the rounded lump, a shape none of the doctor's rules was chosen on (session 76; the box dough's slide was
+    # the case before): 85.5 % held out, the slide's signature brought from +141 mm to -35 mm, 384 s beside the suite
+    ("table_friction", "push-slide", "lump"),
     # the block pulled apart tears (the fracture's natural script, docs/EFFECTS.md): fracture gains 45.1 % held
     # out, gripper slip 29.8 %, the stiffness field 24.3 %; it holds on its variants (16-26 %). Session 43, with the
     # depth drawn on the true surface: the case before, a rope lifted by one end (1.4 cells across, the grid too
@@ -1301,8 +1303,11 @@ def doctor_names_the_hidden_effect(tmp_path, effect, script, obj="dough"):
     assert sorted(gap["total"]) == sorted(k for k, _ in shown) and gap["effect"] == (None if effect == "none" else effect)
     for key, fit in shown:
         assert gap["total"][key]["chamfer_m"] == pytest.approx(fit["heldout"]["chamfer_m"], rel=1e-9)
-        assert 0.0 < gap["total"][key]["mask_iou"] <= 1.0
+        # no overlap at all is a measurement too: the base model's lump stays where the slippery table let the
+        # pushed one slide 10 cm away (IoU 0.00, the table friction's 0.36)
+        assert 0.0 <= gap["total"][key]["mask_iou"] <= 1.0
         assert len(gap["per_frame"][key]["mask_iou"]) == len(gap["frames"])
+    assert max(gap["total"][key]["mask_iou"] for key, _ in shown) > 0.0
     assert "The held-out gap" in (tmp_path / "doctor" / "report.md").read_text()
     assert (tmp_path / "doctor" / "heldout_gap.png").stat().st_size > 5000
     assert (tmp_path / "doctor" / "report.md").exists() and (tmp_path / "doctor" / "doctor.rrd").exists()
