@@ -86,9 +86,11 @@ def measure(path: Path, obj: str, device: str = "cpu", synth_dx: Optional[float]
 
 
 def main(argv=None) -> int:
+    from empm_gym.perception.synth import OBJECT_DEFAULTS
+
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("problems", nargs="+", help="bench_doctor.py --make problems (.pkl or .pkl.gz)")
-    p.add_argument("--object", required=True, choices=("dough", "block", "rope", "lump"))
+    p.add_argument("--object", required=True, choices=sorted(OBJECT_DEFAULTS))
     p.add_argument("--device", default="cpu")
     p.add_argument("--synth-dx", type=float, default=None,
                    help="the synthesiser's grid (m) for problems that do not record it (made before session 38)")

@@ -597,7 +597,9 @@ def problem_object(path: Path, prob: dict) -> Optional[str]:
     begins with (``--make`` names them ``[v_]<object>-<script>-<seed>-<effect>``), else None."""
     if prob.get("object"):
         return prob["object"]
-    m = re.match(r"(?:v_)?(dough|rope|block|lump)-", Path(path).stem)
+    from empm_gym.perception.synth import OBJECT_DEFAULTS
+
+    m = re.match(rf"(?:v_)?({'|'.join(OBJECT_DEFAULTS)})-", Path(path).stem)
     return m.group(1) if m else None
 
 
@@ -607,7 +609,7 @@ def _effect_problems(problems: Path, obj: str, with_none: bool = False):
     benchmark's own use of it). Problems of another object are passed over: the true material is the object's (its
     E, nu, density and effect defaults), and a dough problem given the rope's scored 1.54 mm held out where its own
     scores 2.30 (session 58's seed-20 floors, made with both objects' problems in one folder)."""
-    from empm_gym.perception.synth import effect_material
+    from empm_gym.perception.synth import OBJECT_DEFAULTS, effect_material
 
     for path in sorted(Path(problems).glob("*.pkl")):
         with open(path, "rb") as f:
@@ -617,7 +619,7 @@ def _effect_problems(problems: Path, obj: str, with_none: bool = False):
         made_of = problem_object(path, prob)
         if made_of is None:
             raise SystemExit(f"{path.name} does not say which object it was made of (no 'object' in it, and its name "
-                             f"does not begin with dough-, rope-, block- or lump-)")
+                             f"does not begin with an object's name: {', '.join(f'{o}-' for o in OBJECT_DEFAULTS)})")
         if made_of != obj:
             continue
         mat, _ = effect_material(obj, prob["truth"], prob.get("truth_params") or None, **prob.get("base_params", {}))
@@ -1086,10 +1088,12 @@ def _table(rows):
 
 
 def _parser():
+    from empm_gym.perception.synth import OBJECT_DEFAULTS
+
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--make", default=None, help="synthesise and load the recordings into this folder first")
     p.add_argument("--problems", default=None, help="folder of pickled problems (written by --make, read otherwise)")
-    p.add_argument("--object", default="dough", choices=("dough", "block", "rope", "lump"))
+    p.add_argument("--object", default="dough", choices=sorted(OBJECT_DEFAULTS))
     p.add_argument("--effects", default="all", help="comma-separated effects (and none), default all")
     p.add_argument("--scripts", type=int, default=2, help="scripts per effect: its natural one, then another")
     p.add_argument("--only-scripts", default=None,

@@ -67,8 +67,10 @@ def _mm(v):
 
 
 def main(argv=None):
+    from empm_gym.perception.synth import OBJECT_DEFAULTS
+
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--object", default="dough", choices=("dough", "rope", "block", "lump"))
+    p.add_argument("--object", default="dough", choices=sorted(OBJECT_DEFAULTS))
     p.add_argument("--E", type=float, default=None, help="Young's modulus [Pa] (default: the object's)")
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--dx", type=float, default=0.005, help="the MPM grid [m] (the benchmark's synthesiser: 5 mm)")
