@@ -651,8 +651,47 @@ def floors(problems: Path, args):
         per, F, _ = _true_material_on(sc, prob["obs"], mat, cfg)
         row = {"recording": path.stem, "truth": prob["truth"], "floor_chamfer_m": float(np.mean(per["chamfer"][F:])),
                "floor_loss": float(np.mean(per["loss"][F:]))}
-        _emit(row, f"true material's held-out Chamfer {1e3 * row['floor_chamfer_m']:.3f} mm", rows, args.jsonl)
+        text = f"true material's held-out Chamfer {1e3 * row['floor_chamfer_m']:.3f} mm"
+        if getattr(args, "true_held", False):
+            row.update(_true_held_floors(path, prob, mat, sc, cfg, args))
+            text += (f", elastic {1e3 * row['elastic_chamfer_m']:.3f}; with the true part in the grippers "
+                     f"({1e6 * row['held_volume_m3']:.1f} -> {1e6 * row['true_held_volume_m3']:.1f} cm^3) "
+                     f"{1e3 * row['true_held_floor_chamfer_m']:.3f}, elastic {1e3 * row['true_held_elastic_chamfer_m']:.3f}")
+        _emit(row, text, rows, args.jsonl)
     return rows
+
+
+def _true_held_floors(path: Path, prob: dict, mat, scene, cfg, args) -> dict:
+    """``--floor --true-held``: the elastic material at the true E (no effect) on the doctor's body, and the true
+    and the elastic material on that body with what its closed grippers hold at frame 0 replaced by the
+    synthesiser's own frame-0 particles there (:func:`_own_simulation`; the benchmark's use of ground truth). Where
+    the two bodies' floors differ much, the recording turns on the prior that fills the grippers, which no camera
+    sees into (:func:`empm_gym.perception.fusion.complete_occluded`)."""
+    import dataclasses
+
+    from empm_gym.perception.fusion import inside_end_effectors
+    from empm_gym.perception.synth import effect_material
+
+    own = _own_simulation(path, prob, mat, args)
+    X0, V0 = own["particles"][0], np.asarray(own["volumes"], np.float64) * np.ones(len(own["particles"][0]))
+    x = np.asarray(scene.particles, np.float64)
+    v = np.asarray(scene.volumes, np.float64) * np.ones(len(x))
+    if len(scene.ee_configs):
+        closed = np.asarray(scene.ee_grip[0]) == 1
+        q = None if scene.ee_orientations is None else scene.ee_orientations[0]
+        held = inside_end_effectors(x, scene.ee_configs, scene.ee_positions[0], q, select=closed)
+        held_true = inside_end_effectors(X0, scene.ee_configs, scene.ee_positions[0], q, select=closed)
+    else:
+        held, held_true = np.zeros(len(x), bool), np.zeros(len(X0), bool)
+    swapped = dataclasses.replace(scene, particles=np.concatenate([x[~held], X0[held_true]]),
+                                  volumes=np.concatenate([v[~held], V0[held_true]]))
+    elastic, _ = effect_material(args.object, "none", None, **prob.get("base_params", {}))
+    out = {"held_volume_m3": float(v[held].sum()), "true_held_volume_m3": float(V0[held_true].sum())}
+    for key, body, m in (("elastic_chamfer_m", scene, elastic), ("true_held_floor_chamfer_m", swapped, mat),
+                         ("true_held_elastic_chamfer_m", swapped, elastic)):
+        per, F, _ = _true_material_on(body, prob["obs"], m, cfg)
+        out[key] = float(np.mean(per["chamfer"][F:]))
+    return out
 
 
 def _true_material_on(scene, obs, mat, cfg):
@@ -1174,6 +1213,10 @@ def _parser():
     p.add_argument("--floor", action="store_true",
                    help="simulate each effect problem's true material on the doctor's body instead of diagnosing "
                         "(rows to --jsonl; the benchmark's own use of ground truth)")
+    p.add_argument("--true-held", action="store_true",
+                   help="with --floor: also the elastic material (the true E, no effect), and both again on the "
+                        "doctor's body with what its closed grippers hold at frame 0 replaced by the synthesiser's "
+                        "own particles there (how much of the floor is the clamp prior's)")
     p.add_argument("--oracle", action="store_true",
                    help="simulate each effect problem's recording again with the synthesiser (its ground truth, on "
                         "the grid it was made on; --synth-dx for problems that do not record it) and score its own "
