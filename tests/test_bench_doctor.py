@@ -726,3 +726,39 @@ def test_the_pair_screen_measures_what_pair_signatures_measures(bench, capsys):
         bench.main(["--screen-pairs", "push-slide", "--effects", "plasticity"])  # a pair needs two
     with pytest.raises(SystemExit):
         bench.main(["--screen-pairs", "push-sliide", "--effects", "plasticity,viscosity"])
+
+
+def test_floors_with_the_true_part_in_the_grippers_swap_only_what_the_closed_grippers_hold(bench, slide_problems,
+                                                                                           tmp_path):
+    """``--floor --true-held`` scores the true and the elastic material again on the doctor's body with what the
+    closed grippers hold at frame 0 replaced by the synthesiser's own particles there. A block held in two clamps:
+    the prior fills each clamp to its middle, past the block's ends (more than the true part), and the true part is
+    what the synthesiser's body has inside them. A block pushed by an open pusher holds nothing: its floors are the
+    same either way, to the bit."""
+    import pickle
+
+    import numpy as np
+
+    rc = bench.main(["--object", "block", "--make", str(tmp_path / "rec"), "--problems", str(tmp_path / "prob"),
+                     "--effects", "gripper_slip", "--only-scripts", "squeeze-lift", "--scripts", "1", "--seeds", "1",
+                     "--dx", "0.02", "--synth-dx", "0.02", "--frames", "8", "--cameras", "3", "--width", "320",
+                     "--height", "240", "--only-make"])
+    assert rc == 0
+    args = bench.parse_args(["--object", "block", "--true-held"])
+    (held,) = bench.floors(tmp_path / "prob", args)
+    (pkl,) = (tmp_path / "prob").glob("*.pkl")
+    with open(pkl, "rb") as f:
+        prob = pickle.load(f)
+    from empm_gym.perception.fusion import inside_end_effectors
+    from empm_gym.perception.synth import simulate
+
+    sc = prob["scene"]
+    own = simulate("block", sc.material, script="squeeze-lift", frames=2, dx=0.02, seed=prob["seed"])
+    inside = inside_end_effectors(own["particles"][0], sc.ee_configs, sc.ee_positions[0], select=sc.ee_grip[0] == 1)
+    assert held["true_held_volume_m3"] == pytest.approx(float(np.sum(np.asarray(own["volumes"])[inside])))
+    assert held["held_volume_m3"] > held["true_held_volume_m3"] > 0.0
+    assert all(np.isfinite(held[k]) for k in ("elastic_chamfer_m", "true_held_floor_chamfer_m",
+                                              "true_held_elastic_chamfer_m"))
+    (pushed,) = bench.floors(slide_problems, args)
+    assert pushed["held_volume_m3"] == pushed["true_held_volume_m3"] == 0.0
+    assert pushed["true_held_floor_chamfer_m"] == pushed["floor_chamfer_m"]
