@@ -285,8 +285,9 @@ def _hidden_share(seen: Optional[np.ndarray], vol: np.ndarray, rec, plane, dx: f
         note = (f"{100 * share:.0f} % of the frame-0 body ({1e6 * (total - min(seen_vol, total)):.3g} of "
                 f"{1e6 * total:.3g} cm^3) lies where the end-effectors hide it from every camera and was completed "
                 f"by a prior (the object continues into each closed gripper up to its middle, at its entering cross-"
-                f"section or narrowing as it narrows towards the gripper, and fills what a pusher hides next to it): its size there is the prior's, not a measurement, and what is fitted "
-                f"from how the body deforms near the end-effectors rests on it")
+                f"section or narrowing as it narrows towards the gripper, and fills what a pusher hides next to it): "
+                f"its size there is the prior's, not a measurement, and what is fitted from how the body deforms "
+                f"near the end-effectors rests on it")
     return {"hidden_share": share, "hidden_note": note}
 
 
