@@ -672,7 +672,7 @@ def _true_held_floors(path: Path, prob: dict, mat, scene, cfg, args) -> dict:
     from empm_gym.perception.fusion import inside_end_effectors
     from empm_gym.perception.synth import effect_material
 
-    own = _own_simulation(path, prob, mat, args)
+    own = _own_simulation(path, prob, mat, args, frames=2)  # frame 0 is all it takes
     X0, V0 = own["particles"][0], np.asarray(own["volumes"], np.float64) * np.ones(len(own["particles"][0]))
     x = np.asarray(scene.particles, np.float64)
     v = np.asarray(scene.volumes, np.float64) * np.ones(len(x))
@@ -739,7 +739,7 @@ def discretisations(problems: Path, args):
     return rows
 
 
-def _own_simulation(path: Path, prob: dict, mat, args) -> dict:
+def _own_simulation(path: Path, prob: dict, mat, args, frames: Optional[int] = None) -> dict:
     """The synthesiser run again for the effect problem ``prob`` (read from ``path``): ``ground_truth``'s material
     ``mat``, the problem's script and seed, on the grid the recording was made on (the problem's ``synth_dx``, or
     ``args.synth_dx`` for problems made before session 38; its grid offset and particle jitter, ``--vary-physics``);
@@ -758,8 +758,8 @@ def _own_simulation(path: Path, prob: dict, mat, args) -> dict:
         raise SystemExit(f"{path.name} was made on a {synth_dx:g} m grid, not --synth-dx {args.synth_dx:g}")
     synth_dx = args.synth_dx if synth_dx is None else synth_dx
     obs = prob["obs"]
-    out = simulate(args.object, mat, script=prob["script"], frames=obs.num_frames, dx=synth_dx, seed=prob["seed"],
-                   device=args.device, **prob.get("synth_kw", {}))
+    out = simulate(args.object, mat, script=prob["script"], frames=frames or obs.num_frames, dx=synth_dx,
+                   seed=prob["seed"], device=args.device, **prob.get("synth_kw", {}))
     out["particles"] = out["particles"].astype(np.float64)
     d0 = float(np.median(cKDTree(out["particles"][0]).query(obs.points[0])[0]))
     if d0 > synth_dx:
@@ -1253,6 +1253,8 @@ def main(argv=None):
                   floor_rows)
         return 0
     problems = Path(args.problems) if args.problems else None
+    if args.true_held and not args.floor:
+        p.error("--true-held is a part of --floor: give both")
     if args.reload and not (args.make and args.keep_existing):
         p.error("--reload rebuilds the problems kept by --make DIR --keep-existing: give both")
     if not args.tangent_splats and not args.make:
