@@ -121,8 +121,9 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
     fill of the body, without what the end-effectors hide); ``trim_to_surface`` removes the fill's particles that
     lie outside the measured surface (:func:`_trim_to_surface`; off by default, see there)."""
     from empm_gym.perception.fusion import (carve_with_depth, complete_by_symmetry, complete_occluded,
-                                            end_effector_sdf, fuse_frame, initial_particles, inside_end_effectors,
-                                            inside_open_end_effectors, view_gap_deg, within_footprint)
+                                            complete_unseen_side, end_effector_sdf, fuse_frame, initial_particles,
+                                            inside_end_effectors, inside_open_end_effectors, view_gap_deg,
+                                            within_footprint)
 
     body = points if points is not None else fuse_frame(rec, 0, voxel_m=voxel_m, table_plane=plane,
                                                         min_height_m=0.5 * voxel_m)
@@ -196,19 +197,36 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
             hidden = hidden[~under_open(hidden) | within_footprint(hidden, body, dx / 4.0, dx / 4.0)]
         seen = body if len(hidden) else None
         body = np.concatenate([body, hidden])
-    try:
-        # the lattice's outer rows half a step inside the body's faces, for every body (a thin body on a lattice
-        # laid over its padded voxel box lost most of a row per face: a rope's E fitted 2-8 % stiff)
-        x0, vol = initial_particles(body, dx=dx, particles_per_cell=particles_per_cell, table_plane=plane,
-                                    fill_layers=one_side, open_thin=one_side, align_lattice=True)
-    except ValueError as exc:
-        if not one_side:
-            raise
-        raise ValueError(f"{rec.path}: the frame-0 body cannot be completed from views on one side "
-                         f"({report['body_completion']}): the surface they show, turned, still encloses no volume "
-                         f"thicker than three voxels of {dx / 4.0:g} m (a camera low over the table sees the sides "
-                         f"but not the top); record from higher above the table, or add a camera on the other "
-                         f"side ({exc})") from exc
+
+    def fill(points):
+        try:
+            # the lattice's outer rows half a step inside the body's faces, for every body (a thin body on a
+            # lattice laid over its padded voxel box lost most of a row per face: a rope's E fitted 2-8 % stiff)
+            return initial_particles(points, dx=dx, particles_per_cell=particles_per_cell, table_plane=plane,
+                                     fill_layers=one_side, open_thin=one_side, align_lattice=True)
+        except ValueError as exc:
+            if not one_side:
+                raise
+            raise ValueError(f"{rec.path}: the frame-0 body cannot be completed from views on one side "
+                             f"({report['body_completion']}): the surface they show, turned, still encloses no "
+                             f"volume thicker than three voxels of {dx / 4.0:g} m (a camera low over the table sees "
+                             f"the sides but not the top); record from higher above the table, or add a camera on "
+                             f"the other side ({exc})") from exc
+
+    x0, vol = fill(body)
+    if complete_hidden and len(cfgs) and not one_side:
+        # a side that cameras all around miss because end-effectors stand in the way (a rounded lump's middle
+        # between two tall clamps): the seen side turned half a turn, where it lands unseen and outside the fill
+        seen_surface = body if seen is None else seen
+        unseen, side = complete_unseen_side(seen_surface, rec, 0, cfgs, pos[0], ee_orientations=orient0, solid=x0,
+                                            gap_m=0.5 * dx)
+        if len(unseen):
+            report["unseen_side"] = dict(side)
+            report["body_completion"] += "; " + side["note"]
+            surface = np.concatenate([surface, unseen])  # the trim keeps the turned side, as it keeps the seen
+            seen = seen_surface
+            body = np.concatenate([body, unseen])
+            x0, vol = fill(body)
     x0, vol = carve_with_depth(x0, vol, rec, 0)  # free space under overhangs that the column fill took
     if one_side and len(cfgs):
         keep = ~inside_open_end_effectors(x0, cfgs, pos[0], grip[0], orient0)
@@ -285,9 +303,10 @@ def _hidden_share(seen: Optional[np.ndarray], vol: np.ndarray, rec, plane, dx: f
         note = (f"{100 * share:.0f} % of the frame-0 body ({1e6 * (total - min(seen_vol, total)):.3g} of "
                 f"{1e6 * total:.3g} cm^3) lies where the end-effectors hide it from every camera and was completed "
                 f"by a prior (the object continues into each closed gripper up to its middle, at its entering cross-"
-                f"section or narrowing as it narrows towards the gripper, and fills what a pusher hides next to it): "
-                f"its size there is the prior's, not a measurement, and what is fitted from how the body deforms "
-                f"near the end-effectors rests on it")
+                f"section or narrowing as it narrows towards the gripper, fills what a pusher hides next to it, and "
+                f"turns the seen side onto a side the end-effectors hide from cameras all around): its size there is "
+                f"the prior's, not a measurement, and what is fitted from how the body deforms near the end-effectors "
+                f"rests on it")
     return {"hidden_share": share, "hidden_note": note}
 
 

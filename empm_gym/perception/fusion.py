@@ -37,6 +37,8 @@ __all__ = [
     "complete_occluded",
     "view_gap_deg",
     "complete_by_symmetry",
+    "half_turn_axis",
+    "complete_unseen_side",
     "hidden_by_end_effectors",
     "inside_end_effectors",
     "within_footprint",
@@ -1006,6 +1008,92 @@ def complete_by_symmetry(points: np.ndarray, rec: Recording, t: int = 0, *, ee_c
         info["note"] += (f"; the views leave the axis open over {1000 * spread[0]:.0f} x {1000 * spread[1]:.0f} mm "
                          f"(x, y): the body's extent along that is the prior's, not measured")
     return turned[~bad], info
+
+
+def half_turn_axis(points: np.ndarray, *, cap_m: float = 0.01, coarse_m: float = 0.002,
+                   fine_m: float = 0.0005) -> Tuple[np.ndarray, float]:
+    """The vertical axis (x, y in m) about which half a turn maps the surface ``points`` [N, 3] (m) best onto
+    itself, and that fit's cost (m): the mean distance from each turned point to the nearest point, capped at
+    ``cap_m`` so that a side seen on one half only (whose turned copy lands where nothing was seen) counts as a
+    fixed penalty, not by how far it lands. Searched on a grid of ``coarse_m`` over the middle half of the points'
+    footprint, then of ``fine_m`` around the best. (Unlike :func:`complete_by_symmetry`'s search, which asks only
+    that the turned copy not be seen through, this needs surfaces seen on both halves: views from all sides.)"""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, float).reshape(-1, 3)
+    tree = cKDTree(pts)
+
+    def cost(c):
+        turned = pts.copy()
+        turned[:, :2] = 2.0 * c - turned[:, :2]
+        return float(np.mean(np.minimum(tree.query(turned, distance_upper_bound=cap_m)[0], cap_m)))
+
+    lo, hi = pts[:, :2].min(0), pts[:, :2].max(0)
+    centre, span = 0.5 * (lo + hi), 0.25 * (hi - lo)
+    best = (np.inf, centre)
+    for step in (coarse_m, fine_m):
+        grids = [np.arange(centre[i] - span[i], centre[i] + span[i] + 0.5 * step, step) for i in range(2)]
+        for ax in grids[0]:
+            for ay in grids[1]:
+                c = np.array([ax, ay])
+                e = cost(c)
+                if e < best[0]:
+                    best = (e, c)
+        centre, span = best[1], np.full(2, 3.0 * coarse_m)
+    return best[1], best[0]
+
+
+#: Least share of the turned surface that :func:`complete_unseen_side` must place in an unseen hole before it adds
+#: any: a few turned points land in a shadow by chance (3-4 % of them on ``empm synth``'s box dough in two clamps and
+#: the lump under a plate), a side that no camera saw lands many (37 % on the lump between two clamps).
+MIN_UNSEEN_SIDE_SHARE = 0.1
+
+
+def complete_unseen_side(points: np.ndarray, rec: Recording, t: int, ee_configs, ee_positions, *,
+                         ee_orientations=None, solid: Optional[np.ndarray] = None, gap_m: float = 0.0025,
+                         front_m: float = 0.00125, min_share: float = MIN_UNSEEN_SIDE_SHARE) -> Tuple[np.ndarray, dict]:
+    """Surface samples [M, 3] (m) of a side of the body that cameras all around it do not see because an
+    end-effector stands in the way, by the half-turn prior of :func:`complete_by_symmetry`.
+
+    From cameras around an object every side is seen by some camera, unless end-effectors block it: a rounded
+    lump between two tall clamps shows its middle's far slope to no camera (the cameras on that side look at it
+    past the clamps, the others see only its crest). Neither the fill of the measured surface nor the clamps'
+    prior (:func:`complete_occluded`, which fills next to each end-effector) reaches it, and the body has a bite
+    there (``empm synth``'s lump in two clamps: 12 % of its volume missing, benchmarks/RESULTS.md, session 76).
+
+    **Prior**: the body is unchanged by half a turn about a vertical axis (:func:`half_turn_axis`, fitted to the
+    seen surface). The seen surface ``points`` [N, 3] (m, frame ``t``, object only) is turned, and a turned point is
+    kept where every camera saw a surface at least ``front_m`` (m) in front of it (hidden from all), an end-effector
+    (``ee_configs`` at ``ee_positions`` [K, 3], orientations [K, 4]) blocks it from at least one camera, it lies
+    inside none, and it is more than ``gap_m`` (m) from every point of ``solid`` [S, 3] (m: the body as filled from
+    the seen surface, its particles; default ``points``): inside the body, everything is hidden. Only
+    when at least ``min_share`` of the turned points are kept is a side missing (else none are returned: a few
+    turned points land in a shadow by chance). Returns ``(points [M, 3], info)`` with ``axis_m``, ``fit_m`` (the
+    axis fit's cost), ``share`` (kept / turned) and ``note`` (None when nothing was added)."""
+    pts = np.asarray(points, float).reshape(-1, 3)
+    info = {"axis_m": None, "fit_m": None, "share": 0.0, "note": None}
+    if len(pts) < 10 or len(ee_configs) == 0:
+        return np.zeros((0, 3)), info
+    from scipy.spatial import cKDTree
+
+    axis, fit = half_turn_axis(pts)
+    turned = pts.copy()
+    turned[:, :2] = 2.0 * axis - turned[:, :2]
+    keep = cKDTree(pts if solid is None else np.asarray(solid, float).reshape(-1, 3)).query(turned)[0] > gap_m
+    if keep.any():
+        keep[keep] &= ~inside_end_effectors(turned[keep], ee_configs, ee_positions, ee_orientations)
+    if keep.any():
+        keep[keep] &= _hidden(turned[keep], rec, t, front_m)
+    if keep.any():
+        keep[keep] &= hidden_by_end_effectors(turned[keep], rec.cameras, ee_configs, ee_positions, ee_orientations)
+    share = float(keep.mean())
+    info.update(axis_m=[float(axis[0]), float(axis[1])], fit_m=fit, share=share)
+    if share < min_share:
+        return np.zeros((0, 3)), info
+    info["note"] = (f"{100 * share:.0f} % of the seen surface, turned half a turn about the vertical axis at "
+                    f"({axis[0]:.3f}, {axis[1]:.3f}) m, lands where no camera sees past the end-effectors: that side "
+                    f"of the body is the turned seen side (a half-turn symmetry prior), not measured")
+    return turned[keep], info
 
 
 def _measured_depths(x: np.ndarray, rec: Recording, t: int, *, fill_silhouettes: bool = False):
