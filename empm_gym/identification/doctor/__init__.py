@@ -67,7 +67,11 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
             if v1 < (1.0 - REFILL_VOLUME_TOL) * v0:
                 refused.append((fine, v0, v1))
                 return None
-            info.update({k: report[k] for k in ("hidden_share", "hidden_note", "trimmed_share", "trim_note")})
+            info.update({k: report[k] for k in ("hidden_share", "hidden_note", "trimmed_share", "trim_note",
+                                                 "body_completion")})
+            info.pop("unseen_side", None)
+            if "unseen_side" in report:
+                info["unseen_side"] = report["unseen_side"]
             return finer
 
         scene, levels = resolving_dx(scene, refill, cells=DOCTOR_CELLS_ACROSS)
@@ -94,6 +98,8 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
                 f"gives a quicker, coarser look." if wp.get_device(device).is_cpu else "")
         logging.getLogger("empm_gym.identification").warning("%s: %s.%s", rec_dir, grid_notes[0], slow)
     notes = [info[k] for k in ("hidden_note", "trim_note") if info.get(k)] + grid_notes
+    if "unseen_side" in info:  # a side of the body the end-effectors hide from cameras all around: a prior's
+        notes.insert(0, "frame-0 body: " + info["unseen_side"]["note"])
     return scene, obs, views, info, notes
 
 
