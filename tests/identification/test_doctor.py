@@ -2402,3 +2402,23 @@ def test_doctor_cli_prints_each_round_and_where_the_material_with_every_effect_i
     assert "to look for a second missing effect" not in out  # it ran in rounds
     assert main(["doctor", str(tmp_path), "--out", str(tmp_path / "o"), "--rounds", "0"]) == 2
     assert "rounds must be a whole number" in capsys.readouterr().err
+
+
+def test_the_doctor_says_when_a_side_of_the_body_is_the_turned_seen_side(tmp_path):
+    """A rounded lump held in two clamps shows the far slope of its middle to no camera (the clamps stand in the
+    way); the loader completes it by turning the seen side half a turn. The doctor's notes say so, also after it
+    fills the body again on a finer cell (the note of the coarser fill would otherwise stand for a body not
+    simulated)."""
+    from empm_gym.identification.doctor import DEFAULT_DX, load_for_doctor
+    from empm_gym.perception.synth import synthesize
+
+    rec = synthesize(tmp_path / "lump", "lump", script="squeeze-lift", effect="none", frames=3, seed=3,
+                     progress=False)
+    scene, _, _, info, notes = load_for_doctor(rec, progress=False)
+    assert scene.dx < DEFAULT_DX  # refilled on a finer cell
+    said = [n for n in notes if n.startswith("frame-0 body:")]
+    assert len(said) == 1 and "turned half a turn" in said[0], notes
+    assert info["unseen_side"]["share"] >= 0.1 and "turned half a turn" in info["body_completion"]
+    # what is said is the finer fill's (36 % of the seen surface turned into the hole at 1 cm, 39 % at 5 mm)
+    fine = load_for_doctor(rec, dx=scene.dx, progress=False)[3]
+    assert info["unseen_side"] == fine["unseen_side"] and info["body_completion"] == fine["body_completion"]
