@@ -857,6 +857,13 @@ class _DepthViews:
         return self.in_front(x) > self.tol_m
 
 
+def _half_turn(points: np.ndarray, axis) -> np.ndarray:
+    """``points`` [N, 3] (m) turned half a turn (180 degrees) about the vertical line through ``axis`` (x, y in m)."""
+    out = np.array(points, float).reshape(-1, 3)
+    out[:, :2] = 2.0 * np.asarray(axis, float).reshape(2) - out[:, :2]
+    return out
+
+
 def complete_by_symmetry(points: np.ndarray, rec: Recording, t: int = 0, *, ee_configs=(), ee_positions=None,
                          grip=None, ee_orientations=None, axis: Optional[Sequence[float]] = None,
                          contact: Optional[np.ndarray] = None, tol_m: float = 0.004, cap_m: float = 0.01,
@@ -989,8 +996,7 @@ def complete_by_symmetry(points: np.ndarray, rec: Recording, t: int = 0, *, ee_c
         c, _, spread = best(sub, *axes, False)
     else:
         c, spread = np.asarray(axis, float).reshape(2), (0.0, 0.0)
-    turned = pts.copy()
-    turned[:, :2] = 2.0 * c - turned[:, :2]
+    turned = _half_turn(pts, c)
     bad = contradicted(turned)
     frac = float(bad.mean())
     info = {"axis_m": [float(c[0]), float(c[1])], "contradicted": frac, "axis_spread_m": [float(v) for v in spread],
@@ -1024,9 +1030,8 @@ def half_turn_axis(points: np.ndarray, *, cap_m: float = 0.01, coarse_m: float =
     tree = cKDTree(pts)
 
     def cost(c):
-        turned = pts.copy()
-        turned[:, :2] = 2.0 * c - turned[:, :2]
-        return float(np.mean(np.minimum(tree.query(turned, distance_upper_bound=cap_m)[0], cap_m)))
+        d = tree.query(_half_turn(pts, c), distance_upper_bound=cap_m)[0]
+        return float(np.mean(np.minimum(d, cap_m)))
 
     lo, hi = pts[:, :2].min(0), pts[:, :2].max(0)
     centre, span = 0.5 * (lo + hi), 0.25 * (hi - lo)
@@ -1077,8 +1082,7 @@ def complete_unseen_side(points: np.ndarray, rec: Recording, t: int, ee_configs,
     from scipy.spatial import cKDTree
 
     axis, fit = half_turn_axis(pts)
-    turned = pts.copy()
-    turned[:, :2] = 2.0 * axis - turned[:, :2]
+    turned = _half_turn(pts, axis)
     keep = cKDTree(pts if solid is None else np.asarray(solid, float).reshape(-1, 3)).query(turned)[0] > gap_m
     if keep.any():
         keep[keep] &= ~inside_end_effectors(turned[keep], ee_configs, ee_positions, ee_orientations)
