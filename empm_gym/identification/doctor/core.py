@@ -353,8 +353,9 @@ def signature_no_excess(check: dict) -> bool:
     is no contradiction (the fit is doubted, not vetoed). A fit that takes the ratio over 1 (an excess once free
     that the base model did not have), or raises one over 1, stays one: a plasticity fitted to the dough pushed
     with a hidden viscosity or none (varied seeds 20 and 23) raised 1.65-1.76 by 2.7-4.2 % and was vetoed,
-    rightly. Of every stored check of this feature (benchmarks/data, sessions 44-78), one raised a ratio under 1: the rounded lump pressed with a hidden
-    plasticity (seed 41; 0.295 -> 0.311, held-out gain 23.0 %), called `none` at 1.00 by the veto (session 79)."""
+    rightly. Of every stored check of this feature (benchmarks/data, sessions 44-78), one raised a ratio under 1:
+    the rounded lump pressed with a hidden plasticity (seed 41; 0.295 -> 0.311, held-out gain 23.0 %), called
+    `none` at 1.00 by the veto (session 79)."""
     d0, d1 = check.get("discrepancy_base"), check.get("discrepancy_with_effect")
     return bool(_feature_kind(check.get("feature")) == "residual ratio" and d0 is not None and d1 is not None
                 and d0 < d1 <= 1.0)
