@@ -25,10 +25,12 @@ import bench_doctor as B  # noqa: E402
 
 DATA = Path(__file__).resolve().parent / "data"
 #: Parts of the names of stored runs that are not the doctor as shipped at their time: signature and floor
-#: measurements, oracles and probes, a rule's before/after comparisons, runs with a setting changed to compare.
+#: measurements, oracles and probes, a rule's before/after comparisons, runs with a setting changed to compare, and
+#: recordings made again with another rig under the benchmark's names (four cameras, session 79).
 EXCLUDED = ("signatures", "oracle", "floors", "probe", "s52_yield", "s52_rope_lift_end_14", "code_742e6fc",
             "world_axes", "before_change", "before_rule", "before_scan", "retry_reverted", "variants_side", "old_new",
-            "alone", "repeat", "contenders", "unscaled_start_only", "trimmed_bodies", "grid_offsets", "discretisations")
+            "alone", "repeat", "contenders", "unscaled_start_only", "trimmed_bodies", "grid_offsets", "discretisations",
+            "four_cameras")
 NAME = re.compile(r"(v_)?(dough|rope)-([a-z-]+)-(\d+)-([a-z_]+)$")  # v_: made with --vary-physics
 
 
