@@ -228,6 +228,8 @@ def make(args):
                         if "view_bodies" in prob or args.view_bodies:
                             prob["view_bodies"] = view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc,
                                                                         trim_to_surface=args.trim_bodies)
+                        if "trimmed_body" in prob or args.trimmed_body:
+                            prob["trimmed_body"] = trimmed_body(rec, scene, particles_per_cell=args.ppc)
                         changed = True
                     if "signature_m" not in prob:
                         prob["signature_m"] = effect_signature(args.object, script, effect, frames=args.frames, seed=seed,
@@ -1201,7 +1203,8 @@ def _parser():
                         "trim_to_surface; off by default, benchmarks/RESULTS.md session 40)")
     p.add_argument("--reload", action="store_true",
                    help="with --make --keep-existing: rebuild each kept problem's scene and observations from its "
-                        "recording (after a change to the loader), keeping its signature")
+                        "recording (after a change to the loader), and its view and trimmed bodies where it has them, "
+                        "keeping its signature")
     p.add_argument("--keep-existing", action="store_true",
                    help="with --make: keep problems already pickled (adding their signature), make the others")
     p.add_argument("--shard", default="0/1", help="K/N: diagnose every N-th recording from the K-th (split runs)")

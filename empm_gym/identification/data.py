@@ -108,7 +108,7 @@ def attach_grippers(configs, positions, grip, particles, dx: float):
 def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particles_per_cell: float,
                 voxel_m: float = 0.003, complete_hidden: bool = True, single_view: Optional[bool] = None,
                 points: Optional[np.ndarray] = None, symmetry_axis: Optional[Sequence[float]] = None,
-                measure_hidden: bool = True, trim_to_surface: bool = False):
+                measure_hidden: bool = True, trim_to_surface: bool = False, clamp_reach: float = 1.0):
     """The frame-0 body of recording ``rec`` as simulation particles: ``(x0 [N, 3] m, volumes [N] m^3, report)``
     (what :func:`load_recording` builds, see there; ``report`` holds ``view_gap_deg``, ``single_view``,
     ``body_completion``, ``trimmed_share`` (the share of the fill's particles removed as lying outside the
@@ -119,7 +119,8 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
     ``symmetry_axis`` (x, y m) places the half-turn axis of a single-view completion instead of searching it;
     ``measure_hidden`` adds ``hidden_share`` and ``hidden_note`` to ``report`` (:func:`_hidden_share`: one more
     fill of the body, without what the end-effectors hide); ``trim_to_surface`` removes the fill's particles that
-    lie outside the measured surface (:func:`_trim_to_surface`; off by default, see there)."""
+    lie outside the measured surface (:func:`_trim_to_surface`; off by default, see there); ``clamp_reach`` how far
+    into a closed box gripper the body is taken to reach (:func:`empm_gym.perception.fusion.complete_occluded`)."""
     from empm_gym.perception.fusion import (carve_with_depth, complete_by_symmetry, complete_occluded,
                                             complete_unseen_side, end_effector_sdf, fuse_frame, initial_particles,
                                             inside_end_effectors, inside_open_end_effectors, view_gap_deg,
@@ -146,7 +147,7 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
     def hidden_by_ees(points, connected=True):
         return complete_occluded(points, rec, 0, cfgs, pos[0], grip=grip[0], ee_orientations=orient0,
                                  table_plane=plane, spacing_m=dx / 4.0, margin_m=dx, end_effectors_only=one_side,
-                                 connected=connected)
+                                 connected=connected, clamp_reach=clamp_reach)
 
     if one_side:
         touch = None
@@ -323,13 +324,13 @@ def rebuilt_scene(rec_dir, scene, *, particles_per_cell: float, cameras: Optiona
                   points: Optional[np.ndarray] = None, voxel_m: float = 0.003, complete_hidden: bool = True,
                   ee_friction: float = 0.8, single_view: Optional[bool] = None,
                   symmetry_axis: Optional[Sequence[float]] = None, info: Optional[dict] = None,
-                  trim_to_surface: bool = False):
+                  trim_to_surface: bool = False, clamp_reach: float = 1.0):
     """``scene`` (made by :func:`load_recording` from ``rec_dir``, a path or an open Recording) with its frame-0
     body built again: at another fill (``particles_per_cell``), from the cameras ``cameras`` only (default all), from the fused frame-0
     ``points`` when given, with the completion ``single_view`` (None: as :func:`frame0_body` decides) and its
     half-turn axis at ``symmetry_axis`` when given; the closed grippers grown to reach the new body. ValueError
     when the views cannot close a body. ``info`` (a dict) receives :func:`frame0_body`'s report on the new body,
-    its hidden share measured (one more fill); ``trim_to_surface`` as :func:`frame0_body`'s."""
+    its hidden share measured (one more fill); ``trim_to_surface`` and ``clamp_reach`` as :func:`frame0_body`'s."""
     from dataclasses import replace
 
     from empm_gym.perception.fusion import load_controls
@@ -345,7 +346,7 @@ def rebuilt_scene(rec_dir, scene, *, particles_per_cell: float, cameras: Optiona
                                   particles_per_cell=particles_per_cell, voxel_m=voxel_m,
                                   complete_hidden=complete_hidden, points=points, single_view=single_view,
                                   symmetry_axis=symmetry_axis, measure_hidden=info is not None,
-                                  trim_to_surface=trim_to_surface)
+                                  trim_to_surface=trim_to_surface, clamp_reach=clamp_reach)
     if info is not None:
         info.update(report)
     grown, _ = attach_grippers(cfgs, pos, grip, x0, scene.dx)
@@ -424,19 +425,29 @@ def trimmed_body(rec_dir, scene, *, particles_per_cell: float) -> Tuple[str, obj
     than the true one (seed 24: 1.03-1.29x, benchmarks/RESULTS.md, session 63); a larger body is a dissipative
     model's to make up for (dough pushed across the table without an effect: viscosity on the rebuilt body,
     `none` at confidence 1.00 on the synthesiser's own body and on this one). The view-jackknife bodies share
-    that bias; this one errs the other way (it removes the fill between the scan's points, too)."""
+    that bias; this one errs the other way (it removes the fill between the scan's points, too), and inside a
+    closed box gripper, where no camera sees where the body ends, it reaches half as far as the doctor's body
+    (:data:`~empm_gym.perception.fusion.CLAMP_REACH_TRIMMED`)."""
+    from empm_gym.perception.fusion import CLAMP_REACH_TRIMMED
+
     info = {}
     try:
-        sc = rebuilt_scene(rec_dir, scene, particles_per_cell=particles_per_cell, trim_to_surface=True, info=info)
+        sc = rebuilt_scene(rec_dir, scene, particles_per_cell=particles_per_cell, trim_to_surface=True, info=info,
+                           clamp_reach=CLAMP_REACH_TRIMMED)
     except ValueError as exc:
         return f"{TRIMMED_BODY}: {exc}", None
     share = float(info.get("trimmed_share") or 0.0)
     if info.get("trim_note"):
         return f"{TRIMMED_BODY}: {info['trim_note']}", None
-    if share < MIN_TRIMMED_SHARE:
+    # the volume it lacks against the doctor's body: the trim's and, where a closed gripper holds it, the prior's
+    def total(s):
+        return float(np.sum(np.asarray(s.volumes, np.float64) * np.ones(len(s.particles))))
+
+    less = 1.0 - total(sc) / max(total(scene), 1e-30)
+    if share < MIN_TRIMMED_SHARE and less < MIN_TRIMMED_SHARE:
         return (f"{TRIMMED_BODY}: {100 * share:.1f} % of the particles lay outside the measured surface, under "
                 f"{100 * MIN_TRIMMED_SHARE:g} %: the doctor's body already is that body"), None
-    return f"{TRIMMED_BODY} ({100 * share:.1f} % of the particles removed)", sc
+    return f"{TRIMMED_BODY} ({100 * share:.1f} % of the particles removed, {100 * less:.1f} % of the volume)", sc
 
 
 #: How far (in pixels at the object's depth) :func:`view_jackknife_bodies` moves a single-view completion's

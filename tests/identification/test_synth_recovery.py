@@ -85,6 +85,30 @@ def test_closed_clamps_hold_no_phantom_material(tmp_path):
     # the clamps hide most of the dough: the loader says how much of the body its completion supplied
     assert 0.5 < info["hidden_share"] < 0.9, info["hidden_share"]
     assert f"{100 * info['hidden_share']:.0f} % of the frame-0 body" in info["hidden_note"]
+    # no camera sees where the dough ends inside a clamp: the doctor's body reaches each clamp's middle, the body
+    # trimmed to the measured surface (the one that errs small, which a named effect must hold on too) half as far
+    from empm_gym.identification.data import trimmed_body
+    from empm_gym.perception.fusion import CLAMP_REACH_TRIMMED, load_controls
+    from empm_gym.perception.recording import Recording, controls_to_end_effectors
+
+    label, trim = trimmed_body(rec, scene, particles_per_cell=27)
+    assert trim is not None, label
+    cfgs, pos, _ = controls_to_end_effectors(load_controls(Recording(rec)))
+    reach = []
+    for k, cfg in enumerate(cfgs):
+        c, hx = pos[0][k][0], cfg.half_extents[0]
+        side = np.sign(c)
+        entry = abs(c) - hx
+        for body in (scene, trim):
+            inside = body.particles[side * body.particles[:, 0] > entry]
+            reach.append((side * inside[:, 0]).max() - entry)
+    spacing = scene.dx / 3.0
+    for (full_in, trim_in) in (reach[:2], reach[2:]):
+        assert abs(full_in - hx) < spacing, (full_in, hx)                        # to the middle
+        # half as far (the lattice's outer row half a spacing inside, and the trim takes up to one more)
+        assert -1.5 * spacing < trim_in - CLAMP_REACH_TRIMMED * hx < spacing, (trim_in, hx)
+    less = 1.0 - trim.volumes.sum() / scene.volumes.sum()
+    assert 0.15 < less < 0.4 and f"{100 * less:.1f} % of the volume" in label, (less, label)
 
 
 def test_a_body_the_cameras_see_whole_carries_no_completion_note(tmp_path):
@@ -150,7 +174,9 @@ def test_the_trimmed_body_is_the_loaders_trim_of_the_same_scene_and_says_when_it
                                 trim_to_surface=True)
     label, sc = data.trimmed_body(rec, full, particles_per_cell=8)
     share = 100 * info["trimmed_share"]
-    assert sc is not None and label == f"{data.TRIMMED_BODY} ({share:.1f} % of the particles removed)", label
+    less = 100 * (1.0 - trim.volumes.sum() / full.volumes.sum())
+    assert sc is not None and label == (f"{data.TRIMMED_BODY} ({share:.1f} % of the particles removed, {less:.1f} % "
+                                        f"of the volume)"), label
     assert np.array_equal(sc.particles, trim.particles) and np.array_equal(sc.volumes, trim.volumes)
     assert len(sc.particles) < len(full.particles) and sc.dx == full.dx and sc.table == full.table
     monkeypatch.setattr(data, "MIN_TRIMMED_SHARE", 0.5)
