@@ -540,10 +540,14 @@ def rescore(paths):
 
     factor = DoctorConfig().friction_equivalence
 
-    def vanishing(t):  # a fit or variant test of a dump older than session 53: the flag from the registry's boxes
+    def vanishing(t, box=None):
+        """A fit or variant test with its flag taken again by the current rule (:func:`toward_absence`) from its
+        fitted values and its candidate's search box (``box``; dumps older than session 53 hold none: the
+        registry's, where the side an effect vanishes on is never capped)."""
         ps = t.get("params", {})
-        return t if "toward_absence" in t else {**t, "toward_absence": toward_absence(
-            ps, {k: PARAMETERS[k].search for k in ps if k in PARAMETERS})}
+        box = {k: tuple(v) for k, v in (box or t.get("search_box") or {}).items()}
+        return {**t, "toward_absence": toward_absence(
+            ps, {k: box.get(k, PARAMETERS[k].search) for k in ps if k in PARAMETERS})}
 
     rows = {}
     for path in paths:
@@ -557,8 +561,8 @@ def rescore(paths):
                 cands = [c if "equivalent_to_base" in c else
                          {**c, "equivalent_to_base": _friction_equivalent(c.get("params", {}).get("friction"), base_mu,
                                                                          factor)} for c in res["candidates"]]
-                # dumps older than session 53 lack the fits that end where their effect vanishes: taken from the
-                # fitted values and the registry's boxes (the side where an effect vanishes is never capped)
+                # the fits that end where their effect vanishes, by the current rule (dumps older than session 53
+                # lack the flag)
                 cands = [vanishing(c) for c in cands]
                 # dumps older than the signature veto (session 44) hold the check for their verdict alone: that
                 # candidate is marked as the doctor now marks every significant one (older than session 40, the
@@ -580,8 +584,11 @@ def rescore(paths):
                 if variants and "base_E" not in variants:  # dumps older than session 28: the base fit's E
                     variants = {**variants, "base_E": res["base"]["params"]["E"]}
                 if variants and variants.get("candidates"):  # and the variants' refits that end where it vanishes
+                    boxes = {c["effect"]: c.get("search_box") for c in cands}
                     variants = {**variants, "candidates": {
-                        name: {**rec, "tests": [vanishing(t) for t in rec.get("tests", [])]}
+                        name: {**rec, "tests": [vanishing(t, boxes.get(name)) for t in rec.get("tests", [])],
+                               **({"trimmed": vanishing(rec["trimmed"], boxes.get(name))} if rec.get("trimmed")
+                                  else {})}
                         for name, rec in variants["candidates"].items()}}
                 win, first, _ = select_verdict(cands, variants)
                 share, _, n_disc, _ = first_places(cands, variants, win)

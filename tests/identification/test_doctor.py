@@ -1607,6 +1607,11 @@ def test_a_fit_that_ends_where_its_effect_vanishes_is_not_named():
     assert toward_absence({"viscosity": 0.519}, box) == ["viscosity"]
     assert toward_absence({"viscosity": 8.7}, box) == []  # at its cap: as much viscosity as the box allows
     assert toward_absence({"grip_friction": 9.9e3}, box) == ["grip_friction"]  # a grip that does not slip
+    # within 2.5 % of a log box's width in log space (five decades: from 7,499 up), as a linear box's bound: the
+    # refit at 8,912 on a trimmed body of session 80 held gripper slip on a recording without an effect
+    assert toward_absence({"grip_friction": 8912.0}, box) == ["grip_friction"]
+    assert toward_absence({"grip_friction": 7000.0}, box) == []
+    assert toward_absence({"E": 2.7e4, "fracture_strain": 1.34}, box) == []  # 1.875 decades: 1.35 up
     assert toward_absence({"grip_friction": 0.1}, box) == []
     assert toward_absence({"yield_stress": 9.8e5}, box) == ["yield_stress"]
     assert toward_absence({"stiffness_slope_1": 0.0}, box) == [] and toward_absence({"friction": 0.5}, box) == []
