@@ -447,7 +447,11 @@ def trimmed_body(rec_dir, scene, *, particles_per_cell: float) -> Tuple[str, obj
     if share < MIN_TRIMMED_SHARE and less < MIN_TRIMMED_SHARE:
         return (f"{TRIMMED_BODY}: {100 * share:.1f} % of the particles lay outside the measured surface, under "
                 f"{100 * MIN_TRIMMED_SHARE:g} %: the doctor's body already is that body"), None
-    return f"{TRIMMED_BODY} ({100 * share:.1f} % of the particles removed, {100 * less:.1f} % of the volume)", sc
+    grip0 = np.asarray(scene.ee_grip)[0] if scene.ee_grip is not None and len(scene.ee_configs) else ()
+    held = any(g and cfg.shape == "box" for g, cfg in zip(grip0, scene.ee_configs))
+    return (f"{TRIMMED_BODY} ({100 * share:.1f} % of the particles removed, {100 * less:.1f} % of the volume"
+            + (f"; the closed grippers holding it {CLAMP_REACH_TRIMMED:g} of the way to their middles" if held else "")
+            + ")"), sc
 
 
 #: How far (in pixels at the object's depth) :func:`view_jackknife_bodies` moves a single-view completion's
