@@ -440,10 +440,7 @@ def trimmed_body(rec_dir, scene, *, particles_per_cell: float) -> Tuple[str, obj
     if info.get("trim_note"):
         return f"{TRIMMED_BODY}: {info['trim_note']}", None
     # the volume it lacks against the doctor's body: the trim's and, where a closed gripper holds it, the prior's
-    def total(s):
-        return float(np.sum(np.asarray(s.volumes, np.float64) * np.ones(len(s.particles))))
-
-    less = 1.0 - total(sc) / max(total(scene), 1e-30)
+    less = 1.0 - float(np.sum(sc.volumes)) / max(float(np.sum(scene.volumes)), 1e-30)
     if share < MIN_TRIMMED_SHARE and less < MIN_TRIMMED_SHARE:
         return (f"{TRIMMED_BODY}: {100 * share:.1f} % of the particles lay outside the measured surface, under "
                 f"{100 * MIN_TRIMMED_SHARE:g} %: the doctor's body already is that body"), None

@@ -508,6 +508,9 @@ def complete_occluded(points: np.ndarray, rec: Recording, t: int, ee_configs, ee
     from scipy import ndimage
     from scipy.spatial import cKDTree
 
+    if not 0.0 < clamp_reach <= 1.0:
+        raise ValueError(f"clamp_reach must lie in (0, 1] (a share of the way from a gripper's entry face to its "
+                         f"middle), got {clamp_reach!r}")
     pts = np.asarray(points, float).reshape(-1, 3)
     n = np.asarray(table_plane[0], float)
     n = n / np.linalg.norm(n)
@@ -585,9 +588,6 @@ def _within_entry_half(cand: np.ndarray, pts: np.ndarray, centre: np.ndarray, R:
     they do outside. ``clamp_reach`` < 1 takes the body to end that share of the way from the entry face to the
     middle instead (the body trimmed to the measured surface, which errs small, takes half:
     :data:`CLAMP_REACH_TRIMMED`). Where no visible point lies next to the box, every candidate is kept."""
-    if not 0.0 < clamp_reach <= 1.0:
-        raise ValueError(f"clamp_reach must lie in (0, 1] (a share of the way from a gripper's entry face to its "
-                         f"middle), got {clamp_reach!r}")
     rel = pts - centre
     loc = rel @ R                                  # visible points in the box's frame
     outside = np.any(np.abs(loc) > hx + 0.5 * spacing_m, axis=1)
