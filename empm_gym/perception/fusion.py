@@ -649,7 +649,9 @@ def entry_taper(u: np.ndarray, q: np.ndarray, reach_m: float, *, bins: int = 4, 
     ``(q0, dq)``: the extent continued linearly from the face into the gripper (``q0 + dq * d`` at depth d past
     the face, ``dq`` < 0), or None where it falls towards the face by less than ``min_taper_m`` over the band, or
     its slices scatter about their line by more than ``max_scatter_m`` (continued as before: at the entering
-    extent).
+    extent). Where the slice next to the face lies short of the line through the slices beyond it by more than that
+    scatter (the gripper hides part of it from the cameras: a four-camera lump's sides), the line is read from the
+    slices beyond it.
 
     The band is cut into ``bins`` slices by distance from the face; each slice's extent is the 95th percentile of
     its ``q`` (robust to the depth noise and to a few stray points) and a least-squares line through them gives the
@@ -668,9 +670,23 @@ def entry_taper(u: np.ndarray, q: np.ndarray, reach_m: float, *, bins: int = 4, 
     if len(mid) < 3:
         return None
     mid, ext = np.asarray(mid), np.asarray(ext)
+    line = _straight_fall(mid, ext, float(reach_m), min_taper_m, max_scatter_m)
+    if line is None and len(mid) > 3:
+        # the slice next to the face may lie short of the others because the gripper hides part of it from the
+        # cameras: the line through the slices beyond it, where that slice lies below it by more than the scatter
+        slope, q0 = np.polyfit(mid[1:], ext[1:], 1)
+        if ext[0] < q0 + slope * mid[0] - max_scatter_m:
+            line = _straight_fall(mid[1:], ext[1:], float(reach_m), min_taper_m, max_scatter_m)
+    return line
+
+
+def _straight_fall(mid: np.ndarray, ext: np.ndarray, reach_m: float, min_taper_m: float, max_scatter_m: float):
+    """:func:`entry_taper`'s line ``(q0, dq)`` through slices at distances ``mid`` (m) with extents ``ext`` (m), or
+    None where it falls by less than ``min_taper_m`` over ``reach_m`` or the slices scatter about it by more than
+    ``max_scatter_m`` (RMS)."""
     slope, q0 = np.polyfit(mid, ext, 1)
     scatter = float(np.sqrt(np.mean((ext - (q0 + slope * mid)) ** 2)))
-    if slope * float(reach_m) < min_taper_m or scatter > max_scatter_m:
+    if slope * reach_m < min_taper_m or scatter > max_scatter_m:
         return None
     return float(q0), -float(slope)
 

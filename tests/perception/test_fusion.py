@@ -247,6 +247,25 @@ def test_entry_taper_continues_a_falling_top_and_not_a_flat_or_scattered_one():
     assert entry_taper(u[:10], falling[:10], 0.02) is None  # too few points for three slices
 
 
+def test_entry_taper_reads_a_falling_side_past_the_slice_a_gripper_hides():
+    """A side falling by 0.25 m/m towards a gripper's face, of which the cameras see only 8 mm in the slice next to
+    the face (the gripper hides the rest, as the four-camera lump's sides, benchmarks/RESULTS.md session 81), is
+    continued at the rate of the slices beyond it; a side that does not fall beyond such a slice, and a slice next
+    to the face that lies above the line (no gripper hides that), are not continued."""
+    from empm_gym.perception.fusion import entry_taper
+
+    rng = np.random.default_rng(2)
+    u = rng.uniform(0.0, 0.02, 4000)
+    falling = 0.030 + 0.25 * u - rng.uniform(0.0, 0.01, len(u)) + rng.normal(0.0, 0.001, len(u))
+    hidden = np.where(u < 0.005, np.minimum(falling, 0.008), falling)
+    q0, dq = entry_taper(u, hidden, 0.02)
+    assert abs(dq + 0.25) < 0.05 and abs(q0 - 0.030) < 0.002, (q0, dq)
+    flat = np.where(u < 0.005, 0.008, 0.030) - rng.uniform(0.0, 0.01, len(u))
+    assert entry_taper(u, flat, 0.02) is None
+    raised = np.where(u < 0.005, falling + 0.01, falling)
+    assert entry_taper(u, raised, 0.02) is None
+
+
 def test_half_turn_axis_is_found_with_one_side_of_the_body_unseen():
     """The upper surface of an ellipsoid cap (semi-axes 4 x 3 cm) centred at (3, -2) cm: the half turn maps it onto
     itself about its centre. With a quarter of its surface on one side missing (a side no camera saw), the fit
