@@ -1076,12 +1076,11 @@ def test_a_gain_failing_on_a_rebuilt_body_the_doctors_body_fits_significantly_be
     assert select_verdict(cands, {"variants": ["v"], "candidates": {"viscosity": {"tests": seed22}}})[0] is None
 
 
-def test_the_variants_check_compares_each_rebuilt_body_with_the_doctors_held_out(monkeypatch):
-    """Each rebuilt body's base model is compared with the doctor's body's on the held-out frames by the doctor's
-    paired test (simulated here): a body displaced by 1.5 cm from the measured block fits significantly worse and
-    its tests say ``body_unlike``; the doctor's own body given again as a rebuilt one does not. The refits are
-    fixed (the true E, a viscosity at 0 that gains nothing), so the gain fails on both bodies: not counted on the
-    displaced one only."""
+def _block_with_fixed_refits(monkeypatch, variants: int, viscosity: float):
+    """The pushed block (true E 3 kPa) with its base model and viscosity candidate fitted briefly, and every later
+    refit (``core._fit_candidates``, monkeypatched) fixed at the true E, the viscosity candidate's at ``viscosity``:
+    ``(scene, obs, T, F, heldout frames, DoctorConfig with `variants` discretisation variants, base fit, viscosity
+    fit)``."""
     from empm_gym.identification.doctor import core
     from empm_gym.sim import MaterialConfig
 
@@ -1089,18 +1088,29 @@ def test_the_variants_check_compares_each_rebuilt_body_with_the_doctors_held_out
     scene, obs = _pushed_block(truth)
     scene = dataclasses.replace(scene, dt_materials=core._clock(["viscosity"], truth, (1.0e3, 9.0e3), scene.dx))
     T, F = 13, 9
-    heldout = list(range(F, T))
-    cfg = DoctorConfig(candidate_iters=1, variant_iters=1, popsize=4, seed=1, variants=0)
+    cfg = DoctorConfig(candidate_iters=1, variant_iters=1, popsize=4, seed=1, variants=variants)
     base, visc = (core._fit_candidate(name, scene, obs, truth, (1.0e3, 9.0e3), F, cfg, False)
                   for name in ("base", "viscosity"))
 
     def fixed(specs, obs, progress, desc):
-        return [core._Fit(name, {"E": 3.0e3, **({} if name == "base" else {"viscosity": 0.0})},
+        return [core._Fit(name, {"E": 3.0e3, **({} if name == "base" else {"viscosity": viscosity})},
                           start_mat.replace(E=3.0e3), 0.5, 0.0, 0.0, added=len(ps), scene=sc, bounds=bounds,
                           start_material=start_mat)
                 for name, _, kw, (ps, bounds, start_mat, sc) in specs]
 
     monkeypatch.setattr(core, "_fit_candidates", fixed)
+    return scene, obs, T, F, list(range(F, T)), cfg, base, visc
+
+
+def test_the_variants_check_compares_each_rebuilt_body_with_the_doctors_held_out(monkeypatch):
+    """Each rebuilt body's base model is compared with the doctor's body's on the held-out frames by the doctor's
+    paired test (simulated here): a body displaced by 1.5 cm from the measured block fits significantly worse and
+    its tests say ``body_unlike``; the doctor's own body given again as a rebuilt one does not. The refits are
+    fixed (the true E, a viscosity at 0 that gains nothing), so the gain fails on both bodies: not counted on the
+    displaced one only."""
+    from empm_gym.identification.doctor import core
+
+    scene, obs, T, F, heldout, cfg, base, visc = _block_with_fixed_refits(monkeypatch, variants=0, viscosity=0.0)
     doctors = dataclasses.replace(base, params={"E": 3.0e3}, material=base.material.replace(E=3.0e3))
     X = core._simulate_fits([doctors], T)
     base_heldout = core._per_frame_losses(core.heldout_objective(scene, obs, T, cfg), X[:, 0])["loss"][heldout]
@@ -2488,25 +2498,9 @@ def test_the_variants_check_refutes_a_gain_that_no_other_discretisation_keeps_a_
     how far its gain shrank; gaining 15 % on one of them, it is robust. The refits are fixed and the variants' gain
     tests given, in the order the check makes them."""
     from empm_gym.identification.doctor import core
-    from empm_gym.sim import MaterialConfig
 
-    truth = MaterialConfig(E=3.0e3, nu=0.3, density=1000.0)
-    scene, obs = _pushed_block(truth)
-    scene = dataclasses.replace(scene, dt_materials=core._clock(["viscosity"], truth, (1.0e3, 9.0e3), scene.dx))
-    T, F = 13, 9
-    heldout = list(range(F, T))
-    cfg = DoctorConfig(candidate_iters=1, variant_iters=1, popsize=4, seed=1, variants=2)
-    base, visc = (core._fit_candidate(name, scene, obs, truth, (1.0e3, 9.0e3), F, cfg, False)
-                  for name in ("base", "viscosity"))
+    scene, obs, T, F, heldout, cfg, base, visc = _block_with_fixed_refits(monkeypatch, variants=2, viscosity=1.0)
     visc.test = {"gain": 0.600}
-
-    def fixed(specs, obs, progress, desc):
-        return [core._Fit(name, {"E": 3.0e3, **({} if name == "base" else {"viscosity": 1.0})},
-                          start_mat.replace(E=3.0e3), 0.5, 0.0, 0.0, added=len(ps), scene=sc, bounds=bounds,
-                          start_material=start_mat)
-                for name, _, kw, (ps, bounds, start_mat, sc) in specs]
-
-    monkeypatch.setattr(core, "_fit_candidates", fixed)
     for gains, robust in (((0.069, 0.061), False), ((0.150, 0.061), True)):
         given = iter(gains)
 
