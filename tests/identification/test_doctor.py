@@ -447,6 +447,44 @@ def test_a_winner_that_other_discretisations_rank_second_is_no_confident_verdict
     assert _first_on("plasticity", ["plasticity"], body, variants) == (1.0, [], 0)
 
 
+def test_a_variant_where_a_rival_holds_only_a_lower_bound_does_not_count_towards_the_first_places():
+    """Rope pulled apart with a stiffness field (seed 21, session 82, one H200): the field's refits on the bodies
+    rebuilt without cameras 0 and 2 parted the rope, so there it was scored at its optimum on the doctor's body
+    (``params_from``): a lower bound of what it gains there. Plasticity's refits beat those bounds; counted, the
+    field came first on 3 of 6 and the verdict was split. Those two variants cannot say who is first: the field
+    is first on 3 of the 4 others, and the verdict stands. Where the bounded candidate is itself first, the
+    variant counts."""
+    from empm_gym.identification.doctor.core import _first_on, first_places, split_verdict
+
+    labels = ["grid (1)", "grid (2)", "without camera 0", "without camera 1", "without camera 2"]
+
+    def tests(gains, bounded=()):
+        return {"tests": [{"variant": v, "gain": g, "threshold": 0.04, "kind": "body" if "camera" in v
+                           else "discretisation", **({"params_from": "the doctor's body"} if v in bounded else {})}
+                          for v, g in zip(labels, gains)]}
+
+    parted = ("without camera 0", "without camera 1", "without camera 2")
+    variants = {"variants": labels, "candidates": {
+        "heterogeneous_stiffness": tests([0.350, 0.364, 0.321, 0.308, 0.310], bounded=parted),
+        "plasticity": tests([0.218, 0.368, 0.367, 0.205, 0.339])}}
+    body = {"heterogeneous_stiffness": 0.565, "plasticity": 0.282}
+    share, others, n = _first_on("heterogeneous_stiffness", ["heterogeneous_stiffness", "plasticity"], body, variants)
+    assert (share, others, n) == (pytest.approx(3 / 4), ["plasticity"], 4)
+    assert not split_verdict(share, n)
+    # the same gains, none of them a bound: plasticity first on 3 of 6, and the verdict split (as before)
+    plain = {"variants": labels, "candidates": {
+        "heterogeneous_stiffness": tests([0.350, 0.364, 0.321, 0.308, 0.310]),
+        "plasticity": tests([0.218, 0.368, 0.367, 0.205, 0.339])}}
+    share, _, n = _first_on("heterogeneous_stiffness", ["heterogeneous_stiffness", "plasticity"], body, plain)
+    assert (share, n) == (pytest.approx(3 / 6), 6) and split_verdict(share, n)
+    # through the verdict's own path: both candidates significant, plasticity refuted (its trimmed-body refit
+    # ends where it vanishes), the field named
+    cands = [_gain_candidate("heterogeneous_stiffness", 0.565, 0.0185, 0.03),
+             _gain_candidate("plasticity", 0.282, 0.0305, 0.01)]
+    variants["candidates"]["plasticity"]["robust"] = False
+    assert first_places(cands, variants, "heterogeneous_stiffness")[:3] == (pytest.approx(3 / 4), ["plasticity"], 4)
+
+
 #: Two shifted grids and two bodies rebuilt without a camera: the variants of the verdict tests below.
 _FOUR_VARIANTS = ["grid (1)", "grid (2)", "without camera 0", "without camera 1"]
 
