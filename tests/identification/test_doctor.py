@@ -454,7 +454,8 @@ def test_a_variant_where_a_rival_holds_only_a_lower_bound_does_not_count_towards
     field came first on 3 of 6 and the verdict was split. Those two variants cannot say who is first: the field
     is first on 3 of the 4 others, and the verdict stands. Where the bounded candidate is itself first, the
     variant counts."""
-    from empm_gym.identification.doctor.core import _first_on, first_places, split_verdict
+    from empm_gym.identification.doctor.core import (_first_on, first_places, first_places_not_counted,
+                                                     first_places_text, split_verdict)
 
     labels = ["grid (1)", "grid (2)", "without camera 0", "without camera 1", "without camera 2"]
 
@@ -483,6 +484,13 @@ def test_a_variant_where_a_rival_holds_only_a_lower_bound_does_not_count_towards
              _gain_candidate("plasticity", 0.282, 0.0305, 0.01)]
     variants["candidates"]["plasticity"]["robust"] = False
     assert first_places(cands, variants, "heterogeneous_stiffness")[:3] == (pytest.approx(3 / 4), ["plasticity"], 4)
+    # which two were left out, and the report's line says so
+    left = first_places_not_counted(cands, variants, "heterogeneous_stiffness")
+    assert left == ["without camera 0", "without camera 2"]
+    assert first_places_not_counted(cands, plain, "heterogeneous_stiffness") == []
+    line = first_places_text({"effect": "heterogeneous_stiffness", "first_on": "3 of 4", "split": None,
+                              "first_elsewhere": ["plasticity"], "first_not_counted": left})
+    assert "not counted: without camera 0, without camera 2" in line and "lower bound" in line
 
 
 #: Two shifted grids and two bodies rebuilt without a camera: the variants of the verdict tests below.

@@ -1546,6 +1546,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     first_share, first_elsewhere, n_disc, yielded = first_places(
         as_dicts, robustness if cfg.robust_verdict else None, win)
     first_on = f"{round(first_share * n_disc)} of {n_disc}" if n_disc else ""
+    not_counted = first_places_not_counted(as_dicts, robustness if cfg.robust_verdict else None, win)
     split = None
     if winner is not None and split_verdict(first_share, n_disc):
         # no majority of the discretisations puts it first: which effect explains the recording depends on how
@@ -1636,12 +1637,13 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                    + (f"; {winner.name} comes first on {first_on} discretisations of the body, "
                       + " and ".join(n if n in passing else f"{n} (which fails on some variant)"
                                      for n in first_elsewhere) + " on the others" if first_share < 1.0 else "")
+                   + (not_counted_clause(not_counted) if n_disc else "")
                    + (f"; it holds on {robustness['candidates'][winner.name]['holds_on']}, not everywhere: "
                       f"{robustness['candidates'][winner.name]['missed']}"
                       if robustness["candidates"].get(winner.name, {}).get("missed") else "")
                    + implausible_clause(winner.params)
                    if winner else
-                   (split_reason(split.name, split.test["gain"], first_on, first_elsewhere, passing)
+                   (split_reason(split.name, split.test["gain"], first_on, first_elsewhere, passing, not_counted)
                     if split is not None else
                     f"{unchecked.name} lowers the held-out loss beyond noise and its penalty, but "
                     + (f"{robustness['candidates'][unchecked.name]['why']}"
@@ -1669,6 +1671,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         "implausible": {k: list(rng) for k, rng in implausible.items()},
         "first_on": first_on,
         "first_elsewhere": first_elsewhere,
+        "first_not_counted": not_counted,
         "split": None if split is None else split.name,
         "variants": robustness,
         "base": _fit_dict(base_fit, cfg),
@@ -2373,16 +2376,17 @@ def _discretisation_columns(names: Sequence[str], body_gains: Dict[str, float], 
     """The held-out gains of candidates ``names``, one dict per discretisation: the doctor's body
     (``body_gains``), then each variant (``variants``: :func:`_check_variants`' result) with the gains of those
     of ``names`` refitted on it; gains that are not finite are left out."""
-    return [col for col, _ in _columns_with_bounds(names, body_gains, variants)]
+    return [col for _, col, _ in _columns_with_bounds(names, body_gains, variants)]
 
 
 def _columns_with_bounds(names: Sequence[str], body_gains: Dict[str, float], variants: dict
-                         ) -> List[Tuple[Dict[str, float], Set[str]]]:
-    """:func:`_discretisation_columns`, each column with the names whose gain there is only a lower bound: a
-    refit that parted the body and was scored at the candidate's optimum on the doctor's body instead
-    (:func:`_parted_refits`; its test says ``params_from``). What the candidate gains at its best whole-body
-    fit on that variant is at least that, and not known."""
-    cols = [({n: float(body_gains[n]) for n in names}, set())]
+                         ) -> List[Tuple[str, Dict[str, float], Set[str]]]:
+    """:func:`_discretisation_columns` as ``(label, gains, bounded)``: each column's variant label ("the doctor's
+    body" first) and the names whose gain there is only a lower bound, a refit that parted the body and was scored
+    at the candidate's optimum on the doctor's body instead (:func:`_parted_refits`; its test says
+    ``params_from``). What the candidate gains at its best whole-body fit on that variant is at least that, and
+    not known."""
+    cols = [("the doctor's body", {n: float(body_gains[n]) for n in names}, set())]
     by_label: Dict[str, Tuple[Dict[str, float], Set[str]]] = {}
     for n in names:
         for t in (variants or {}).get("candidates", {}).get(n, {}).get("tests", []):
@@ -2390,8 +2394,23 @@ def _columns_with_bounds(names: Sequence[str], body_gains: Dict[str, float], var
             gains[n] = _gain(t)
             if t.get("params_from"):
                 low.add(n)
-    cols += list(by_label.values())
-    return [({n: g for n, g in c.items() if np.isfinite(g)}, low) for c, low in cols]
+    cols += [(label, gains, low) for label, (gains, low) in by_label.items()]
+    return [(label, {n: g for n, g in c.items() if np.isfinite(g)}, low) for label, c, low in cols]
+
+
+def _first_columns(winner: str, passing: Sequence[str], body_gains: Dict[str, float], variants: dict
+                   ) -> Tuple[List[str], List[str]]:
+    """``(firsts, not counted)``: the candidate first on each discretisation that :func:`_first_on` counts, and the
+    labels of those it leaves out, where a candidate behind the first holds only a lower bound of its gain."""
+    firsts, skipped = [], []
+    for label, col, low in _columns_with_bounds([n for n in passing if n in body_gains], body_gains, variants):
+        if winner in col and len(col) > 1:
+            top = max(col, key=col.get)
+            if any(n in low for n in col if n != top):
+                skipped.append(label)  # who is first there is not known
+                continue
+            firsts.append(top)
+    return firsts, skipped
 
 
 def _beats(a: str, b: str, cols: Sequence[Dict[str, float]], medians: Dict[str, float]) -> bool:
@@ -2424,13 +2443,7 @@ def _first_on(winner: str, passing: Sequence[str], body_gains: Dict[str, float],
     82) the field gained 56.5 % on the doctor's body and 35-36 % on both shifted grids; its refits on two bodies
     rebuilt without a camera parted the rope, and scored at the doctor's optimum it gained 31 % there, where
     plasticity's refits gained 34-37 %: counted, plasticity came first on 3 of 6 and the verdict was split."""
-    firsts = []
-    for col, low in _columns_with_bounds([n for n in passing if n in body_gains], body_gains, variants):
-        if winner in col and len(col) > 1:
-            top = max(col, key=col.get)
-            if any(n in low for n in col if n != top):
-                continue  # a candidate behind the first holds only a lower bound there: who is first is not known
-            firsts.append(top)
+    firsts, _ = _first_columns(winner, passing, body_gains, variants)
     if not firsts:
         return 1.0, [], 0
     others = [n for n in passing if n != winner and n in firsts]
@@ -2455,14 +2468,17 @@ def split_verdict(share: float, n: int) -> bool:
     return n > 0 and share <= SPLIT_SHARE
 
 
-def split_reason(name: str, gain: float, first_on: str, elsewhere: Sequence[str], passing: Sequence[str]) -> str:
+def split_reason(name: str, gain: float, first_on: str, elsewhere: Sequence[str], passing: Sequence[str],
+                 not_counted: Sequence[str] = ()) -> str:
     """A split verdict's reason (:func:`split_verdict`): candidate ``name``, held-out ``gain`` (a fraction), came
     first on ``first_on`` (``"k of n"``) discretisations and ``elsewhere`` on the others, those not in ``passing``
-    (the candidates that hold on the variants) marked as failing on some variant."""
+    (the candidates that hold on the variants) marked as failing on some variant; ``not_counted``: the
+    discretisations left out of the count (:func:`first_places_not_counted`)."""
     return (f"{name} lowers the held-out loss by {100 * gain:.1f} % and holds on the variants, but comes first on "
             f"only {first_on} discretisations of the body, "
             + " and ".join(n if n in passing else f"{n} (which fails on some variant)" for n in elsewhere)
-            + " on the others: which effect explains the recording depends on how the body is discretised, and "
+            + " on the others" + not_counted_clause(not_counted)
+            + ": which effect explains the recording depends on how the body is discretised, and "
               "none is named (read the candidates)")
 
 
@@ -2475,14 +2491,31 @@ def first_places(candidates: Sequence[dict], variants: Optional[dict], winner: O
     range, or doubted by their own signature, ranked before it without those rules). Those are out of the first
     places (and of the bootstrap's rivals): the verdict rests on that judgement as much as on the held-out
     frames, and its confidence is halved instead."""
+    contenders, gains, yielded = _places_compared(candidates, variants, winner)
+    if contenders is None:
+        return 1.0, [], 0, yielded
+    share, others, n = _first_on(winner, contenders, gains, variants)
+    return share, others, n, yielded
+
+
+def first_places_not_counted(candidates: Sequence[dict], variants: Optional[dict], winner: Optional[str]
+                             ) -> List[str]:
+    """The discretisations (variant labels) that :func:`first_places` leaves out for verdict ``winner``: where a
+    candidate behind the first holds only a lower bound of its gain (:func:`_first_on`)."""
+    contenders, gains, _ = _places_compared(candidates, variants, winner)
+    return [] if contenders is None else _first_columns(winner, contenders, gains, variants)[1]
+
+
+def _places_compared(candidates: Sequence[dict], variants: Optional[dict], winner: Optional[str]
+                     ) -> Tuple[Optional[List[str]], Dict[str, float], List[str]]:
+    """``(contenders, their gains on the doctor's body, yielded)`` that :func:`first_places` compares ``winner``
+    with; contenders None where no count is made (no verdict, or no variants)."""
     unyielded = select_verdict(candidates, variants, yield_rules=False)[2]
     yielded = unyielded[:unyielded.index(winner)] if winner in unyielded else []
     if winner is None or not (variants or {}).get("variants"):
-        return 1.0, [], 0, yielded
+        return None, {}, yielded
     contenders = [n for n in _contenders(candidates, variants) if n not in yielded]
-    gains = {c["effect"]: c["gain"]["gain"] for c in candidates if c["effect"] in contenders}
-    share, others, n = _first_on(winner, contenders, gains, variants)
-    return share, others, n, yielded
+    return contenders, {c["effect"]: c["gain"]["gain"] for c in candidates if c["effect"] in contenders}, yielded
 
 
 def first_places_text(result: dict) -> Optional[str]:
@@ -2495,10 +2528,20 @@ def first_places_text(result: dict) -> Optional[str]:
         return None
     others = list(result.get("first_elsewhere") or [])
     text = (f"{led} is first among the significant candidates on {result['first_on']} discretisations of the body"
-            + (f"; {' and '.join(others)} on the others" if others else ""))
+            + (f"; {' and '.join(others)} on the others" if others else "")
+            + not_counted_clause(result.get("first_not_counted")))
     if result.get("split"):
         text += f": no majority puts {led} first, so it is not named (split)"
     return text
+
+
+def not_counted_clause(labels: Optional[Sequence[str]]) -> str:
+    """The clause that names the discretisations left out of the first places (:func:`first_places_not_counted`),
+    or '' where none was."""
+    if not labels:
+        return ""
+    return (f" (not counted: {', '.join(labels)}, where a candidate behind the first could only be scored at its "
+            f"optimum on the doctor's body, its own refit there parting the body, a lower bound of its gain)")
 
 
 def _contenders(candidates: Sequence[dict], variants: dict) -> List[str]:
