@@ -489,7 +489,7 @@ def summarise_rounds(rows) -> None:
     print(f"\n=== diagnoses in rounds ({len(rows)} recordings)")
     for r in rows:
         truth = [] if r["truth"] == "none" else r["truth"].split("+")
-        verdicts = ", ".join(f"{e} {c:.2f}" for e, c in r["round_verdicts"])
+        verdicts = ", ".join(f"{e} {c:.2f}" if c is not None else f"{e} (rescored)" for e, c in r["round_verdicts"])
         print(f"  {r['recording']:48s} truth {' + '.join(truth) or 'none':38s} rounds: {verdicts:48s} held-out "
               f"Chamfer {1e3 * r['base_chamfer_m']:.2f} -> {1e3 * r['final_chamfer_m']:.2f} mm")
     two = [r for r in rows if "+" in r["truth"]]
@@ -594,7 +594,11 @@ def rescore(paths):
                 share, _, n_disc, _ = first_places(cands, variants, win)
                 if split_verdict(share, n_disc):
                     win = None  # no majority of the discretisations puts it first (session 72's rule)
-                res = {**res, "candidates": cands, "effect": win or "none", "effect_before_variants": first or "none"}
+                # a verdict that differs from the run's own has no confidence of its own: the run's was for another
+                # verdict (the bootstrap, variant and first-place shares are the doctor's, taken on its fits)
+                kept = (win or "none") == res.get("effect")
+                res = {**res, "candidates": cands, "effect": win or "none", "effect_before_variants": first or "none",
+                       "confidence": res.get("confidence", 0.0) if kept else None}
             rows.pop(res["recording"], None)
             rows[res["recording"]] = _row(res, res["truth"], res["recording"], res["script"], res.get("signature_m"),
                                           res["wall_s"], res.get("parted"))
@@ -1035,8 +1039,8 @@ def _by_confidence(rows, edges=CONFIDENCE_BINS):
     out = []
     for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
         last = k == len(edges) - 2
-        out.append((lo, hi, [r["verdict"] == r["truth"] for r in rows
-                             if lo <= r["confidence"] < hi or (last and r["confidence"] == hi)]))
+        out.append((lo, hi, [r["verdict"] == r["truth"] for r in rows if r["confidence"] is not None
+                             and (lo <= r["confidence"] < hi or (last and r["confidence"] == hi))]))
     return out
 
 
@@ -1084,8 +1088,10 @@ def _table(rows):
               f"{len(named)} (the recordings that show their effect; the benchmark's median is the one above)")
     if natural:
         print(f"on each effect's natural script only: accuracy {100 * np.mean(natural):.1f} % of {len(natural)}")
+    unknown = sum(r["confidence"] is None for r in full)
     print("accuracy by the verdict's confidence: " + "; ".join(
-        f"{lo:.1f}-{hi:.1f}: {sum(ok)} of {len(ok)} right" for lo, hi, ok in _by_confidence(full)))
+        f"{lo:.1f}-{hi:.1f}: {sum(ok)} of {len(ok)} right" for lo, hi, ok in _by_confidence(full))
+        + (f"; {unknown} rescored to another verdict than their run's, without a confidence" if unknown else ""))
     before = [(r["truth"], r["before_variants"]) for r in full if "before_variants" in r]
     if before:
         print(f"without the variants check: accuracy {100 * np.mean([t == v for t, v in before]):.1f} %, false effects "

@@ -151,9 +151,13 @@ def test_rescore_applies_the_trimmed_bodys_check_and_keeps_the_verdict_without_i
     assert (rows["refused"]["verdict"], rows["refused"]["before_trim"]) == ("none", "viscosity")
     assert (rows["holds"]["verdict"], rows["holds"]["before_trim"]) == ("viscosity", "viscosity")
     assert rows["refused"]["trim_checked"] and rows["holds"]["trim_checked"]
+    # the run's confidence (0.3) was for its own verdict: the kept one keeps it, the changed one has none
+    assert rows["holds"]["confidence"] == 0.3 and rows["refused"]["confidence"] is None
     out = _summarise(bench, tmp_path, capsys, list(rows.values()))
     assert ("checked on the body trimmed to the measured surface: 2 recordings; without that check: accuracy 0.0 % "
             "(with it 50.0 %), false effects on none 2 of 2; verdicts it changed: refused viscosity -> none") in out, out
+    assert ("accuracy by the verdict's confidence: 0.0-0.5: 0 of 1 right; 0.5-0.9: 0 of 0 right; 0.9-1.0: 0 of 0 "
+            "right; 1 rescored to another verdict than their run's, without a confidence") in out, out
 
 def test_make_with_effect_params_synthesises_them_and_keeps_them_for_scoring(bench, tmp_path):
     """``--make --effect-params viscosity=80 --base-params E=3e4,density=900``: the recording is made with that
