@@ -1634,10 +1634,10 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
                    f"threshold {100 * winner.test['threshold']:.0f} % for {winner.added} added parameter(s))"
                    + (f"; {' and '.join(rivals)} explain(s) the held-out frames about as well: the data do not tell "
                       f"them apart" if rivals else "")
-                   + (f"; {winner.name} comes first on {first_on} discretisations of the body, "
-                      + " and ".join(n if n in passing else f"{n} (which fails on some variant)"
-                                     for n in first_elsewhere) + " on the others" if first_share < 1.0 else "")
-                   + (not_counted_clause(not_counted) if n_disc else "")
+                   + (f"; {winner.name} comes first on {first_on} discretisations of the body"
+                      + (", " + " and ".join(n if n in passing else f"{n} (which fails on some variant)"
+                                             for n in first_elsewhere) + " on the others" if first_share < 1.0 else "")
+                      + not_counted_clause(not_counted) if first_share < 1.0 or not_counted else "")
                    + (f"; it holds on {robustness['candidates'][winner.name]['holds_on']}, not everywhere: "
                       f"{robustness['candidates'][winner.name]['missed']}"
                       if robustness["candidates"].get(winner.name, {}).get("missed") else "")
@@ -2440,9 +2440,10 @@ def _first_on(winner: str, passing: Sequence[str], body_gains: Dict[str, float],
     A variant where a candidate behind the first holds only a lower bound of its gain (its refit parted the body
     and it was scored at its optimum on the doctor's body, :func:`_parted_refits`) is not counted: the first
     there is not known. On the rope pulled apart with a stiffness field (seed 21, benchmarks/RESULTS.md, session
-    82) the field gained 56.5 % on the doctor's body and 35-36 % on both shifted grids; its refits on two bodies
-    rebuilt without a camera parted the rope, and scored at the doctor's optimum it gained 31 % there, where
-    plasticity's refits gained 34-37 %: counted, plasticity came first on 3 of 6 and the verdict was split."""
+    82) the field gained 56.5 % on the doctor's body and 35-36 % on both shifted grids; its refits on the three bodies
+    rebuilt without a camera parted the rope, and scored at the doctor's optimum it gained 31-32 % there, where
+    plasticity's refits gained 34-37 % on two of them: counted, plasticity came first on 3 of 6 and the verdict was
+    split."""
     firsts, _ = _first_columns(winner, passing, body_gains, variants)
     if not firsts:
         return 1.0, [], 0
