@@ -216,6 +216,8 @@ def _identify(args) -> int:
                        refine_grid=plan is None or plan.budget_s is None)
         if body_info.get("hidden_note"):  # the interval holds the rebuilt bodies, all on the same completion
             a["identifiability"]["warnings"].append(body_info["hidden_note"])
+        if body_info.get("calibration_note"):  # every body and every frame carries the rig's disagreement
+            a["identifiability"]["warnings"].append(body_info["calibration_note"])
         res.extra.update(a)
         undetermined = [k for k, u in a["uncertainty"].items() if not u["determined"]]
     res.save(out)

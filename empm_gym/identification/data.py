@@ -528,10 +528,11 @@ def frame_ranges(frames) -> str:
 
 def _warn_body(path, report: dict) -> None:
     """Log what :func:`load_recording` says of the frame-0 body (``report``: its ``info``): the single-view
-    prior, the share the end-effectors hide and a trim to the measured surface that was refused."""
+    prior, the share the end-effectors hide, a trim to the measured surface that was refused and cameras whose
+    calibrations disagree."""
     if report.get("single_view"):
         _log.warning("%s: %s", path, report["body_completion"])
-    for key in ("hidden_note", "trim_note"):
+    for key in ("hidden_note", "trim_note", "calibration_note"):
         if report.get(key):
             _log.warning("%s: %s", path, report[key])
 
@@ -570,14 +571,16 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     ``info["single_view"]`` and ``info["symmetry"]`` (the axis, how far the views leave it open, how much of
     the turned surface the depth images contradict, whether the prior was used), and ``info["hidden_frames"]``
     (the frames where no camera sees the object, a hand or a plate over it: they are simulated but not scored,
-    :attr:`~.problem.Observations.seen`, and logged). ``warn=False`` leaves those
+    :attr:`~.problem.Observations.seen`, and logged), ``info["camera_agreement"]`` (whether the cameras'
+    calibrations agree, :func:`empm_gym.perception.fusion.camera_agreement`) and ``info["calibration_note"]`` (None,
+    or why they do not; logged). ``warn=False`` leaves those
     warnings to the caller (``info`` still holds them): the doctor may fill the body again on a finer grid, and
     says what it says of the body it simulates. ``trim_to_surface`` removes the fill's particles outside the
     measured surface (:func:`frame0_body`; off by default).
     """
     from tqdm.auto import tqdm
 
-    from empm_gym.perception.fusion import estimate_table_plane, fuse_frame, load_controls
+    from empm_gym.perception.fusion import camera_agreement, estimate_table_plane, fuse_frame, load_controls
     from empm_gym.perception.recording import Recording, controls_to_end_effectors
 
     rec = Recording(rec_dir)
@@ -602,6 +605,9 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
                      len(empty), T, frame_ranges(empty))
     if info is not None:
         info["hidden_frames"] = empty
+        # whether the cameras' calibrations agree (a rig that does not thickens every fused point set)
+        info["camera_agreement"] = camera_agreement(rec)
+        info["calibration_note"] = info["camera_agreement"]["note"]
     controls = load_controls(rec)
     cfgs, pos, grip = controls_to_end_effectors(controls, friction=ee_friction)
     orient = controls.get("orientations")

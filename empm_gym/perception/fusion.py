@@ -14,6 +14,7 @@ normal pointing up, away from the table into the half-space holding the object.
 
 from __future__ import annotations
 
+import math
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
@@ -46,6 +47,7 @@ __all__ = [
     "end_effector_sdf",
     "controls_from_masks",
     "load_controls",
+    "camera_agreement",
 ]
 
 
@@ -200,6 +202,111 @@ def _refine_plane(centred: np.ndarray, n: np.ndarray, d: float, thr: float):
             break
         inliers = new
     return n, d, inliers
+
+
+#: A direction that fewer than this share of the pairs of a camera's points with the others' face along (their
+#: normal within 60 deg of it) is reported as unmeasured by :func:`camera_agreement`.
+_SHARED_DIRECTION = 0.02
+
+#: Point-to-plane solves of :func:`camera_agreement` (each with its nearest neighbours found again).
+_SHIFT_ITERATIONS = 12
+
+#: A camera whose points the others' surface pulls by more than this (m, at the object's centre; rigid alignment of
+#: its frame-0 points to theirs) is reported by :func:`camera_agreement`. Well-calibrated synthetic rigs read
+#: 0.1-0.3 mm (benchmarks/RESULTS.md, session 83).
+CALIBRATION_TOLERANCE_M = 1.5e-3
+
+
+def camera_agreement(rec: Recording, t: int = 0, *, radius_m: float = 0.12, voxel_m: float = 0.002,
+                     max_pair_m: float = 0.01, tolerance_m: float = CALIBRATION_TOLERANCE_M) -> dict:
+    """Whether the cameras' calibrations agree: how far each camera's frame-``t`` points must move to lie on the
+    surface the other cameras measure.
+
+    All depth pixels within ``radius_m`` of the object's centre (the object, the table around it, the
+    end-effectors: everything rigid at frame 0) are back-projected per camera and averaged per ``voxel_m`` voxel.
+    Each camera's points are then moved by the one translation that best puts them on the others' surface
+    (point-to-plane least squares, pairs within ``max_pair_m``, Huber-weighted, nearest neighbours found again
+    five times). A translation, not a rigid motion: near the object a pose's small rotation acts as a shift (0.3
+    deg at 0.55 m: 2.9 mm), and a rotation's fit drifts along a table plane's free directions. A direction the
+    surfaces do not constrain (along a rope's axis) is held near zero by a small ridge. A calibrated rig needs no
+    shift beyond what the noise leaves; a camera whose pose or depth scale is off needs one.
+
+    Returns ``cameras`` (per camera: ``offset_m`` [3] and ``offset_norm_m``, the shift; ``rms_before_m`` and
+    ``rms_after_m``, the point-to-plane distances' RMS before and after it; ``pairs``; ``unmeasured_directions``,
+    unit vectors along which the surfaces it shares with the others hardly constrain a shift, so that a
+    calibration error along them goes unseen: plates hiding a box's faces; the shift reported has no part along
+    them), ``largest_offset_m`` and
+    ``note``: None, or a sentence naming the cameras off by more than ``tolerance_m`` (the fused points of such a
+    rig are thicker than the depth noise, and every fit's floor rises with them). With one camera there is
+    nothing to compare: ``cameras`` is empty."""
+    from scipy.spatial import cKDTree
+
+    o3d = _o3d()
+    C = rec.num_cameras
+    out = {"frame": int(t), "cameras": [], "largest_offset_m": None, "note": None, "tolerance_m": float(tolerance_m)}
+    if C < 2:
+        return out
+    cams = rec.cameras
+    obj = frame_points(rec, t, use_mask=rec.has_masks)
+    if len(obj) == 0:
+        return out
+    centre = np.median(obj, axis=0)
+    clouds, facing = [], []  # per camera: its points, and their normals turned towards it
+    for c, cam in enumerate(cams):
+        p = cam.backproject(rec.depth(c, t), None)
+        pc = _pcd(voxel_downsample(p[np.linalg.norm(p - centre, axis=1) < radius_m], voxel_m))
+        if len(pc.points) >= 20:
+            pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=20))
+            pc.orient_normals_towards_camera_location(cam.position)
+        clouds.append(np.asarray(pc.points))
+        facing.append(np.asarray(pc.normals) if pc.has_normals() else np.zeros((len(pc.points), 3)))
+    delta = 1.5 * voxel_m  # Huber's threshold [m]
+    for c in range(C):
+        src, src_n = clouds[c], facing[c]
+        dst = np.concatenate([clouds[k] for k in range(C) if k != c])
+        if len(src) < 100 or len(dst) < 100:
+            continue
+        normals = np.concatenate([facing[k] for k in range(C) if k != c])
+        tree = cKDTree(dst)
+        shift = np.zeros(3)
+        rms = []
+        for it in range(_SHIFT_ITERATIONS + 1):
+            d, j = tree.query(src + shift, distance_upper_bound=max_pair_m)
+            ok = np.isfinite(d)
+            # a pair on the same side of the same surface: its two normals, each turned towards the camera that saw
+            # it, agree (not a face one camera sees against an edge or the table beside it, nor against the far
+            # face of a thin plate, that the others see)
+            ok[ok] = np.einsum("ij,ij->i", normals[j[ok]], src_n[ok]) > 0.95
+            n = normals[j[ok]]
+            r = np.einsum("ij,ij->i", n, src[ok] + shift - dst[j[ok]])
+            rms.append(float(np.sqrt(np.mean(r ** 2))) if ok.any() else float("nan"))
+            if it == _SHIFT_ITERATIONS or ok.sum() < 50:
+                break
+            w = np.minimum(1.0, delta / np.maximum(np.abs(r), 1e-12))
+            A = (n * w[:, None]).T @ n
+            ridge = 1e-3 * np.trace(A) / 3.0
+            shift = shift - np.linalg.solve(A + ridge * np.eye(3), (n * w[:, None]).T @ r)
+        # a direction is measured where enough of the pairs' surfaces face along it (a table's noisy normals add
+        # up to a weight along every direction, but tell nothing of a shift along the table)
+        _, vec = np.linalg.eigh(A)
+        free = [vec[:, i] for i in range(3) if np.sum(np.abs(n @ vec[:, i]) > 0.5) < _SHARED_DIRECTION * len(n)]
+        for u in free:  # what is reported is the shift the shared surfaces measure
+            shift = shift - (shift @ u) * u
+        out["cameras"].append({"camera": c, "name": cams[c].name, "offset_m": [float(v) for v in shift],
+                               "offset_norm_m": float(np.linalg.norm(shift)), "rms_before_m": rms[0],
+                               "rms_after_m": rms[-1], "pairs": int(ok.sum()),
+                               "unmeasured_directions": [[float(v) for v in u] for u in free]})
+    if out["cameras"]:
+        out["largest_offset_m"] = max(r["offset_norm_m"] for r in out["cameras"])
+        off = [r for r in out["cameras"] if r["offset_norm_m"] > tolerance_m]
+        if off:
+            each = ", ".join(f"camera {r['camera']} by {1e3 * r['offset_norm_m']:.1f} mm"
+                             for r in sorted(off, key=lambda r: -r["offset_norm_m"]))
+            out["note"] = (f"the cameras disagree at frame {t}: to lie on the other cameras' surface, {each} must be "
+                           f"shifted, beyond the {1e3 * tolerance_m:.1f} mm a calibrated rig shows. The fused points "
+                           f"are then thicker than the depth noise and every fit's floor rises with them: check the "
+                           f"extrinsics (c2w) and the depth scale")
+    return out
 
 
 def estimate_table_plane(rec: Recording, t: int = 0, *, voxel_m: float = 0.005, distance_threshold_m: float = 0.004,

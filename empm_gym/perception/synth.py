@@ -58,7 +58,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -878,6 +878,53 @@ def add_depth_noise(depth: np.ndarray, cos_incidence: np.ndarray, rng: np.random
     return np.where(valid, noisy, 0.0)
 
 
+def sensor_errors(cameras: Sequence[Camera], calibration_error: Sequence[float] = (0.0, 0.0),
+                  depth_bias: float = 0.0, *, seed: int = 0) -> dict:
+    """Errors of a real rig's calibration and depth, drawn per camera for a synthetic recording.
+
+    ``calibration_error`` ``(translation_m, rotation_deg)``: the pose written for each camera is its true pose
+    moved by a translation of that length in a random direction and turned by that angle about a random axis
+    through its optical centre (a multi-camera calibration leaves a few millimetres and a few tenths of a degree
+    between the cameras' point clouds). ``depth_bias``: each camera's depth is scaled by ``1 +- depth_bias``, the
+    sign drawn at random (a depth camera's absolute error is of 0.5-2 % of the distance). The images are rendered
+    with the true poses; the recording holds the written ones, so its views disagree where a real rig's would.
+
+    Returns ``c2w`` (the poses to write, [C, 4, 4]), ``depth_scale`` [C] and ``record`` (for ground_truth.json).
+    Draws from a generator of its own (``seed``), so that a recording without errors is the same as before."""
+    from scipy.spatial.transform import Rotation
+
+    t_m, r_deg = (float(v) for v in calibration_error)
+    bias = float(depth_bias)
+    for name, v in (("calibration_error translation (m)", t_m), ("calibration_error rotation (deg)", r_deg),
+                    ("depth_bias", bias)):
+        if not (math.isfinite(v) and v >= 0.0):
+            raise ValueError(f"{name} must be a finite value >= 0, got {v!r}")
+    if t_m > 0.05 or r_deg > 5.0 or bias > 0.1:
+        raise ValueError(f"sensor errors this large ({t_m:g} m, {r_deg:g} deg, depth bias {bias:g}) are a broken "
+                         f"calibration, not a calibrated rig's error: at most 0.05 m, 5 deg and 0.1")
+    rng = np.random.default_rng([int(seed), 0x5E05])
+    C = len(cameras)
+    c2w, trans, rotvec, scale = [], [], [], []
+    for cam in cameras:
+        d = rng.standard_normal(3)
+        t = t_m * d / np.linalg.norm(d)
+        a = rng.standard_normal(3)
+        rv = math.radians(r_deg) * a / np.linalg.norm(a)
+        s = 1.0 + bias * (1.0 if rng.random() < 0.5 else -1.0)
+        m = np.array(cam.c2w, np.float64)
+        m[:3, :3] = Rotation.from_rotvec(rv).as_matrix() @ m[:3, :3]  # about the optical centre
+        m[:3, 3] = m[:3, 3] + t
+        c2w.append(m)
+        trans.append(t)
+        rotvec.append(rv)
+        scale.append(s)
+    record = {"calibration_translation_m": [list(map(float, t)) for t in trans],
+              "calibration_rotation_deg": [float(np.degrees(np.linalg.norm(r))) for r in rotvec],
+              "calibration_rotation_axis": [list(map(float, r / max(np.linalg.norm(r), 1e-300))) for r in rotvec],
+              "depth_scale": [float(s) for s in scale]}
+    return {"c2w": np.stack(c2w) if C else np.zeros((0, 4, 4)), "depth_scale": np.array(scale), "record": record}
+
+
 # ----------------------------------------------------------------------------------------------
 # main entry
 # ----------------------------------------------------------------------------------------------
@@ -893,7 +940,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
                effect: Optional[str] = None, effect_params: Optional[Dict[str, float]] = None,
                material=None, debug_particles: Optional[bool] = None, tangent_splats: bool = True,
                simulator: str = "mpm", springmass_damping: float = 1.0, grid_offset=(0.0, 0.0, 0.0),
-               jitter: float = 0.0) -> Path:
+               jitter: float = 0.0, calibration_error: Sequence[float] = (0.0, 0.0), depth_bias: float = 0.0) -> Path:
     """Simulate a scripted manipulation and write a synthetic recording with known parameters to ``out_dir``.
 
     ``object`` is "rope", "dough", "block" or "lump"; ``script`` "default" (rope lift-and-stretch, dough squeeze,
@@ -920,7 +967,9 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
     and a stiffness field can be its effects, dashpots ``springmass_damping`` Pa s) instead of our MPM, so that
     the doctor and identification can be tried on another simulator's output (:func:`simulate`); the
     rendering is the same. ``grid_offset`` and ``jitter`` vary the discretisation (:func:`simulate`); the
-    ground truth's ``scene`` records both.
+    ground truth's ``scene`` records both. ``calibration_error`` ``(m, deg)`` and ``depth_bias`` give the rig a
+    real one's errors (:func:`sensor_errors`): the recording's camera poses and depths are off by them, and only
+    ground_truth.json's ``sensor_errors`` says by how much.
     Returns the recording path. See the module docstring for the scene, the noise model and how
     ``controls.npz`` replays.
     """
@@ -931,6 +980,8 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
     _check_scene_args(object, script, frames)
     if int(cameras) < 1:
         raise ValueError(f"cameras must be >= 1, got {cameras!r}")
+    if len(tuple(calibration_error)) != 2:
+        raise ValueError(f"calibration_error must be (translation m, rotation deg), got {calibration_error!r}")
     T, C = int(frames), int(cameras)
     fx = 420.0 * width / 848.0 if fx is None else float(fx)
     fy = fx if fy is None else float(fy)
@@ -987,8 +1038,9 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
 
     cams = camera_ring(C, width=width, height=height, fx=fx, fy=fy,
                        target=(0.0, 0.0, 0.03 if object == "rope" else 0.02))
+    errors = sensor_errors(cams, calibration_error, depth_bias, seed=seed)
     out = Path(out_dir)
-    writer = RecordingWriter(out, intrinsics=[c.K for c in cams], c2w=[c.c2w for c in cams], width=width,
+    writer = RecordingWriter(out, intrinsics=[c.K for c in cams], c2w=list(errors["c2w"]), width=width,
                              height=height, fps=fps, frame_num=T, depth_scale=0.001, depth_format=depth_format,
                              serial_numbers=[f"synth-{i}" for i in range(C)], object_label=object,
                              overwrite=overwrite)
@@ -1024,7 +1076,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
                         "half_extents": cfg.half_extents})
         for c, view in enumerate(views):
             depth, color, label, cosv = render_view(view, P, N, albedo, splat_r, ees, tangent=tangent_splats)
-            noisy = add_depth_noise(depth, cosv, rng, sigma_m=noise_sigma_m)
+            noisy = add_depth_noise(depth, cosv, rng, sigma_m=noise_sigma_m) * errors["depth_scale"][c]
             rgb = np.clip(color + rng.normal(0, 0.008, color.shape), 0, 1)
             writer.write_frame(c, t, color=(rgb * 255 + 0.5).astype(np.uint8), depth_m=noisy, mask=label == 1,
                                controller_mask=[label == 2 + k for k in range(len(ee_cfgs))])
@@ -1089,6 +1141,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
             "end_effectors": [{"shape": c.shape, "radius": c.radius, "half_extents": list(c.half_extents)}
                               for c in ee_cfgs],
         },
+        "sensor_errors": errors["record"],
         "render": {"surface_points": int(len(sp)), "surface_spacing_m": surface_spacing_m,
                    "splat_radius_m": splat_r, "tangent_splats": bool(tangent_splats),
                    "depth_noise_sigma_m_at_0.5m": noise_sigma_m,
@@ -1135,7 +1188,7 @@ def _cli(args) -> int:
                           debug_particles=True if args.debug_particles else None,
                           tangent_splats=args.tangent_splats, simulator=args.simulator,
                           springmass_damping=args.springmass_damping, grid_offset=args.grid_offset,
-                          jitter=args.jitter)
+                          jitter=args.jitter, calibration_error=args.calibration_error, depth_bias=args.depth_bias)
     except (RecordingError, ValueError, OSError) as exc:
         print(f"empm synth: error: {exc}", file=sys.stderr)
         return 2
@@ -1205,6 +1258,11 @@ def register(subparsers) -> None:
                         "offset moves the node layer the table acts on below the table (the body rests in it)")
     p.add_argument("--jitter", type=float, default=0.0,
                    help="displace the body's particles by up to +-jitter/2 of their spacing (0 to 1, seeded)")
+    p.add_argument("--calibration-error", dest="calibration_error", type=float, nargs=2, default=(0.0, 0.0),
+                   metavar=("M", "DEG"), help="each camera's written pose is off its true one by a translation of M "
+                   "metres and a rotation of DEG degrees (random directions; a real rig's calibration error)")
+    p.add_argument("--depth-bias", dest="depth_bias", type=float, default=0.0, metavar="FRAC",
+                   help="each camera's depth is scaled by 1 +- FRAC (random sign; a depth camera's absolute error)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing recording in out_dir")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cli)

@@ -303,3 +303,40 @@ def test_a_body_the_script_tears_without_a_fracture_is_flagged(tmp_path):
     X = np.stack([bar, bar, cut, cut])
     assert S.body_parts(X, 0.01) == {"pieces": 2, "from_frame": 2, "link_m": 0.02}
     assert S.body_parts(X, 0.02) is None
+
+
+def test_a_rig_with_calibration_and_depth_errors_writes_poses_and_depths_off_by_exactly_them(tmp_path):
+    """``calibration_error`` and ``depth_bias``: the images are rendered with the true poses, the recording holds
+    poses moved by the asked translation and rotation (about each optical centre) and depths scaled by 1 +- the
+    bias; the noise and everything else are those of the same recording without errors, and only
+    ground_truth.json says what was done."""
+    from scipy.spatial.transform import Rotation
+
+    kw = dict(frames=2, cameras=3, width=96, height=64, seed=5, progress=False, effect="none")
+    clean = Recording(S.synthesize(tmp_path / "clean", "dough", **kw))
+    off = Recording(S.synthesize(tmp_path / "off", "dough", calibration_error=(0.004, 0.5), depth_bias=0.02, **kw))
+    rec = off.ground_truth()["sensor_errors"]
+    assert "sensor_errors" in clean.ground_truth()
+    for c in range(3):
+        A, B = clean.c2w[c], off.c2w[c]
+        dR = B[:3, :3] @ A[:3, :3].T
+        assert np.linalg.norm(B[:3, 3] - A[:3, 3]) == pytest.approx(0.004, rel=1e-6)
+        assert np.degrees(Rotation.from_matrix(dR).magnitude()) == pytest.approx(0.5, rel=1e-5)
+        np.testing.assert_allclose(B[:3, 3] - A[:3, 3], rec["calibration_translation_m"][c], atol=1e-9)
+        assert rec["calibration_rotation_deg"][c] == pytest.approx(0.5)
+        s = rec["depth_scale"][c]
+        assert s in (pytest.approx(1.02), pytest.approx(0.98))
+        d0, d1 = clean.depth(c, 1), off.depth(c, 1)
+        np.testing.assert_array_equal(d0 > 0, d1 > 0)  # the same pixels measured, the same noise drawn
+        assert np.abs(d1[d0 > 0] - s * d0[d0 > 0]).max() <= 1.01e-3  # within one depth unit (1 mm) of the scale
+        np.testing.assert_array_equal(clean.color(c, 1), off.color(c, 1))
+        np.testing.assert_array_equal(clean.mask(c, 1), off.mask(c, 1))
+    # another seed draws other directions and signs
+    other = S.sensor_errors(clean.cameras, (0.004, 0.5), 0.02, seed=6)["record"]
+    assert other["calibration_translation_m"] != rec["calibration_translation_m"]
+    with pytest.raises(ValueError, match="calibration_error must be"):
+        S.synthesize(tmp_path / "bad", "dough", calibration_error=(0.001,), **kw)
+    with pytest.raises(ValueError, match="depth_bias must be a finite value >= 0"):
+        S.sensor_errors(clean.cameras, (0.0, 0.0), -0.01)
+    with pytest.raises(ValueError, match="a broken calibration"):
+        S.sensor_errors(clean.cameras, (0.2, 0.0), 0.0)
