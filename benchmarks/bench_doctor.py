@@ -191,6 +191,11 @@ def make(args):
     unknown = sorted((only or set()) - set(SCRIPTS)) or sorted(set(every_on or ()) - set(SCRIPTS))
     if unknown:
         raise SystemExit(f"--only-scripts / --every-effect-on: unknown script(s) {unknown}; known: {', '.join(SCRIPTS)}")
+    # a rig with a real one's calibration and depth errors (the recording only; the signatures are the physics')
+    sensor_kw = dict(calibration_error=tuple(args.calibration_error), depth_bias=args.depth_bias)
+    sensor_suffix = ("" if not (any(args.calibration_error) or args.depth_bias) else
+                     f"-cal{1e3 * args.calibration_error[0]:g}mm{args.calibration_error[1]:g}deg"
+                     f"-bias{100 * args.depth_bias:g}pc")
     for effect in effects:
         parts = effect.split("+")
         scripts = (list(dict.fromkeys([NATURAL[effect], second_script(args.object, effect), FIRST_OTHER[effect]]))
@@ -208,7 +213,8 @@ def make(args):
                            if effect != "none" and any(k in EFFECTS[e].param_names for e in parts)}
                 name = (("sm_" if sm else "") + ("v_" if args.vary_physics else "")
                         + f"{args.object}-{script}-{seed}-{effect}"
-                        + "".join(f"-{k}{v:g}" for k, v in {**base, **eparams}.items()))
+                        + "".join(f"-{k}{v:g}" for k, v in {**base, **eparams}.items())
+                        + sensor_suffix)
                 seed_base, seed_kw = base, sim_kw
                 if args.vary_physics:  # this seed's material and discretisation (its name keeps the flags' values)
                     seed_base, eparams, drawn_kw = varied_physics(seed, args.object, effect, base, eparams)
@@ -253,7 +259,7 @@ def make(args):
                     kw = dict(effect=effect, effect_params=eparams or None, **seed_base)
                 synthesize(rec, args.object, script=script, **kw, frames=args.frames, cameras=args.cameras,
                            dx=synth_dx, width=args.width, height=args.height, seed=seed, overwrite=True,
-                           progress=False, tangent_splats=args.tangent_splats, **seed_kw)
+                           progress=False, tangent_splats=args.tangent_splats, **seed_kw, **sensor_kw)
                 gt = json.loads((rec / "ground_truth.json").read_text())
                 truth = [e["name"] for e in gt["effects"]]
                 try:
@@ -269,6 +275,7 @@ def make(args):
                         "synth_dx": synth_dx, "trim_to_surface": args.trim_bodies, "simulator": args.simulator,
                         "parted": gt.get("parted"),
                         "synth_kw": {k: v for k, v in seed_kw.items() if k in ("grid_offset", "jitter")},
+                        "sensor_errors": gt.get("sensor_errors") if sensor_suffix else None,
                         **({"view_bodies": view_jackknife_bodies(rec, scene, particles_per_cell=args.ppc,
                                                                  trim_to_surface=args.trim_bodies)}
                            if args.view_bodies else {}),
@@ -1164,6 +1171,11 @@ def _parser():
                         "material, e.g. E=1e4,density=1100 (a material the doctor's rules were not chosen on); the "
                         "recordings' names end with them")
     p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--calibration-error", type=float, nargs=2, default=(0.0, 0.0), metavar=("M", "DEG"),
+                   help="--make: each camera's written pose off its true one by M metres and DEG degrees (random "
+                        "directions; empm synth --calibration-error); the problems' names end in -cal...")
+    p.add_argument("--depth-bias", type=float, default=0.0, metavar="FRAC",
+                   help="--make: each camera's depth scaled by 1 +- FRAC (empm synth --depth-bias)")
     p.add_argument("--vary-physics", action="store_true",
                    help="with --make: each seed its own E, effect parameters, grid offset and particle jitter "
                         "(VARY_FACTORS; names start with v_); without it every seed is one simulation, other noise")

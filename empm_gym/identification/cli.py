@@ -97,7 +97,7 @@ def _identify(args) -> int:
         return _identify_spring_mass(args)
     from empm_gym.sim import MaterialConfig  # noqa: F401  (import errors surface early)
 
-    from .data import frame_ranges, load_recording
+    from .data import frame_ranges, load_recording, open_recording
     from .interrupt import stop_on_signals
     from .offline import ResumeError, identify, read_resume_state
     from .report import plot_fit, plot_online, save_rrd
@@ -118,7 +118,9 @@ def _identify(args) -> int:
                 raise ValueError("--resume continues an interrupted offline fit; it does not apply to --online")
             resume = read_resume_state(out)
         body_info = {}
-        scene, obs, views = load_recording(args.rec_dir, dx=args.dx, particles_per_cell=args.particles_per_cell,
+        # opened once: the bodies rebuilt below see the same (corrected) cameras
+        args.recording = open_recording(args.rec_dir, refine_calibration=not args.keep_calibration, info=body_info)
+        scene, obs, views = load_recording(args.recording, dx=args.dx, particles_per_cell=args.particles_per_cell,
                                            material=_base_material(init, params),
                                            table_friction=init.get("friction", 0.5), frames=args.frames,
                                            device=args.device, progress=not args.quiet, info=body_info)
@@ -208,7 +210,7 @@ def _identify(args) -> int:
                   file=sys.stderr)
         from .data import view_jackknife_bodies
 
-        others = view_jackknife_bodies(args.rec_dir, scene, particles_per_cell=ppc, symmetry=body_info.get("symmetry"))
+        others = view_jackknife_bodies(args.recording, scene, particles_per_cell=ppc, symmetry=body_info.get("symmetry"))
         a = assess_fit(res, scene, obs, other_bodies=others, body_note=body_info.get("body_completion"),
                        resample_bodies=2 if plan is None else plan.resample_bodies,
                        # the grid's share (a finer or coarser grid) costs probe batches that a time budget's
@@ -264,13 +266,13 @@ def _plan(args, scene, obs, resume, F: int, iters: int, ppc: float, shape_bodies
         if plan.motion_margin is not None:
             scene = dataclasses.replace(scene, motion_margin=plan.motion_margin)
         if plan.particles_per_cell != ppc:
-            scene = rebuilt_scene(args.rec_dir, scene, particles_per_cell=plan.particles_per_cell,
+            scene = rebuilt_scene(args.recording, scene, particles_per_cell=plan.particles_per_cell,
                                   points=obs.points[0])
         return plan, scene
     budget = default_budget_s(args.device) if args.budget_min is None else 60.0 * args.budget_min
     plan, scene = plan_fit(scene, scene.material, fit_frames=F, iters=iters, particles_per_cell=ppc, budget_s=budget,
                            fixed=args.user_set, views=shape_bodies, lr=args.lr,
-                           rebuild_body=lambda sc, q: rebuilt_scene(args.rec_dir, sc, particles_per_cell=q,
+                           rebuild_body=lambda sc, q: rebuilt_scene(args.recording, sc, particles_per_cell=q,
                                                                     points=obs.points[0]),
                            uncertainty=not args.no_uncertainty)
     print(f"empm identify: {plan.describe()}", file=sys.stderr)
@@ -418,6 +420,10 @@ def register(subparsers) -> None:
                    help="skip the intervals and identifiability checks (probe simulations after the fit)")
     p.add_argument("--strict", action="store_true",
                    help="exit with status 3 when a fitted parameter is not determined by the recording")
+    p.add_argument("--keep-calibration", action="store_true",
+                   help="use the recorded camera poses as they are, even where the cameras disagree (by default "
+                        "cameras whose frame-0 points disagree beyond 1.5 mm are shifted onto one surface, in "
+                        "memory; the recording is not changed)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_identify)
 

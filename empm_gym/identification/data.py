@@ -320,6 +320,33 @@ def _hidden_share(seen: Optional[np.ndarray], vol: np.ndarray, rec, plane, dx: f
 AMBIGUOUS_GAP_DEG = (150.0, 210.0)
 
 
+def open_recording(rec_dir, *, refine_calibration: bool = True, info: Optional[dict] = None):
+    """The :class:`~empm_gym.perception.recording.Recording` at ``rec_dir`` (an open one is returned as it is: it
+    was opened here). Its cameras' agreement is measured at frame 0
+    (:func:`empm_gym.perception.fusion.camera_agreement`); where they disagree beyond the tolerance and
+    ``refine_calibration`` is on, their positions are corrected in memory
+    (:func:`empm_gym.perception.fusion.refine_calibration`: the files are never changed; a calibrated rig is left
+    bit-for-bit as it is). Every loader here opens a path through this function, so that the frame-0 bodies
+    rebuilt from fewer views see the same cameras as the doctor's own. ``info`` (a dict) receives
+    ``camera_agreement`` (before any correction), ``calibration`` (what was corrected) and ``calibration_note``
+    (None, or what a user should know)."""
+    from empm_gym.perception.fusion import camera_agreement, refine_calibration as refine
+    from empm_gym.perception.recording import Recording
+
+    if isinstance(rec_dir, Recording):
+        return rec_dir
+    rec = Recording(rec_dir)
+    if refine_calibration:
+        done = refine(rec)
+        agreement, note = done["before"], done["note"]
+    else:
+        done, agreement = None, camera_agreement(rec)
+        note = agreement["note"]
+    if info is not None:
+        info.update(camera_agreement=agreement, calibration=done, calibration_note=note)
+    return rec
+
+
 def rebuilt_scene(rec_dir, scene, *, particles_per_cell: float, cameras: Optional[List[int]] = None,
                   points: Optional[np.ndarray] = None, voxel_m: float = 0.003, complete_hidden: bool = True,
                   ee_friction: float = 0.8, single_view: Optional[bool] = None,
@@ -334,9 +361,9 @@ def rebuilt_scene(rec_dir, scene, *, particles_per_cell: float, cameras: Optiona
     from dataclasses import replace
 
     from empm_gym.perception.fusion import load_controls
-    from empm_gym.perception.recording import Recording, controls_to_end_effectors
+    from empm_gym.perception.recording import controls_to_end_effectors
 
-    rec = rec_dir if isinstance(rec_dir, Recording) else Recording(rec_dir)
+    rec = open_recording(rec_dir)
     if cameras is not None:
         rec = rec.with_cameras(cameras)
     plane = (np.array([0.0, 0.0, 1.0]), -float(scene.table.height)) if scene.table is not None else None
@@ -376,9 +403,8 @@ def view_jackknife_bodies(rec_dir, scene, *, particles_per_cell: float, voxel_m:
     share of the body's reconstructed shape in its uncertainty
     (:func:`empm_gym.identification.uncertainty.assess_fit`)."""
     from empm_gym.perception.fusion import view_gap_deg
-    from empm_gym.perception.recording import Recording
 
-    rec = Recording(rec_dir)
+    rec = open_recording(rec_dir)
     out = []
 
     def rebuild(label, **kw):
@@ -543,7 +569,7 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
                    grow_grippers: bool = True, complete_hidden: bool = True,
                    single_view: Optional[bool] = None, info: Optional[dict] = None,
                    device: Optional[str] = None, progress: bool = True, warn: bool = True,
-                   trim_to_surface: bool = False):
+                   trim_to_surface: bool = False, refine_calibration: bool = True):
     """(Scene, Observations, Views) of the recording in ``rec_dir`` (see the module docstring).
 
     ``dx`` (m) is the simulation grid cell, ``particles_per_cell`` the density of the frame-0 fill (27: a
@@ -573,17 +599,18 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     (the frames where no camera sees the object, a hand or a plate over it: they are simulated but not scored,
     :attr:`~.problem.Observations.seen`, and logged), ``info["camera_agreement"]`` (whether the cameras'
     calibrations agree, :func:`empm_gym.perception.fusion.camera_agreement`) and ``info["calibration_note"]`` (None,
-    or why they do not; logged). ``warn=False`` leaves those
+    or why they do not, and what was corrected; logged); ``refine_calibration``: cameras that disagree are moved
+    onto one surface in memory first (:func:`open_recording`; ``rec_dir`` may be a recording it opened). ``warn=False`` leaves those
     warnings to the caller (``info`` still holds them): the doctor may fill the body again on a finer grid, and
     says what it says of the body it simulates. ``trim_to_surface`` removes the fill's particles outside the
     measured surface (:func:`frame0_body`; off by default).
     """
     from tqdm.auto import tqdm
 
-    from empm_gym.perception.fusion import camera_agreement, estimate_table_plane, fuse_frame, load_controls
-    from empm_gym.perception.recording import Recording, controls_to_end_effectors
+    from empm_gym.perception.fusion import estimate_table_plane, fuse_frame, load_controls
+    from empm_gym.perception.recording import controls_to_end_effectors
 
-    rec = Recording(rec_dir)
+    rec = open_recording(rec_dir, refine_calibration=refine_calibration, info=info)
     T = rec.num_frames if frames is None else min(int(frames), rec.num_frames)
     if T < 2:
         raise ValueError(f"{rec.path}: need at least 2 frames, have {T}")
@@ -605,9 +632,6 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
                      len(empty), T, frame_ranges(empty))
     if info is not None:
         info["hidden_frames"] = empty
-        # whether the cameras' calibrations agree (a rig that does not thickens every fused point set)
-        info["camera_agreement"] = camera_agreement(rec)
-        info["calibration_note"] = info["camera_agreement"]["note"]
     controls = load_controls(rec)
     cfgs, pos, grip = controls_to_end_effectors(controls, friction=ee_friction)
     orient = controls.get("orientations")
@@ -645,7 +669,8 @@ def _views(rec, T: int) -> Views:
 def load_views(rec_dir, *, frames: Optional[int] = None) -> Views:
     """The :class:`~.problem.Views` of the recording in ``rec_dir`` (its cameras, lazy per-frame masks and colour
     images; ``frames`` limits them to the leading frames) as :func:`load_recording` returns them, without its
-    fusion and body completion: what scoring already simulated positions needs (no Open3D)."""
+    fusion and body completion: what scoring already simulated positions needs (no Open3D, so the recorded camera
+    poses, without :func:`open_recording`'s correction)."""
     from empm_gym.perception.recording import Recording
 
     rec = Recording(rec_dir)

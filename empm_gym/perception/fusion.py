@@ -15,7 +15,7 @@ normal pointing up, away from the table into the half-space holding the object.
 from __future__ import annotations
 
 import math
-from typing import Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -48,6 +48,10 @@ __all__ = [
     "controls_from_masks",
     "load_controls",
     "camera_agreement",
+    "camera_shifts",
+    "refine_calibration",
+    "end_effector_agreement",
+    "calibration_tolerance",
 ]
 
 
@@ -211,48 +215,41 @@ _SHARED_DIRECTION = 0.02
 #: Point-to-plane solves of :func:`camera_agreement` (each with its nearest neighbours found again).
 _SHIFT_ITERATIONS = 12
 
-#: A camera whose points the others' surface pulls by more than this (m, at the object's centre; rigid alignment of
-#: its frame-0 points to theirs) is reported by :func:`camera_agreement`. Well-calibrated synthetic rigs read
-#: 0.1-0.3 mm (benchmarks/RESULTS.md, session 83).
+#: A camera whose points must shift by more than this (m) to lie on the others' surface is reported by
+#: :func:`camera_agreement` (and corrected by :func:`refine_calibration`), as is a rig whose end-effectors lie that
+#: far from where the controls put them; or by more than :data:`CALIBRATION_TOLERANCE_PX` pixels at the object's
+#: depth where that is more (:func:`calibration_tolerance`). Calibrated synthetic rigs at 848 x 480 read 0.1-0.4 mm
+#: between cameras and 0.02-0.24 mm against the controls; at 320 x 180 (3.5 mm pixels) up to 1.45 mm between
+#: cameras (a rounded lump beside a pusher) (benchmarks/RESULTS.md, session 83).
 CALIBRATION_TOLERANCE_M = 1.5e-3
+#: The same in pixels of the coarsest camera at the object's depth: a shift of a fraction of a pixel is the
+#: sampling's, not the calibration's.
+CALIBRATION_TOLERANCE_PX = 0.6
 
 
-def camera_agreement(rec: Recording, t: int = 0, *, radius_m: float = 0.12, voxel_m: float = 0.002,
-                     max_pair_m: float = 0.01, tolerance_m: float = CALIBRATION_TOLERANCE_M) -> dict:
-    """Whether the cameras' calibrations agree: how far each camera's frame-``t`` points must move to lie on the
-    surface the other cameras measure.
+def calibration_tolerance(rec: Recording, t: int = 0) -> float:
+    """The disagreement [m] a calibrated rig may show (:data:`CALIBRATION_TOLERANCE_M`, or
+    :data:`CALIBRATION_TOLERANCE_PX` pixels of the coarsest camera at the object's median depth where more)."""
+    pixel = 0.0
+    for c, cam in enumerate(rec.cameras):
+        d = rec.depth(c, t)
+        m = rec.mask(c, t) if rec.has_masks else d > 0
+        z = d[m & (d > 0)]
+        if len(z):
+            pixel = max(pixel, float(np.median(z)) / float(min(cam.K[0, 0], cam.K[1, 1])))
+    return max(CALIBRATION_TOLERANCE_M, CALIBRATION_TOLERANCE_PX * pixel)
 
-    All depth pixels within ``radius_m`` of the object's centre (the object, the table around it, the
-    end-effectors: everything rigid at frame 0) are back-projected per camera and averaged per ``voxel_m`` voxel.
-    Each camera's points are then moved by the one translation that best puts them on the others' surface
-    (point-to-plane least squares, pairs within ``max_pair_m``, Huber-weighted, nearest neighbours found again
-    five times). A translation, not a rigid motion: near the object a pose's small rotation acts as a shift (0.3
-    deg at 0.55 m: 2.9 mm), and a rotation's fit drifts along a table plane's free directions. A direction the
-    surfaces do not constrain (along a rope's axis) is held near zero by a small ridge. A calibrated rig needs no
-    shift beyond what the noise leaves; a camera whose pose or depth scale is off needs one.
 
-    Returns ``cameras`` (per camera: ``offset_m`` [3] and ``offset_norm_m``, the shift; ``rms_before_m`` and
-    ``rms_after_m``, the point-to-plane distances' RMS before and after it; ``pairs``; ``unmeasured_directions``,
-    unit vectors along which the surfaces it shares with the others hardly constrain a shift, so that a
-    calibration error along them goes unseen: plates hiding a box's faces; the shift reported has no part along
-    them), ``largest_offset_m`` and
-    ``note``: None, or a sentence naming the cameras off by more than ``tolerance_m`` (the fused points of such a
-    rig are thicker than the depth noise, and every fit's floor rises with them). With one camera there is
-    nothing to compare: ``cameras`` is empty."""
-    from scipy.spatial import cKDTree
-
+def _camera_clouds(rec: Recording, t: int, radius_m: float, voxel_m: float):
+    """Per camera: its frame-``t`` depth points within ``radius_m`` of the object's centre, averaged per ``voxel_m``
+    voxel, and their normals turned towards it; None without object points."""
     o3d = _o3d()
-    C = rec.num_cameras
-    out = {"frame": int(t), "cameras": [], "largest_offset_m": None, "note": None, "tolerance_m": float(tolerance_m)}
-    if C < 2:
-        return out
-    cams = rec.cameras
     obj = frame_points(rec, t, use_mask=rec.has_masks)
     if len(obj) == 0:
-        return out
+        return None
     centre = np.median(obj, axis=0)
-    clouds, facing = [], []  # per camera: its points, and their normals turned towards it
-    for c, cam in enumerate(cams):
+    clouds, facing = [], []
+    for c, cam in enumerate(rec.cameras):
         p = cam.backproject(rec.depth(c, t), None)
         pc = _pcd(voxel_downsample(p[np.linalg.norm(p - centre, axis=1) < radius_m], voxel_m))
         if len(pc.points) >= 20:
@@ -260,6 +257,60 @@ def camera_agreement(rec: Recording, t: int = 0, *, radius_m: float = 0.12, voxe
             pc.orient_normals_towards_camera_location(cam.position)
         clouds.append(np.asarray(pc.points))
         facing.append(np.asarray(pc.normals) if pc.has_normals() else np.zeros((len(pc.points), 3)))
+    return clouds, facing
+
+
+def _surface_pairs(src: np.ndarray, src_n: np.ndarray, dst: np.ndarray, dst_n: np.ndarray, tree, max_pair_m: float):
+    """Pairs of ``src`` points with their nearest ``dst`` points within ``max_pair_m`` on the same side of the same
+    surface: the two normals, each turned towards the camera that saw it, agree (not a face one camera sees against
+    an edge or the table beside it, nor against the far face of a thin plate, that the others see). Returns the
+    pairs' ``(source indices, target indices, target normals, point-to-plane residuals [m])``."""
+    d, j = tree.query(src, distance_upper_bound=max_pair_m)
+    i = np.nonzero(np.isfinite(d))[0]
+    i = i[np.einsum("ij,ij->i", dst_n[j[i]], src_n[i]) > 0.95]
+    n = dst_n[j[i]]
+    return i, j[i], n, np.einsum("ij,ij->i", n, src[i] - dst[j[i]])
+
+
+def _unmeasured(n: np.ndarray, A: np.ndarray) -> List[np.ndarray]:
+    """Directions (unit [3], the eigenvectors of ``A``) that fewer than :data:`_SHARED_DIRECTION` of the pairs'
+    normals ``n`` face along (within 60 deg): a table's noisy normals add up to a weight along every direction of
+    ``A`` but tell nothing of a shift along the table."""
+    _, vec = np.linalg.eigh(A)
+    return [vec[:, i] for i in range(3) if np.sum(np.abs(n @ vec[:, i]) > 0.5) < _SHARED_DIRECTION * max(len(n), 1)]
+
+
+def camera_agreement(rec: Recording, t: int = 0, *, radius_m: float = 0.12, voxel_m: float = 0.002,
+                     max_pair_m: float = 0.01, tolerance_m: Optional[float] = None) -> dict:
+    """Whether the cameras' calibrations agree: how far each camera's frame-``t`` points must move to lie on the
+    surface the other cameras measure.
+
+    All depth pixels within ``radius_m`` of the object's centre (the object, the table around it, the
+    end-effectors: everything rigid at frame 0) are back-projected per camera and averaged per ``voxel_m`` voxel.
+    Each camera's points are then moved by the one translation that best puts them on the others' surface
+    (point-to-plane least squares over :func:`_surface_pairs` within ``max_pair_m``, Huber-weighted, nearest
+    neighbours found again :data:`_SHIFT_ITERATIONS` times). A translation, not a rigid motion: near the object a
+    pose's small rotation acts as a shift (0.3 deg at 0.55 m: 2.9 mm), and a rotation's fit drifts along a table
+    plane's free directions. A calibrated rig needs no shift beyond what the noise leaves; a camera whose pose or
+    depth scale is off needs one.
+
+    Returns ``cameras`` (per camera: ``offset_m`` [3] and ``offset_norm_m``, the shift; ``rms_before_m`` and
+    ``rms_after_m``, the point-to-plane distances' RMS before and after it; ``pairs``; ``unmeasured_directions``,
+    unit vectors along which the surfaces it shares with the others hardly constrain a shift, so that a
+    calibration error along them goes unseen: plates hiding a box's faces; the shift reported has no part along
+    them), ``largest_offset_m`` and ``note``: None, or a sentence naming the cameras off by more than
+    ``tolerance_m`` (the fused points of such a rig are thicker than the depth noise, and every fit's floor rises
+    with them; default :func:`calibration_tolerance`). With one camera there is nothing to compare: ``cameras`` is
+    empty."""
+    from scipy.spatial import cKDTree
+
+    C = rec.num_cameras
+    tolerance_m = calibration_tolerance(rec, t) if tolerance_m is None else float(tolerance_m)
+    out = {"frame": int(t), "cameras": [], "largest_offset_m": None, "note": None, "tolerance_m": float(tolerance_m)}
+    got = _camera_clouds(rec, t, radius_m, voxel_m) if C >= 2 else None
+    if got is None:
+        return out
+    clouds, facing = got
     delta = 1.5 * voxel_m  # Huber's threshold [m]
     for c in range(C):
         src, src_n = clouds[c], facing[c]
@@ -271,30 +322,21 @@ def camera_agreement(rec: Recording, t: int = 0, *, radius_m: float = 0.12, voxe
         shift = np.zeros(3)
         rms = []
         for it in range(_SHIFT_ITERATIONS + 1):
-            d, j = tree.query(src + shift, distance_upper_bound=max_pair_m)
-            ok = np.isfinite(d)
-            # a pair on the same side of the same surface: its two normals, each turned towards the camera that saw
-            # it, agree (not a face one camera sees against an edge or the table beside it, nor against the far
-            # face of a thin plate, that the others see)
-            ok[ok] = np.einsum("ij,ij->i", normals[j[ok]], src_n[ok]) > 0.95
-            n = normals[j[ok]]
-            r = np.einsum("ij,ij->i", n, src[ok] + shift - dst[j[ok]])
-            rms.append(float(np.sqrt(np.mean(r ** 2))) if ok.any() else float("nan"))
-            if it == _SHIFT_ITERATIONS or ok.sum() < 50:
+            _, _, n, r = _surface_pairs(src + shift, src_n, dst, normals, tree, max_pair_m)
+            rms.append(float(np.sqrt(np.mean(r ** 2))) if len(r) else float("nan"))
+            if it == _SHIFT_ITERATIONS or len(r) < 50:
                 break
             w = np.minimum(1.0, delta / np.maximum(np.abs(r), 1e-12))
             A = (n * w[:, None]).T @ n
-            ridge = 1e-3 * np.trace(A) / 3.0
-            shift = shift - np.linalg.solve(A + ridge * np.eye(3), (n * w[:, None]).T @ r)
-        # a direction is measured where enough of the pairs' surfaces face along it (a table's noisy normals add
-        # up to a weight along every direction, but tell nothing of a shift along the table)
-        _, vec = np.linalg.eigh(A)
-        free = [vec[:, i] for i in range(3) if np.sum(np.abs(n @ vec[:, i]) > 0.5) < _SHARED_DIRECTION * len(n)]
+            shift = shift - np.linalg.solve(A + 1e-3 * np.trace(A) / 3.0 * np.eye(3), (n * w[:, None]).T @ r)
+        if len(r) < 50:
+            continue
+        free = _unmeasured(n, A)
         for u in free:  # what is reported is the shift the shared surfaces measure
             shift = shift - (shift @ u) * u
-        out["cameras"].append({"camera": c, "name": cams[c].name, "offset_m": [float(v) for v in shift],
+        out["cameras"].append({"camera": c, "name": rec.camera_names[c], "offset_m": [float(v) for v in shift],
                                "offset_norm_m": float(np.linalg.norm(shift)), "rms_before_m": rms[0],
-                               "rms_after_m": rms[-1], "pairs": int(ok.sum()),
+                               "rms_after_m": rms[-1], "pairs": int(len(r)),
                                "unmeasured_directions": [[float(v) for v in u] for u in free]})
     if out["cameras"]:
         out["largest_offset_m"] = max(r["offset_norm_m"] for r in out["cameras"])
@@ -303,9 +345,193 @@ def camera_agreement(rec: Recording, t: int = 0, *, radius_m: float = 0.12, voxe
             each = ", ".join(f"camera {r['camera']} by {1e3 * r['offset_norm_m']:.1f} mm"
                              for r in sorted(off, key=lambda r: -r["offset_norm_m"]))
             out["note"] = (f"the cameras disagree at frame {t}: to lie on the other cameras' surface, {each} must be "
-                           f"shifted, beyond the {1e3 * tolerance_m:.1f} mm a calibrated rig shows. The fused points "
+                           f"shifted, beyond the {1e3 * tolerance_m:.1f} mm a calibrated rig shows here. The fused points "
                            f"are then thicker than the depth noise and every fit's floor rises with them: check the "
                            f"extrinsics (c2w) and the depth scale")
+    return out
+
+
+def camera_shifts(rec: Recording, t: int = 0, *, radius_m: float = 0.12, voxel_m: float = 0.002,
+                  max_pair_m: float = 0.01) -> np.ndarray:
+    """Translations [C, 3] (m) that, added to the cameras' positions (``c2w[:, :3, 3]``), bring all cameras'
+    frame-``t`` points onto one surface: :func:`camera_agreement`'s point-to-plane pairs of every camera with every
+    other, solved for all shifts at once (Huber-weighted least squares, nearest neighbours found again
+    :data:`_SHIFT_ITERATIONS` times), their mean held at zero (the pairs tell how the cameras sit relative to each
+    other, not where the rig sits). A camera's shift then loses its part along a direction its pairs do not measure
+    (:func:`_unmeasured`; the mean along it is then no longer zero). Zeros for fewer than two cameras or no object
+    points."""
+    from scipy.spatial import cKDTree
+
+    C = rec.num_cameras
+    S = np.zeros((C, 3))
+    got = _camera_clouds(rec, t, radius_m, voxel_m) if C >= 2 else None
+    if got is None:
+        return S
+    clouds, facing = got
+    trees = [cKDTree(p) if len(p) else None for p in clouds]
+    delta = 1.5 * voxel_m
+    for it in range(_SHIFT_ITERATIONS):
+        H = np.zeros((3 * C, 3 * C))
+        g = np.zeros(3 * C)
+        seen = [[] for _ in range(C)]
+        for c in range(C):
+            for k in range(C):
+                if k == c or trees[k] is None or len(clouds[c]) < 100:
+                    continue
+                # c's point p, shifted by S[c], against k's surface shifted by S[k]: r = n . (p + S[c] - q - S[k])
+                _, _, n, r = _surface_pairs(clouds[c] + S[c] - S[k], facing[c], clouds[k], facing[k], trees[k],
+                                            max_pair_m)
+                if len(r) < 50:
+                    continue
+                w = np.minimum(1.0, delta / np.maximum(np.abs(r), 1e-12))
+                A, b = (n * w[:, None]).T @ n, (n * w[:, None]).T @ r
+                a, e = slice(3 * c, 3 * c + 3), slice(3 * k, 3 * k + 3)
+                H[a, a] += A
+                H[e, e] += A
+                H[a, e] -= A
+                H[e, a] -= A
+                g[a] += b
+                g[e] -= b
+                seen[c].append(n)
+                seen[k].append(n)
+        scale = np.trace(H) / max(3 * C, 1)
+        if scale <= 0:
+            return S
+        gauge = np.kron(np.ones((C, C)), np.eye(3))  # the mean shift's own term: holds it at zero
+        step = np.linalg.solve(H + scale * (1e-3 * np.eye(3 * C) + gauge / C), -g)
+        S = S + step.reshape(C, 3)
+    for c in range(C):
+        if seen[c]:
+            n = np.concatenate(seen[c])
+            for u in _unmeasured(n, n.T @ n):
+                S[c] = S[c] - (S[c] @ u) * u
+        else:
+            S[c] = 0.0
+    return S
+
+
+#: :func:`end_effector_agreement` trusts its shift only where the observed end-effector points lie this close (RMS,
+#: m) to the modelled shapes once shifted: a hand or a tool its controls model only roughly reads more.
+END_EFFECTOR_FIT_M = 2.5e-3
+
+
+def end_effector_agreement(rec: Recording, t: int = 0, *, band_m: float = 0.01, min_points: int = 200) -> dict:
+    """Whether the cameras and the controls agree on where the end-effectors are: the translation that moves the
+    observed end-effector points of frame ``t`` (the controller masks, back-projected) onto the shapes the controls
+    place there (:func:`end_effector_sdf`, points within ``band_m`` of a shape; Huber-weighted Gauss-Newton on the
+    signed distance, ten steps).
+
+    Returns ``offset_m`` [3] (to add to every camera's position; None where it cannot be measured),
+    ``offset_norm_m``, ``rms_before_m`` / ``rms_after_m`` (the points' distances to the shapes), ``points``,
+    ``unmeasured_directions`` (the shift along them is left out) and ``trusted``: at least ``min_points`` points,
+    and within :data:`END_EFFECTOR_FIT_M` of the shapes once shifted (grippers whose shapes the controls describe;
+    not a hand modelled as a sphere). ``why`` says why not. Needs per-end-effector controller masks and
+    ``controls.npz``."""
+    out = {"offset_m": None, "offset_norm_m": None, "rms_before_m": None, "rms_after_m": None, "points": 0,
+           "unmeasured_directions": [], "trusted": False, "why": None}
+    if not rec.has_controls or not rec.has_controller_masks:
+        out["why"] = "the recording has no controls.npz or no per-end-effector masks"
+        return out
+    from scipy import ndimage
+
+    from .recording import controls_to_end_effectors
+
+    controls = rec.controls()
+    cfgs, pos, _ = controls_to_end_effectors(controls)
+    quat = controls.get("orientations")
+    seen = []  # (end-effector, its observed points)
+    for c, cam in enumerate(rec.cameras):
+        masks = rec.controller_masks(c, t)
+        if len(masks) != len(cfgs):
+            out["why"] = f"camera {c} has {len(masks)} controller masks for {len(cfgs)} end-effectors"
+            return out
+        for k, m in enumerate(masks):
+            p = cam.backproject(rec.depth(c, t), ndimage.binary_erosion(m, iterations=1))
+            if len(p):
+                seen.append((k, p))
+    g = np.zeros(3)
+    h = 1e-4
+    r = np.zeros(0)
+    rms = []
+    for it in range(11):
+        J, r = [], []
+        for k, p in seen:
+            q = None if quat is None else quat[t, k]
+            x = p + g
+            d = end_effector_sdf(x, cfgs[k], pos[t, k], q)
+            ok = np.abs(d) < band_m
+            J.append(np.stack([(end_effector_sdf(x[ok] + h * e, cfgs[k], pos[t, k], q)
+                                - end_effector_sdf(x[ok] - h * e, cfgs[k], pos[t, k], q)) / (2 * h)
+                               for e in np.eye(3)], 1))
+            r.append(d[ok])
+        J, r = (np.concatenate(J), np.concatenate(r)) if J else (np.zeros((0, 3)), np.zeros(0))
+        if len(r) < min_points:
+            out.update(points=int(len(r)), why=f"{len(r)} observed end-effector points near the modelled shapes, "
+                                                 f"fewer than {min_points}")
+            return out
+        rms.append(float(np.sqrt(np.mean(r ** 2))))
+        if it == 10:
+            break
+        w = np.minimum(1.0, 3e-3 / np.maximum(np.abs(r), 1e-12))
+        A = (J * w[:, None]).T @ J
+        g = g - np.linalg.solve(A + 1e-3 * np.trace(A) / 3.0 * np.eye(3), (J * w[:, None]).T @ r)
+    free = _unmeasured(J, A)
+    for u in free:
+        g = g - (g @ u) * u
+    out.update(offset_m=[float(v) for v in g], offset_norm_m=float(np.linalg.norm(g)), rms_before_m=rms[0],
+               rms_after_m=rms[-1], points=int(len(r)), unmeasured_directions=[[float(v) for v in u] for u in free])
+    if rms[-1] > END_EFFECTOR_FIT_M:
+        out["why"] = (f"the observed end-effectors lie {1e3 * rms[-1]:.1f} mm (RMS) from the shapes the controls "
+                      f"give, over {1e3 * END_EFFECTOR_FIT_M:.1f} mm: their shapes are not what the controls model")
+    else:
+        out["trusted"] = True
+    return out
+
+
+def refine_calibration(rec: Recording, t: int = 0, *, tolerance_m: Optional[float] = None) -> dict:
+    """Correct, in memory, the camera positions of a recording whose cameras disagree with each other
+    (:func:`camera_agreement` beyond ``tolerance_m``; corrected by :func:`camera_shifts`) or, as a rig, with the
+    controls (:func:`end_effector_agreement` beyond ``tolerance_m`` and trusted; every camera moved by its shift).
+    The recording's files are not touched. Returns ``applied`` (whether ``rec.c2w`` was changed), ``shifts_m``
+    [C][3] (the cameras' relative shifts), ``rig_shift_m`` (the whole rig's, or None), ``before`` / ``after`` (the
+    cameras' agreement), ``end_effectors`` / ``end_effectors_after`` (the rig's against the controls) and ``note``:
+    None, or what was done and what is left. A calibrated rig is left as it is (so its results stay bit-for-bit
+    those without this step). ``tolerance_m``: default :func:`calibration_tolerance`."""
+    tolerance_m = calibration_tolerance(rec, t) if tolerance_m is None else float(tolerance_m)
+    before = camera_agreement(rec, t, tolerance_m=tolerance_m)
+    out = {"applied": False, "shifts_m": [[0.0, 0.0, 0.0]] * rec.num_cameras, "rig_shift_m": None, "before": before,
+           "after": None, "end_effectors": None, "end_effectors_after": None, "note": None}
+    said = []
+    c2w = np.array(rec.c2w, np.float64)
+    if before["note"] is not None:
+        S = camera_shifts(rec, t)
+        c2w[:, :3, 3] += S
+        rec.c2w = c2w.copy()
+        after = camera_agreement(rec, t, tolerance_m=tolerance_m)
+        out.update(applied=True, shifts_m=[[float(v) for v in s] for s in S], after=after)
+        moved = ", ".join(f"camera {c} by {1e3 * np.linalg.norm(s):.1f} mm" for c, s in enumerate(S))
+        left = (f"they now agree within {1e3 * after['largest_offset_m']:.1f} mm" if after["note"] is None else
+                f"they still disagree by up to {1e3 * after['largest_offset_m']:.1f} mm (a rotation or a depth scale "
+                f"a shift cannot take up)")
+        said.append(f"the cameras disagreed at frame {t} by up to {1e3 * before['largest_offset_m']:.1f} mm: their "
+                    f"positions were shifted onto one surface ({moved}); {left}")
+    ee = end_effector_agreement(rec, t)
+    out["end_effectors"] = ee
+    if ee["offset_norm_m"] is not None and ee["offset_norm_m"] > tolerance_m:
+        off = f"{1e3 * ee['offset_norm_m']:.1f} mm"
+        if ee["trusted"]:
+            c2w[:, :3, 3] += np.asarray(ee["offset_m"])
+            rec.c2w = c2w.copy()
+            out.update(applied=True, rig_shift_m=ee["offset_m"], end_effectors_after=end_effector_agreement(rec, t))
+            said.append(f"the end-effectors the cameras see lay {off} from where the controls put them (RMS "
+                        f"{1e3 * ee['rms_before_m']:.1f} -> {1e3 * ee['rms_after_m']:.1f} mm once shifted): the "
+                        f"whole rig was shifted by that")
+        else:
+            said.append(f"the end-effectors the cameras see lie {off} from where the controls put them, not "
+                        f"corrected: {ee['why']}")
+    if said:
+        out["note"] = ("; ".join(said) + ". Corrected in memory only (the recording's files are unchanged) and before "
+                       "anything was fused: check the extrinsics (c2w), the depth scale and the controls' frame")
     return out
 
 

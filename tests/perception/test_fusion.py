@@ -366,3 +366,60 @@ def test_camera_agreement_finds_the_camera_moved_and_its_shift_and_passes_a_cali
     assert named and named[0] == "1" and "check the extrinsics" in bad["note"]  # the largest shift first
     # one camera: nothing to compare
     assert camera_agreement(rec.with_cameras([0]))["cameras"] == []
+
+
+def test_refining_the_calibration_puts_a_moved_camera_back_and_leaves_a_calibrated_rig_alone(dough_rec):
+    """camera_shifts solves all cameras' shifts at once (their mean held at zero): with one camera's pose moved,
+    the rig agrees again after refine_calibration, which changes the poses in memory only; a calibrated rig is not
+    touched (its poses bit-for-bit the recorded ones)."""
+    from empm_gym.perception.fusion import CALIBRATION_TOLERANCE_M, refine_calibration
+
+    rec = Recording(dough_rec)
+    recorded = np.array(rec.c2w, np.float64)
+    same = refine_calibration(rec)
+    assert not same["applied"] and same["note"] is None
+    np.testing.assert_array_equal(rec.c2w, recorded)
+    moved = np.array([0.0, -3.0e-3, 2.0e-3])
+    rec.c2w = recorded.copy()
+    rec.c2w[1, :3, 3] += moved
+    done = refine_calibration(rec)
+    assert done["applied"] and done["before"]["largest_offset_m"] > 2e-3
+    assert done["after"]["largest_offset_m"] < 0.5 * CALIBRATION_TOLERANCE_M and done["after"]["note"] is None
+    S = np.array(done["shifts_m"])
+    # camera 1 comes back against camera 0 by what it was moved, in the directions both measure (y, z: the plates
+    # hide the faces along x they share)
+    np.testing.assert_allclose((S[1] - S[0])[1:], -moved[1:], atol=0.4e-3)
+    np.testing.assert_array_equal(Recording(dough_rec).c2w, recorded)  # the files are unchanged
+    assert "in memory only" in done["note"] and "camera 1 by" in done["note"]
+
+
+def test_a_rig_shifted_as_a_whole_against_its_controls_is_found_by_the_end_effectors_and_put_back(dough_rec):
+    """Every camera moved by the same vector: the cameras still agree with each other, but the plates they see lie
+    off the shapes the controls put there; end_effector_agreement measures the shift (the plates' faces along x
+    and the top along z, not y: reported unmeasured or measured, never wrong) and refine_calibration undoes it."""
+    from empm_gym.perception.fusion import camera_agreement, end_effector_agreement, refine_calibration
+
+    rec = Recording(dough_rec)
+    clean = end_effector_agreement(rec)
+    assert clean["trusted"] and clean["offset_norm_m"] < 0.5e-3 and clean["rms_after_m"] < 1.5e-3
+    moved = np.array([2.0e-3, 1.0e-3, -2.5e-3])
+    recorded = np.array(rec.c2w, np.float64)
+    rec.c2w = recorded.copy()
+    rec.c2w[:, :3, 3] += moved
+    assert camera_agreement(rec)["note"] is None  # no camera disagrees with another
+    ee = end_effector_agreement(rec)
+    free = np.array(ee["unmeasured_directions"]).reshape(-1, 3)
+    P = np.eye(3) - free.T @ free
+    assert ee["trusted"] and ee["rms_before_m"] > ee["rms_after_m"]
+    np.testing.assert_allclose(ee["offset_m"], -P @ moved, atol=0.3e-3)
+    done = refine_calibration(rec)
+    assert done["applied"] and done["rig_shift_m"] is not None and "whole rig was shifted" in done["note"]
+    np.testing.assert_allclose(rec.c2w[:, :3, 3], recorded[:, :3, 3] + moved - P @ moved, atol=0.3e-3)
+    assert done["end_effectors_after"]["offset_norm_m"] < 0.3e-3
+
+
+def test_end_effectors_without_controls_or_masks_are_not_measured(phystwin_dir):
+    from empm_gym.perception.fusion import end_effector_agreement
+
+    out = end_effector_agreement(Recording(phystwin_dir))
+    assert out["offset_m"] is None and not out["trusted"] and out["why"]

@@ -38,7 +38,8 @@ DOCTOR_CELLS_ACROSS = 4.0
 
 
 def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: float = 8, device=None,
-                    progress: bool = True, trim_to_surface: bool = False):
+                    progress: bool = True, trim_to_surface: bool = False, refine_calibration: bool = True,
+                    info: Optional[dict] = None):
     """``(scene, obs, views, info, notes)`` of a recording as the doctor simulates it: what
     :func:`~empm_gym.identification.data.load_recording` returns (``info`` filled), on the grid cell ``dx`` [m]
     or, without it, on one that resolves the body: :data:`DEFAULT_DX`, halved (at most twice) while the
@@ -46,11 +47,14 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
     :data:`DOCTOR_CELLS_ACROSS` cells across
     (:func:`~empm_gym.identification.uncertainty.resolving_dx`). ``notes``: what the loader says of the body
     and, where the cell was refined, why. ``trim_to_surface``: the body's particles outside the measured surface
-    removed (:func:`~empm_gym.identification.data.frame0_body`; off by default)."""
-    from ..data import _warn_body, load_recording, rebuilt_scene
+    removed (:func:`~empm_gym.identification.data.frame0_body`; off by default). ``rec_dir`` is a path or a
+    recording opened by :func:`~empm_gym.identification.data.open_recording` (whose ``info`` is then passed here);
+    ``refine_calibration`` as there."""
+    from ..data import _warn_body, load_recording, open_recording, rebuilt_scene
     from ..uncertainty import resolving_dx
 
-    info = {}
+    info = {} if info is None else info
+    rec_dir = open_recording(rec_dir, refine_calibration=refine_calibration, info=info)
     scene, obs, views = load_recording(rec_dir, dx=DEFAULT_DX if dx is None else dx,
                                        particles_per_cell=particles_per_cell, device=device, progress=progress,
                                        info=info, warn=False, trim_to_surface=trim_to_surface)  # said below
@@ -106,7 +110,8 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
 
 def diagnose_recording(rec_dir, *, out_dir=None, base=None, config=None, dx: Optional[float] = None,
                        particles_per_cell: float = 8, device=None, progress: bool = True, effects=None,
-                       view_bodies: bool = True, trimmed_body: bool = True, control_delay: float = 0.0) -> dict:
+                       view_bodies: bool = True, trimmed_body: bool = True, control_delay: float = 0.0,
+                       refine_calibration: bool = True) -> dict:
     """Load a recording directory (our / PhysTwin's layout) and :func:`diagnose` it.
 
     ``base`` is a MaterialConfig or a material file path (its effects are part of the base model); ``dx`` [m]
@@ -121,17 +126,21 @@ def diagnose_recording(rec_dir, *, out_dir=None, base=None, config=None, dx: Opt
     verdicts of the 24 recordings it ran (their gains on the trimmed body 17-98 %). ``control_delay``: the
     controls are delayed by this many frames (:func:`~empm_gym.identification.data.delayed_controls`) before
     anything is fitted, for a recording whose images trail its controls (the lag ``doctor.json``'s
-    ``control_lag`` reads; a note says it was applied).
+    ``control_lag`` reads; a note says it was applied). ``refine_calibration``: cameras that disagree are moved
+    onto one surface in memory before anything is fused (:func:`~empm_gym.identification.data.open_recording`;
+    the notes say by how much).
     """
     from empm_gym.sim import MaterialConfig
     from empm_gym.sim.material_file import read_material
 
-    from ..data import trimmed_body as trim, view_jackknife_bodies
+    from ..data import open_recording, trimmed_body as trim, view_jackknife_bodies
 
     if base is not None and not isinstance(base, MaterialConfig):
         base = read_material(base).material
+    info = {}
+    rec_dir = open_recording(rec_dir, refine_calibration=refine_calibration, info=info)  # once for every body
     scene, obs, views, info, notes = load_for_doctor(rec_dir, dx=dx, particles_per_cell=particles_per_cell,
-                                                     device=device, progress=progress)
+                                                     device=device, progress=progress, info=info)
     if control_delay:
         from ..data import delayed_controls
 

@@ -22,7 +22,8 @@ def _doctor(args) -> int:
         res = diagnose_recording(args.rec_dir, out_dir=args.out, base=args.base, config=cfg, dx=args.dx,
                                  particles_per_cell=args.particles_per_cell, device=args.device,
                                  progress=not args.quiet, effects=effects, view_bodies=not args.no_view_bodies,
-                                 trimmed_body=not args.no_trimmed_body, control_delay=args.control_delay)
+                                 trimmed_body=not args.no_trimmed_body, control_delay=args.control_delay,
+                                 refine_calibration=not args.keep_calibration)
     except (DoctorError, ValueError, OSError) as exc:
         print(f"empm doctor: error: {exc}", file=sys.stderr)
         return 2
@@ -122,5 +123,9 @@ def register(subparsers) -> None:
                    help="diagnoses in a row: where one names an effect, the next fits the base model with it and "
                         "tries the catalogue's other effects on top, for a recording that lacks more than one "
                         "(default 1; each round costs about one diagnosis more, its outputs in OUT/round2, ...)")
+    p.add_argument("--keep-calibration", action="store_true",
+                   help="use the recorded camera poses as they are, even where the cameras disagree (by default "
+                        "cameras whose frame-0 points disagree beyond 1.5 mm are shifted onto one surface, in "
+                        "memory, and the notes say by how much; the recording is not changed)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_doctor)
