@@ -52,6 +52,7 @@ __all__ = [
     "refine_calibration",
     "end_effector_agreement",
     "calibration_tolerance",
+    "surface_consistency",
 ]
 
 
@@ -214,6 +215,16 @@ _SHARED_DIRECTION = 0.02
 
 #: Point-to-plane solves of :func:`camera_agreement` (each with its nearest neighbours found again).
 _SHIFT_ITERATIONS = 12
+#: The first solves pair points this far apart (m), shrinking by :data:`_REACH_SHRINK` a solve down to the pairs'
+#: own limit: a camera 5 mm and 0.5 deg off (10-20 mm at the object with a 2 % depth scale) has few true partners
+#: within 1 cm to start from.
+_FIRST_REACH_M = 0.03
+_REACH_SHRINK = 0.7
+
+
+def _reach(it: int, floor_m: float) -> float:
+    """How far apart [m] the pairs of solve ``it`` may lie (:data:`_FIRST_REACH_M` shrinking to ``floor_m``)."""
+    return max(float(floor_m), _FIRST_REACH_M * _REACH_SHRINK ** it)
 
 #: A camera whose points must shift by more than this (m) to lie on the others' surface is reported by
 #: :func:`camera_agreement` (and corrected by :func:`refine_calibration`), as is a rig whose end-effectors lie that
@@ -288,8 +299,8 @@ def camera_agreement(rec: Recording, t: int = 0, *, radius_m: float = 0.12, voxe
     All depth pixels within ``radius_m`` of the object's centre (the object, the table around it, the
     end-effectors: everything rigid at frame 0) are back-projected per camera and averaged per ``voxel_m`` voxel.
     Each camera's points are then moved by the one translation that best puts them on the others' surface
-    (point-to-plane least squares over :func:`_surface_pairs` within ``max_pair_m``, Huber-weighted, nearest
-    neighbours found again :data:`_SHIFT_ITERATIONS` times). A translation, not a rigid motion: near the object a
+    (point-to-plane least squares over :func:`_surface_pairs`, Huber-weighted, nearest neighbours found again
+    :data:`_SHIFT_ITERATIONS` times, pairs within 3 cm at first and ``max_pair_m`` at last, :func:`_reach`). A translation, not a rigid motion: near the object a
     pose's small rotation acts as a shift (0.3 deg at 0.55 m: 2.9 mm), and a rotation's fit drifts along a table
     plane's free directions. A calibrated rig needs no shift beyond what the noise leaves; a camera whose pose or
     depth scale is off needs one.
@@ -322,7 +333,7 @@ def camera_agreement(rec: Recording, t: int = 0, *, radius_m: float = 0.12, voxe
         shift = np.zeros(3)
         rms = []
         for it in range(_SHIFT_ITERATIONS + 1):
-            _, _, n, r = _surface_pairs(src + shift, src_n, dst, normals, tree, max_pair_m)
+            _, _, n, r = _surface_pairs(src + shift, src_n, dst, normals, tree, _reach(it, max_pair_m))
             rms.append(float(np.sqrt(np.mean(r ** 2))) if len(r) else float("nan"))
             if it == _SHIFT_ITERATIONS or len(r) < 50:
                 break
@@ -380,7 +391,7 @@ def camera_shifts(rec: Recording, t: int = 0, *, radius_m: float = 0.12, voxel_m
                     continue
                 # c's point p, shifted by S[c], against k's surface shifted by S[k]: r = n . (p + S[c] - q - S[k])
                 _, _, n, r = _surface_pairs(clouds[c] + S[c] - S[k], facing[c], clouds[k], facing[k], trees[k],
-                                            max_pair_m)
+                                            _reach(it, max_pair_m))
                 if len(r) < 50:
                     continue
                 w = np.minimum(1.0, delta / np.maximum(np.abs(r), 1e-12))
@@ -418,8 +429,8 @@ END_EFFECTOR_FIT_M = 2.5e-3
 def end_effector_agreement(rec: Recording, t: int = 0, *, band_m: float = 0.01, min_points: int = 200) -> dict:
     """Whether the cameras and the controls agree on where the end-effectors are: the translation that moves the
     observed end-effector points of frame ``t`` (the controller masks, back-projected) onto the shapes the controls
-    place there (:func:`end_effector_sdf`, points within ``band_m`` of a shape; Huber-weighted Gauss-Newton on the
-    signed distance, ten steps).
+    place there (:func:`end_effector_sdf`, points within 3 cm of a shape at first and ``band_m`` at last,
+    :func:`_reach`; Huber-weighted Gauss-Newton on the signed distance, ten steps).
 
     Returns ``offset_m`` [3] (to add to every camera's position; None where it cannot be measured),
     ``offset_norm_m``, ``rms_before_m`` / ``rms_after_m`` (the points' distances to the shapes), ``points``,
@@ -459,7 +470,7 @@ def end_effector_agreement(rec: Recording, t: int = 0, *, band_m: float = 0.01, 
             q = None if quat is None else quat[t, k]
             x = p + g
             d = end_effector_sdf(x, cfgs[k], pos[t, k], q)
-            ok = np.abs(d) < band_m
+            ok = np.abs(d) < _reach(it, band_m)
             J.append(np.stack([(end_effector_sdf(x[ok] + h * e, cfgs[k], pos[t, k], q)
                                 - end_effector_sdf(x[ok] - h * e, cfgs[k], pos[t, k], q)) / (2 * h)
                                for e in np.eye(3)], 1))
@@ -488,6 +499,30 @@ def end_effector_agreement(rec: Recording, t: int = 0, *, band_m: float = 0.01, 
     return out
 
 
+def surface_consistency(rec: Recording, t: int = 0, *, radius_m: float = 0.12, voxel_m: float = 0.002,
+                        max_pair_m: float = 0.01, within_m: float = 2e-3) -> float:
+    """Share of the cameras' frame-``t`` points (:func:`camera_agreement`'s, all cameras) that lie within ``within_m``
+    of another camera's surface, on its same side (:func:`_surface_pairs`): 0-1, higher where the cameras agree.
+    What :func:`refine_calibration` must raise to keep a correction."""
+    from scipy.spatial import cKDTree
+
+    got = _camera_clouds(rec, t, radius_m, voxel_m) if rec.num_cameras >= 2 else None
+    if got is None:
+        return 0.0
+    clouds, facing = got
+    close = total = 0
+    for c in range(len(clouds)):
+        others = [k for k in range(len(clouds)) if k != c and len(clouds[k])]
+        if not others or not len(clouds[c]):
+            continue
+        dst = np.concatenate([clouds[k] for k in others])
+        i, _, _, r = _surface_pairs(clouds[c], facing[c], dst, np.concatenate([facing[k] for k in others]),
+                                    cKDTree(dst), max_pair_m)
+        close += int(np.sum(np.abs(r) < within_m))
+        total += len(clouds[c])
+    return close / max(total, 1)
+
+
 def refine_calibration(rec: Recording, t: int = 0, *, tolerance_m: Optional[float] = None) -> dict:
     """Correct, in memory, the camera positions of a recording whose cameras disagree with each other
     (:func:`camera_agreement` beyond ``tolerance_m``; corrected by :func:`camera_shifts`) or, as a rig, with the
@@ -505,21 +540,34 @@ def refine_calibration(rec: Recording, t: int = 0, *, tolerance_m: Optional[floa
     c2w = np.array(rec.c2w, np.float64)
     if before["note"] is not None:
         S = camera_shifts(rec, t)
+        recorded = rec.c2w
+        agree0 = surface_consistency(rec, t)
         c2w[:, :3, 3] += S
         rec.c2w = c2w.copy()
-        after = camera_agreement(rec, t, tolerance_m=tolerance_m)
-        out.update(applied=True, shifts_m=[[float(v) for v in s] for s in S], after=after)
-        moved = ", ".join(f"camera {c} by {1e3 * np.linalg.norm(s):.1f} mm" for c, s in enumerate(S))
-        left = (f"they now agree within {1e3 * after['largest_offset_m']:.1f} mm" if after["note"] is None else
-                f"they still disagree by up to {1e3 * after['largest_offset_m']:.1f} mm (a rotation or a depth scale "
-                f"a shift cannot take up)")
-        said.append(f"the cameras disagreed at frame {t} by up to {1e3 * before['largest_offset_m']:.1f} mm: their "
-                    f"positions were shifted onto one surface ({moved}); {left}")
+        agree1 = surface_consistency(rec, t)
+        if agree1 <= agree0:  # the shifts do not bring the cameras' points together: keep the recorded poses
+            rec.c2w = recorded
+            c2w = np.array(recorded, np.float64)
+            out["consistency"] = [agree0, agree1]
+            said.append(f"the cameras disagree at frame {t} by up to {1e3 * before['largest_offset_m']:.1f} mm, and "
+                        f"no shift of theirs brings their points together ({100 * agree0:.0f} % of them on the "
+                        f"others' surface, {100 * agree1:.0f} % shifted): not corrected")
+        else:
+            after = camera_agreement(rec, t, tolerance_m=tolerance_m)
+            out.update(applied=True, shifts_m=[[float(v) for v in s] for s in S], after=after,
+                       consistency=[agree0, agree1])
+            moved = ", ".join(f"camera {c} by {1e3 * np.linalg.norm(s):.1f} mm" for c, s in enumerate(S))
+            left = (f"they now agree within {1e3 * after['largest_offset_m']:.1f} mm" if after["note"] is None else
+                    f"they still disagree by up to {1e3 * after['largest_offset_m']:.1f} mm (a rotation or a depth "
+                    f"scale a shift cannot take up)")
+            said.append(f"the cameras disagreed at frame {t} by up to {1e3 * before['largest_offset_m']:.1f} mm: "
+                        f"their positions were shifted onto one surface ({moved}; {100 * agree0:.0f} -> "
+                        f"{100 * agree1:.0f} % of their points on the others' surface); {left}")
     ee = end_effector_agreement(rec, t)
     out["end_effectors"] = ee
     if ee["offset_norm_m"] is not None and ee["offset_norm_m"] > tolerance_m:
         off = f"{1e3 * ee['offset_norm_m']:.1f} mm"
-        if ee["trusted"]:
+        if ee["trusted"] and ee["rms_after_m"] < ee["rms_before_m"]:
             c2w[:, :3, 3] += np.asarray(ee["offset_m"])
             rec.c2w = c2w.copy()
             out.update(applied=True, rig_shift_m=ee["offset_m"], end_effectors_after=end_effector_agreement(rec, t))
@@ -528,7 +576,7 @@ def refine_calibration(rec: Recording, t: int = 0, *, tolerance_m: Optional[floa
                         f"whole rig was shifted by that")
         else:
             said.append(f"the end-effectors the cameras see lie {off} from where the controls put them, not "
-                        f"corrected: {ee['why']}")
+                        f"corrected: {ee['why'] or 'the shift does not bring them closer to their shapes'}")
     if said:
         out["note"] = ("; ".join(said) + ". Corrected in memory only (the recording's files are unchanged) and before "
                        "anything was fused: check the extrinsics (c2w), the depth scale and the controls' frame")
