@@ -209,9 +209,13 @@ def _refine_plane(centred: np.ndarray, n: np.ndarray, d: float, thr: float):
     return n, d, inliers
 
 
-#: A direction that fewer than this share of the pairs of a camera's points with the others' face along (their
-#: normal within 60 deg of it) is reported as unmeasured by :func:`camera_agreement`.
-_SHARED_DIRECTION = 0.02
+#: A direction that fewer than this many pairs of a camera's points with the others' face along (their normal
+#: within 60 deg of it; with 2 mm voxels, 4 cm^2 of shared surface) is reported as unmeasured by
+#: :func:`camera_agreement` and left out by :func:`camera_shifts`. A count, not a share of the pairs: the table
+#: around the object, as large as the 12 cm reach makes it, would otherwise decide. Calibrated synthetic rigs
+#: (848 x 480): 0-55 such pairs along a direction the surfaces leave free (a box's faces between plates, a rope's
+#: axis), 195 and more along the others, but 81 on one rope camera (session 83).
+_SHARED_PAIRS = 100
 
 #: Point-to-plane solves of :func:`camera_agreement` (each with its nearest neighbours found again).
 _SHIFT_ITERATIONS = 12
@@ -284,11 +288,11 @@ def _surface_pairs(src: np.ndarray, src_n: np.ndarray, dst: np.ndarray, dst_n: n
 
 
 def _unmeasured(n: np.ndarray, A: np.ndarray) -> List[np.ndarray]:
-    """Directions (unit [3], the eigenvectors of ``A``) that fewer than :data:`_SHARED_DIRECTION` of the pairs'
+    """Directions (unit [3], the eigenvectors of ``A``) that fewer than :data:`_SHARED_PAIRS` of the pairs'
     normals ``n`` face along (within 60 deg): a table's noisy normals add up to a weight along every direction of
     ``A`` but tell nothing of a shift along the table."""
     _, vec = np.linalg.eigh(A)
-    return [vec[:, i] for i in range(3) if np.sum(np.abs(n @ vec[:, i]) > 0.5) < _SHARED_DIRECTION * max(len(n), 1)]
+    return [vec[:, i] for i in range(3) if np.sum(np.abs(n @ vec[:, i]) > 0.5) < _SHARED_PAIRS]
 
 
 def camera_agreement(rec: Recording, t: int = 0, *, radius_m: float = 0.12, voxel_m: float = 0.002,
@@ -307,7 +311,7 @@ def camera_agreement(rec: Recording, t: int = 0, *, radius_m: float = 0.12, voxe
 
     Returns ``cameras`` (per camera: ``offset_m`` [3] and ``offset_norm_m``, the shift; ``rms_before_m`` and
     ``rms_after_m``, the point-to-plane distances' RMS before and after it; ``pairs``; ``unmeasured_directions``,
-    unit vectors along which the surfaces it shares with the others hardly constrain a shift, so that a
+    unit vectors along which the surfaces it shares with the others hardly constrain a shift (:func:`_unmeasured`), so that a
     calibration error along them goes unseen: plates hiding a box's faces; the shift reported has no part along
     them), ``largest_offset_m`` and ``note``: None, or a sentence naming the cameras off by more than
     ``tolerance_m`` (the fused points of such a rig are thicker than the depth noise, and every fit's floor rises
