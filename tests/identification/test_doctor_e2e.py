@@ -40,5 +40,9 @@ def test_a_rig_whose_cameras_and_depth_are_off_is_corrected_and_its_effect_named
     assert not res["base"]["at_search_bound"], res["base"]
     assert res["base"]["params"]["E"] < 0.5 * _CPU.E_bounds[1]
     assert (Recording(rec).c2w == recorded).all()  # the user's files are untouched
-    assert any("shifted onto one surface" in n for n in json.loads((tmp_path / "doctor" / "doctor.json").read_text())
-               ["notes"])
+    written = json.loads((tmp_path / "doctor" / "doctor.json").read_text())
+    assert any("shifted onto one surface" in n for n in written["notes"])
+    cal = written["calibration"]
+    assert cal["applied"] and cal["rig_shift_m"] is not None and len(cal["camera_shifts_m"]) == 3
+    before, after = cal["cameras_disagree_m"]
+    assert before > cal["tolerance_m"] > after

@@ -12,7 +12,7 @@ from typing import Optional
 
 import numpy as np
 
-from .core import DoctorConfig, DoctorError, candidate_params, diagnose
+from .core import DoctorConfig, DoctorError, calibration_summary, candidate_params, diagnose
 
 __all__ = ["DEFAULT_DX", "DOCTOR_CELLS_ACROSS", "DoctorConfig", "DoctorError", "candidate_params", "diagnose",
            "diagnose_recording", "load_for_doctor"]
@@ -156,4 +156,4 @@ def diagnose_recording(rec_dir, *, out_dir=None, base=None, config=None, dx: Opt
                          if trimmed_body else [])
 
     return diagnose(scene, obs, views, base=base, config=config, out_dir=out_dir, progress=progress, effects=effects,
-                    other_bodies=others, body_notes=notes)
+                    other_bodies=others, body_notes=notes, calibration=calibration_summary(info.get("calibration")))

@@ -1287,10 +1287,28 @@ def _simulate_fit_sets(sets: Sequence[List["_Fit"]], T: int) -> List[np.ndarray]
     return out
 
 
+def calibration_summary(calibration: Optional[dict]) -> Optional[dict]:
+    """What ``doctor.json`` keeps of the loader's calibration check and correction
+    (:func:`empm_gym.perception.fusion.refine_calibration`'s result, ``info["calibration"]`` of
+    :func:`~empm_gym.identification.data.open_recording`): whether the poses were changed, each camera's shift and
+    the rig's [m], the cameras' largest disagreement before and after, the end-effectors' against the controls,
+    and the note. None without a check (``--keep-calibration``)."""
+    if not calibration:
+        return None
+    ee = calibration.get("end_effectors") or {}
+    after = calibration.get("after") or calibration["before"]
+    ee_after = calibration.get("end_effectors_after") or ee
+    return {"applied": bool(calibration["applied"]), "camera_shifts_m": calibration["shifts_m"],
+            "rig_shift_m": calibration.get("rig_shift_m"),
+            "cameras_disagree_m": [calibration["before"]["largest_offset_m"], after["largest_offset_m"]],
+            "end_effectors_off_m": [ee.get("offset_norm_m"), ee_after.get("offset_norm_m")],
+            "tolerance_m": calibration["before"]["tolerance_m"], "note": calibration.get("note")}
+
+
 def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, base: Optional[MaterialConfig] = None,
              config: Optional[DoctorConfig] = None, out_dir=None, progress: bool = True,
              effects: Optional[Sequence[str]] = None, other_bodies: Sequence = (),
-             body_notes: Sequence[str] = ()) -> dict:
+             body_notes: Sequence[str] = (), calibration: Optional[dict] = None) -> dict:
     """Diagnose a loaded recording (see the module docstring); returns the ``doctor.json`` content.
 
     ``scene``, ``obs``, ``views`` come from :func:`empm_gym.identification.data.load_recording`; ``base``
@@ -1302,7 +1320,9 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     which a named effect must hold its gain; an item ``(label, Scene or None, "trimmed")`` (the body of
     :func:`~empm_gym.identification.data.trimmed_body`) is one it must hold on whatever the others say
     (:func:`_robust`). ``body_notes`` (what the loader says of the frame-0 body, for instance
-    ``info["hidden_note"]`` of :func:`~empm_gym.identification.data.load_recording`) join the notes. With
+    ``info["hidden_note"]`` of :func:`~empm_gym.identification.data.load_recording`) join the notes;
+    ``calibration`` (:func:`calibration_summary` of what the loader corrected) is kept as ``doctor.json``'s
+    ``calibration``. With
     ``out_dir`` the report files are written there. With ``config.rounds`` above 1, a named effect is added to the
     base model and the others are tried again on top of it (:attr:`DoctorConfig.rounds`, :func:`_in_rounds`: the
     result then holds ``rounds`` and ``effects``).
@@ -1310,7 +1330,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     cfg = config or DoctorConfig()
     if cfg.rounds > 1:
         return _in_rounds(scene, obs, views, base=base, config=cfg, out_dir=out_dir, progress=progress,
-                          effects=effects, other_bodies=other_bodies, body_notes=body_notes)
+                          effects=effects, other_bodies=other_bodies, body_notes=body_notes, calibration=calibration)
     t_start = time.perf_counter()
     if cfg.deterministic:
         scene = dataclasses.replace(scene, deterministic=True)
@@ -1345,7 +1365,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
               "hidden_frames": hidden, "fps": obs.fps,
               "noise_sigma_m": noise, "observed_motion_m": motion, "driven_motion_m": driven, "grid": grid,
               "control_lag": {k: _finite_or_none(v) if isinstance(v, float) else v for k, v in lag.items()},
-              "deterministic": bool(scene.deterministic), "notes": grid_notes}
+              "deterministic": bool(scene.deterministic), "notes": grid_notes,
+              **({"calibration": calibration} if calibration is not None else {})}
     still = max(3.0 * noise, 2e-3)
     if motion < still and driven < still:
         result.update(effect="none", decidable=False, confidence=0.0,
@@ -1731,7 +1752,7 @@ def round_summary(result: dict, k: int, base: MaterialConfig, out_dir: Optional[
 
 
 def _in_rounds(scene: Scene, obs: Observations, views, *, base: Optional[MaterialConfig], config: DoctorConfig,
-               out_dir, progress: bool, effects, other_bodies, body_notes) -> dict:
+               out_dir, progress: bool, effects, other_bodies, body_notes, calibration=None) -> dict:
     """``config.rounds`` diagnoses in a row (:attr:`DoctorConfig.rounds`): the first as :func:`diagnose` alone
     (its outputs in ``out_dir``), each later one with the material of the effect named before it as its base model
     (outputs in ``out_dir/round<k>``), its parameters fitted again with E in every fit of the round
@@ -1739,7 +1760,8 @@ def _in_rounds(scene: Scene, obs: Observations, views, *, base: Optional[Materia
     :func:`round_summary` per later round, its whole result under ``result``, which ``doctor.json`` leaves to the
     round's own folder) and ``effects`` (every effect named, in order)."""
     one = dataclasses.replace(config, rounds=1)
-    kw = dict(config=one, progress=progress, other_bodies=other_bodies, body_notes=body_notes)
+    kw = dict(config=one, progress=progress, other_bodies=other_bodies, body_notes=body_notes,
+              calibration=calibration)
     first = diagnose(scene, obs, views, base=base, out_dir=out_dir, effects=effects, **kw)
     res, later, named = first, [], []
     for k in range(2, config.rounds + 1):
