@@ -520,7 +520,7 @@ def surface_consistency(rec: Recording, t: int = 0, *, radius_m: float = 0.12, v
         if not others or not len(clouds[c]):
             continue
         dst = np.concatenate([clouds[k] for k in others])
-        i, _, _, r = _surface_pairs(clouds[c], facing[c], dst, np.concatenate([facing[k] for k in others]),
+        _, _, _, r = _surface_pairs(clouds[c], facing[c], dst, np.concatenate([facing[k] for k in others]),
                                     cKDTree(dst), max_pair_m)
         close += int(np.sum(np.abs(r) < within_m))
         total += len(clouds[c])

@@ -982,6 +982,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
         raise ValueError(f"cameras must be >= 1, got {cameras!r}")
     if len(tuple(calibration_error)) != 2:
         raise ValueError(f"calibration_error must be (translation m, rotation deg), got {calibration_error!r}")
+    sensor_errors([], calibration_error, depth_bias, seed=seed)  # its values checked before the simulation runs
     T, C = int(frames), int(cameras)
     fx = 420.0 * width / 848.0 if fx is None else float(fx)
     fy = fx if fy is None else float(fy)
