@@ -925,6 +925,71 @@ def sensor_errors(cameras: Sequence[Camera], calibration_error: Sequence[float] 
     return {"c2w": np.stack(c2w) if C else np.zeros((0, 4, 4)), "depth_scale": np.array(scale), "record": record}
 
 
+def _check_tracker_errors(track_error: Sequence[float], mask_error_px: int) -> Tuple[float, float, float, int]:
+    if len(tuple(track_error)) != 3:
+        raise ValueError(f"track_error must be (jitter px, drift px per frame, outlier fraction), got {track_error!r}")
+    jit, drift, frac = (float(v) for v in track_error)
+    for name, v in (("track_error jitter (px)", jit), ("track_error drift (px per frame)", drift),
+                    ("track_error outlier fraction", frac)):
+        if not (math.isfinite(v) and v >= 0.0):
+            raise ValueError(f"{name} must be a finite value >= 0, got {v!r}")
+    if jit > 20.0 or drift > 5.0 or frac > 0.5:
+        raise ValueError(f"tracker errors this large (jitter {jit:g} px, drift {drift:g} px a frame, outliers "
+                         f"{frac:g}) are a lost tracker, not a tracker's error: at most 20 px, 5 px and 0.5")
+    if isinstance(mask_error_px, bool) or int(mask_error_px) != mask_error_px or abs(int(mask_error_px)) > 10:
+        raise ValueError(f"mask_error_px must be a whole number of pixels in [-10, 10], got {mask_error_px!r}")
+    return jit, drift, frac, int(mask_error_px)
+
+
+def tracker_errors(tracks: np.ndarray, visible: np.ndarray, track_error: Sequence[float] = (0.0, 0.0, 0.0), *,
+                   width: int, height: int, seed: int = 0) -> Tuple[np.ndarray, dict]:
+    """A 2D point tracker's errors on exact tracks [C, T, M, 2] (row, col pixels) of a synthetic recording.
+
+    ``track_error`` ``(jitter_px, drift_px, outlier_frac)``: every visible entry moves by Gaussian noise of
+    ``jitter_px`` per axis, drawn anew each frame; each track also wanders by a random walk of ``drift_px`` per axis
+    and frame from frame 0 on (a tracker loses its point slowly on a textureless surface); and a fraction
+    ``outlier_frac`` of the visible entries after frame 0 jump 4-20 pixels in a random direction (onto another
+    feature), still marked visible. A learned tracker (CoTracker, TAPIR) on real video is about 1-3 pixels off on
+    textured objects, more where texture is weak. Frame 0's query points stay exact; positions stay in the image.
+
+    Returns (tracks, record for ground_truth.json). Draws from a generator of its own (``seed``), so that a
+    recording without errors is the same as before."""
+    jit, drift, frac, _ = _check_tracker_errors(track_error, 0)
+    out = np.array(tracks, np.float64, copy=True)
+    record = {"track_jitter_px": jit, "track_drift_px_per_frame": drift, "track_outlier_fraction": frac}
+    if not (jit or drift or frac) or out.size == 0:
+        return out.astype(np.float32), record
+    rng = np.random.default_rng([int(seed), 0x7AC4])
+    C, T, M, _ = out.shape
+    err = rng.standard_normal((C, T, M, 2)) * jit
+    walk = np.cumsum(rng.standard_normal((C, T, M, 2)) * drift, axis=1)
+    err += walk - walk[:, :1]
+    jump = (rng.random((C, T, M)) < frac) & np.asarray(visible, bool)
+    jump[:, 0] = False
+    ang = rng.random((C, T, M)) * 2 * np.pi
+    r = 4.0 + 16.0 * rng.random((C, T, M))
+    err += np.where(jump[..., None], np.stack([r * np.sin(ang), r * np.cos(ang)], -1), 0.0)
+    err[:, 0] = 0.0
+    out += err
+    out[..., 0] = np.clip(out[..., 0], 0.0, height - 1.0)
+    out[..., 1] = np.clip(out[..., 1], 0.0, width - 1.0)
+    record["track_outliers"] = int(jump.sum())
+    return out.astype(np.float32), record
+
+
+def mask_error(mask: np.ndarray, mask_error_px: int) -> np.ndarray:
+    """A segmenter's boundary error on an exact object mask: grown by ``mask_error_px`` pixels (positive: onto the
+    table, the background and the end-effectors beside it, as a mask that bleeds does) or shrunk (negative)."""
+    from scipy import ndimage
+
+    k = int(mask_error_px)
+    if k > 0:
+        return ndimage.binary_dilation(mask, iterations=k)
+    if k < 0:
+        return ndimage.binary_erosion(mask, iterations=-k)
+    return mask
+
+
 # ----------------------------------------------------------------------------------------------
 # main entry
 # ----------------------------------------------------------------------------------------------
@@ -940,7 +1005,8 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
                effect: Optional[str] = None, effect_params: Optional[Dict[str, float]] = None,
                material=None, debug_particles: Optional[bool] = None, tangent_splats: bool = True,
                simulator: str = "mpm", springmass_damping: float = 1.0, grid_offset=(0.0, 0.0, 0.0),
-               jitter: float = 0.0, calibration_error: Sequence[float] = (0.0, 0.0), depth_bias: float = 0.0) -> Path:
+               jitter: float = 0.0, calibration_error: Sequence[float] = (0.0, 0.0), depth_bias: float = 0.0,
+               track_error: Sequence[float] = (0.0, 0.0, 0.0), mask_error_px: int = 0) -> Path:
     """Simulate a scripted manipulation and write a synthetic recording with known parameters to ``out_dir``.
 
     ``object`` is "rope", "dough", "block" or "lump"; ``script`` "default" (rope lift-and-stretch, dough squeeze,
@@ -968,7 +1034,9 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
     the doctor and identification can be tried on another simulator's output (:func:`simulate`); the
     rendering is the same. ``grid_offset`` and ``jitter`` vary the discretisation (:func:`simulate`); the
     ground truth's ``scene`` records both. ``calibration_error`` ``(m, deg)`` and ``depth_bias`` give the rig a
-    real one's errors (:func:`sensor_errors`): the recording's camera poses and depths are off by them, and only
+    real one's errors (:func:`sensor_errors`): the recording's camera poses and depths are off by them;
+    ``track_error`` ``(jitter px, drift px a frame, outlier fraction)`` gives the tracks a real tracker's
+    (:func:`tracker_errors`) and ``mask_error_px`` the object masks a segmenter's (:func:`mask_error`); only
     ground_truth.json's ``sensor_errors`` says by how much.
     Returns the recording path. See the module docstring for the scene, the noise model and how
     ``controls.npz`` replays.
@@ -983,6 +1051,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
     if len(tuple(calibration_error)) != 2:
         raise ValueError(f"calibration_error must be (translation m, rotation deg), got {calibration_error!r}")
     sensor_errors([], calibration_error, depth_bias, seed=seed)  # its values checked before the simulation runs
+    _check_tracker_errors(track_error, mask_error_px)
     T, C = int(frames), int(cameras)
     fx = 420.0 * width / 848.0 if fx is None else float(fx)
     fy = fx if fy is None else float(fy)
@@ -1079,7 +1148,8 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
             depth, color, label, cosv = render_view(view, P, N, albedo, splat_r, ees, tangent=tangent_splats)
             noisy = add_depth_noise(depth, cosv, rng, sigma_m=noise_sigma_m) * errors["depth_scale"][c]
             rgb = np.clip(color + rng.normal(0, 0.008, color.shape), 0, 1)
-            writer.write_frame(c, t, color=(rgb * 255 + 0.5).astype(np.uint8), depth_m=noisy, mask=label == 1,
+            writer.write_frame(c, t, color=(rgb * 255 + 0.5).astype(np.uint8), depth_m=noisy,
+                               mask=mask_error(label == 1, mask_error_px),
                                controller_mask=[label == 2 + k for k in range(len(ee_cfgs))])
             if n_tr:
                 rc, z = view.cam.project(P[track_idx])
@@ -1098,6 +1168,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
                           half_height=np.array([c.half_height for c in ee_cfgs]),
                           half_extents=np.array([c.half_extents for c in ee_cfgs]),
                           orientations=quat)
+    tracks, track_record = tracker_errors(tracks, vis, track_error, width=width, height=height, seed=seed)
     for c in range(C):
         writer.write_tracks(c, tracks[c], vis[c])
     # debug only (never read by identification): the simulated particle trajectories [T, N, 3] (m) and
@@ -1142,7 +1213,7 @@ def synthesize(out_dir, object: str = "rope", *, seed: int = 0, E: Optional[floa
             "end_effectors": [{"shape": c.shape, "radius": c.radius, "half_extents": list(c.half_extents)}
                               for c in ee_cfgs],
         },
-        "sensor_errors": errors["record"],
+        "sensor_errors": {**errors["record"], **track_record, "mask_error_px": int(mask_error_px)},
         "render": {"surface_points": int(len(sp)), "surface_spacing_m": surface_spacing_m,
                    "splat_radius_m": splat_r, "tangent_splats": bool(tangent_splats),
                    "depth_noise_sigma_m_at_0.5m": noise_sigma_m,
@@ -1189,7 +1260,8 @@ def _cli(args) -> int:
                           debug_particles=True if args.debug_particles else None,
                           tangent_splats=args.tangent_splats, simulator=args.simulator,
                           springmass_damping=args.springmass_damping, grid_offset=args.grid_offset,
-                          jitter=args.jitter, calibration_error=args.calibration_error, depth_bias=args.depth_bias)
+                          jitter=args.jitter, calibration_error=args.calibration_error, depth_bias=args.depth_bias,
+                          track_error=args.track_error, mask_error_px=args.mask_error)
     except (RecordingError, ValueError, OSError) as exc:
         print(f"empm synth: error: {exc}", file=sys.stderr)
         return 2
@@ -1264,6 +1336,13 @@ def register(subparsers) -> None:
                    "metres and a rotation of DEG degrees (random directions; a real rig's calibration error)")
     p.add_argument("--depth-bias", dest="depth_bias", type=float, default=0.0, metavar="FRAC",
                    help="each camera's depth is scaled by 1 +- FRAC (random sign; a depth camera's absolute error)")
+    p.add_argument("--track-error", dest="track_error", type=float, nargs=3, default=(0.0, 0.0, 0.0),
+                   metavar=("JITTER", "DRIFT", "OUTLIERS"), help="the tracks get a real tracker's errors: Gaussian "
+                   "jitter of JITTER px a frame, a random walk of DRIFT px a frame, and a fraction OUTLIERS of the "
+                   "visible entries jumping 4-20 px (still marked visible)")
+    p.add_argument("--mask-error", dest="mask_error", type=int, default=0, metavar="PX",
+                   help="the object masks grown by PX pixels (onto the background and the end-effectors, as a "
+                        "segmenter's mask that bleeds) or shrunk (negative PX)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing recording in out_dir")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cli)

@@ -340,3 +340,44 @@ def test_a_rig_with_calibration_and_depth_errors_writes_poses_and_depths_off_by_
         S.sensor_errors(clean.cameras, (0.0, 0.0), -0.01)
     with pytest.raises(ValueError, match="a broken calibration"):
         S.sensor_errors(clean.cameras, (0.2, 0.0), 0.0)
+
+
+def test_a_tracker_and_a_segmenter_with_errors_change_only_the_tracks_and_masks_by_what_was_asked(tmp_path):
+    """``track_error`` (jitter, drift, outliers) and ``mask_error_px``: the tracks move off the exact ones by the
+    asked amounts (frame 0's query points exact, the jumps 4-20 px), the masks grow or shrink by exactly that many
+    pixels, and the depth, colours and controls are those of the same recording without errors."""
+    from scipy import ndimage
+
+    kw = dict(frames=12, cameras=2, width=96, height=64, seed=5, progress=False, effect="none", n_tracks=64)
+    clean = Recording(S.synthesize(tmp_path / "clean", "dough", **kw))
+    off = Recording(S.synthesize(tmp_path / "off", "dough", track_error=(0.0, 0.0, 0.25), mask_error_px=2, **kw))
+    grown = ndimage.generate_binary_structure(2, 1)
+    for c in range(2):
+        (t0, v0), (t1, v1) = clean.tracks(c), off.tracks(c)
+        np.testing.assert_array_equal(v0, v1)
+        np.testing.assert_array_equal(t0[0], t1[0])  # the query points
+        d = np.linalg.norm(t1 - t0, axis=-1)
+        moved = d > 1e-4
+        assert (moved <= v0).all()  # only visible entries jump
+        assert 0.15 < moved[1:][v0[1:]].mean() < 0.35
+        inside = (t1[..., 0] > 0) & (t1[..., 0] < 63) & (t1[..., 1] > 0) & (t1[..., 1] < 95)
+        assert (d[moved & inside] > 4 - 1e-3).all() and (d[moved] < 20 + 1e-3).all()
+        for t in (0, 11):
+            np.testing.assert_array_equal(off.mask(c, t), ndimage.binary_dilation(clean.mask(c, t), grown, 2))
+            np.testing.assert_array_equal(clean.depth(c, t), off.depth(c, t))
+            np.testing.assert_array_equal(clean.color(c, t), off.color(c, t))
+    gt = off.ground_truth()["sensor_errors"]
+    assert gt["mask_error_px"] == 2 and gt["track_outlier_fraction"] == 0.25 and gt["track_outliers"] > 0
+    # jitter and drift: the error's spread grows with the frame as a random walk's does, on top of the jitter
+    tr = np.zeros((1, 400, 500, 2)) + 30.0
+    noisy, _ = S.tracker_errors(tr, np.ones((1, 400, 500), bool), (1.0, 0.2, 0.0), width=96, height=64, seed=1)
+    sd = (noisy - tr).std(axis=2).mean(-1)[0]
+    assert sd[0] == 0.0
+    assert sd[1] == pytest.approx(np.hypot(1.0, 0.2), rel=0.1)
+    assert sd[100] == pytest.approx(np.hypot(1.0, 0.2 * 10), rel=0.1)
+    with pytest.raises(ValueError, match="track_error must be"):
+        S.synthesize(tmp_path / "bad", "dough", track_error=(1.0, 0.1), **kw)
+    with pytest.raises(ValueError, match="a lost tracker"):
+        S.synthesize(tmp_path / "bad", "dough", track_error=(1.0, 0.1, 0.9), **kw)
+    with pytest.raises(ValueError, match="mask_error_px must be a whole number"):
+        S.synthesize(tmp_path / "bad", "dough", mask_error_px=1.5, **kw)
