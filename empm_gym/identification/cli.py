@@ -220,6 +220,8 @@ def _identify(args) -> int:
             a["identifiability"]["warnings"].append(body_info["hidden_note"])
         if body_info.get("calibration_note"):  # every body and every frame carries the rig's disagreement
             a["identifiability"]["warnings"].append(body_info["calibration_note"])
+        if body_info.get("track_note"):  # the tracks weigh less than the depth's noise alone would let them
+            a["identifiability"]["warnings"].append(body_info["track_note"])
         res.extra.update(a)
         undetermined = [k for k, u in a["uncertainty"].items() if not u["determined"]]
     res.save(out)

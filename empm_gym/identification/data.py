@@ -20,7 +20,7 @@ from empm_gym.sim import MaterialConfig, TableConfig
 
 from .problem import Observations, Scene, Views
 
-__all__ = ["load_recording", "load_views", "lift_tracks", "attach_grippers"]
+__all__ = ["load_recording", "load_views", "lift_tracks", "track_noise", "attach_grippers"]
 
 _log = logging.getLogger("empm_gym.identification")
 
@@ -75,6 +75,79 @@ def lift_tracks(rec, *, frames: Optional[int] = None) -> Tuple[np.ndarray, np.nd
         out.append(P)
         vis.append(v)
     return np.concatenate(out, axis=1), np.concatenate(vis, axis=1)
+
+
+#: the least weight :func:`track_noise` gives tracks
+_MIN_TRACK_WEIGHT = 0.01
+#: tracks this much noisier (standard deviation) than their depth alone keep their full weight: exact tracks scatter
+#: 1.0-1.34x their depth's noise (the most on a rope lifted at 10 frames a second, session 84)
+_TRACK_NOISE_SLACK = 1.5
+
+
+def track_noise(tracks: np.ndarray, visible: np.ndarray, cameras: np.ndarray, centres: np.ndarray,
+                depth_sigma_m: float) -> dict:
+    """How much the lifted tracks [T, M, 3] (m) scatter from frame to frame, against what their depth alone gives.
+
+    A track's second difference x[t+1] - 2 x[t] + x[t-1] over three frames where it is visible holds six times the
+    variance of its noise and the material's acceleration there. The acceleration is shared by the tracks nearby:
+    the median of the 8 nearest of the same camera (``cameras`` [M], their centres [C, 3]) is taken off, leaving the
+    noise (:data:`~empm_gym.perception.fusion.NEIGHBOUR_MEDIAN_INFLATION`). It is split along the ray from the
+    track's camera and across it: ``along_ray_m`` and ``across_ray_m`` (robust standard deviations per axis, m), and
+    ``scatter_m`` = sqrt(along^2 + 2 across^2). A track lifted with its exact pixel scatters only along its ray, by
+    the depth's own noise ``depth_sigma_m`` (:func:`~empm_gym.perception.fusion.temporal_depth_noise`); a 2D
+    tracker's error adds scatter across the ray and, through the surface's slope, along it. ``weight``: the tracks'
+    share of the loss against exact ones, inverse-variance, ``min(1, (1.5 depth_sigma / scatter)^2)``
+    (:data:`_TRACK_NOISE_SLACK`; at least :data:`_MIN_TRACK_WEIGHT`); 1 when either is unknown (fewer than 30
+    triplets, no depth estimate)."""
+    from scipy.spatial import cKDTree
+
+    from empm_gym.perception.fusion import NEIGHBOUR_MEDIAN_INFLATION
+
+    P = np.asarray(tracks, np.float64)
+    v = np.asarray(visible, bool)
+    cam = np.asarray(cameras, np.int64)
+    out = {"along_ray_m": float("nan"), "across_ray_m": float("nan"), "scatter_m": float("nan"),
+           "depth_sigma_m": float(depth_sigma_m), "triplets": 0, "weight": 1.0}
+    if P.shape[0] < 3 or P.shape[1] == 0:
+        return out
+    k = 8
+    along, across = [], []
+    for t in range(1, P.shape[0] - 1):
+        ok = v[t + 1] & v[t] & v[t - 1]
+        for c in np.unique(cam[ok]):
+            idx = np.nonzero(ok & (cam == c))[0]
+            if len(idx) <= k:
+                continue
+            a = P[t + 1, idx] - 2.0 * P[t, idx] + P[t - 1, idx]
+            _, nb = cKDTree(P[t, idx]).query(P[t, idx], k=k + 1)
+            r = a - np.median(a[nb[:, 1:]], axis=1)
+            ray = P[t, idx] - np.asarray(centres, np.float64)[c]
+            ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
+            al = np.einsum("si,si->s", r, ray)
+            along.append(al)
+            across.append(np.linalg.norm(r - al[:, None] * ray, axis=1))
+    n = int(sum(len(a) for a in along))
+    out["triplets"] = n
+    if n < 30:
+        return out
+    # |N(0, s^2)| has median 0.6745 s; the norm of two such (a Rayleigh) has median 1.1774 s
+    s_along = float(np.median(np.abs(np.concatenate(along))) / 0.6745 / np.sqrt(6.0) / NEIGHBOUR_MEDIAN_INFLATION)
+    s_across = float(np.median(np.concatenate(across)) / 1.1774 / np.sqrt(6.0) / NEIGHBOUR_MEDIAN_INFLATION)
+    scatter = float(np.sqrt(s_along ** 2 + 2.0 * s_across ** 2))
+    out.update(along_ray_m=s_along, across_ray_m=s_across, scatter_m=scatter)
+    if np.isfinite(depth_sigma_m) and depth_sigma_m > 0 and scatter > 0:
+        out["weight"] = float(np.clip((_TRACK_NOISE_SLACK * depth_sigma_m / scatter) ** 2, _MIN_TRACK_WEIGHT, 1.0))
+    return out
+
+
+def _track_note(noise: dict) -> Optional[str]:
+    """A sentence for the notes when the tracks weigh less than clean ones (:func:`track_noise`), else None."""
+    if not noise["weight"] < 1.0:
+        return None
+    return (f"the tracks scatter {1e3 * noise['scatter_m']:.1f} mm from frame to frame ({1e3 * noise['across_ray_m']:.1f} "
+            f"mm across their cameras' rays), against the {1e3 * noise['depth_sigma_m']:.1f} mm that the depth alone "
+            f"gives a tracked point (a 2D tracker's error): they weigh {noise['weight']:.2f} of exact tracks in the fit "
+            f"and the held-out score")
 
 
 def attach_grippers(configs, positions, grip, particles, dx: float):
@@ -558,7 +631,7 @@ def _warn_body(path, report: dict) -> None:
     calibrations disagree."""
     if report.get("single_view"):
         _log.warning("%s: %s", path, report["body_completion"])
-    for key in ("hidden_note", "trim_note", "calibration_note"):
+    for key in ("hidden_note", "trim_note", "calibration_note", "track_note"):
         if report.get(key):
             _log.warning("%s: %s", path, report[key])
 
@@ -607,7 +680,7 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     """
     from tqdm.auto import tqdm
 
-    from empm_gym.perception.fusion import estimate_table_plane, fuse_frame, load_controls
+    from empm_gym.perception.fusion import estimate_table_plane, fuse_frame, load_controls, temporal_depth_noise
     from empm_gym.perception.recording import controls_to_end_effectors
 
     rec = open_recording(rec_dir, refine_calibration=refine_calibration, info=info)
@@ -645,11 +718,21 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     if grow_grippers:
         cfgs, _ = attach_grippers(cfgs, pos, grip, x0, dx)
     tracks = vis = None
+    noise = {"weight": 1.0}
     if use_tracks and rec.has_tracks:
         tracks, vis = lift_tracks(rec, frames=T)
         if not vis[0].any():
             tracks = vis = None
-    obs = Observations(rec.fps, pts, tracks=tracks, visibility=vis, surface=True)
+        else:
+            cams = np.concatenate([np.full(rec.tracks(c)[1].shape[1], c) for c in range(rec.num_cameras)])
+            noise = track_noise(tracks, vis, cams, np.stack([cam.c2w[:3, 3] for cam in rec.cameras]),
+                                temporal_depth_noise(rec, T))
+    note = _track_note(noise)
+    if note and warn:
+        _log.warning("%s: %s", rec.path, note)
+    if info is not None:
+        info.update(track_noise=noise, track_note=note)
+    obs = Observations(rec.fps, pts, tracks=tracks, visibility=vis, surface=True, track_weight=noise["weight"])
     scene = Scene(x0, vol, fps=rec.fps, ee_configs=cfgs, ee_positions=pos[:T], ee_grip=grip[:T],
                   ee_orientations=None if orient is None else orient[:T],
                   material=material or MaterialConfig(E=1e5, nu=0.3, density=1000.0),

@@ -182,7 +182,10 @@ class Objective:
             raise ValueError(f"frames={frames} exceeds the {obs.num_frames} observed frames")
         if observation not in OBSERVATION_MODELS:
             raise ValueError(f"observation must be one of {OBSERVATION_MODELS}, got {observation!r}")
-        self.frames, self.l_dist, self.l_trk, self.direction = frames, float(l_dist), float(l_trk), chamfer
+        # a tracker's own error lowers the tracks' weight (Observations.track_weight, 1 for tracks of the depth alone)
+        self.track_weight = float(obs.track_weight)
+        self.frames, self.l_dist, self.l_trk, self.direction = (frames, float(l_dist), float(l_trk) * self.track_weight,
+                                                                 chamfer)
         self._carry_mats = {}  # (id(embedding index), particles) -> (that index, its sparse matrix): :meth:`_carry`
         self.observation = observation
         rng = np.random.default_rng(seed)

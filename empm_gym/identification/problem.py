@@ -230,6 +230,10 @@ class Observations:
     A frame after the first may hold no points: the object wholly hidden there (a hand or a plate over it). Such a
     frame is not scored (:attr:`seen`; the losses and the doctor leave it out, its tracks count as occluded);
     frame 0, which places the body, must see it, and so must one later frame at least.
+
+    ``track_weight`` (0 < w <= 1): the tracks' share of the loss against tracks without a 2D tracker's error
+    (:func:`~.data.track_noise`): identification's tracking term is multiplied by it, the doctor's held-out median
+    tracking error by its square root.
     """
 
     fps: float
@@ -238,10 +242,13 @@ class Observations:
     visibility: Optional[np.ndarray] = None
     colors: Optional[Sequence[np.ndarray]] = None
     surface: bool = False
+    track_weight: float = 1.0
 
     def __post_init__(self):
         if not (self.fps > 0 and math.isfinite(self.fps)):
             raise ValueError(f"Observations.fps must be a positive frame rate (1/s), got {self.fps!r}")
+        if not (0.0 < self.track_weight <= 1.0):
+            raise ValueError(f"Observations.track_weight must lie in (0, 1], got {self.track_weight!r}")
         pts = []
         for t, p in enumerate(self.points):
             a = np.asarray(p, np.float64)

@@ -53,6 +53,7 @@ __all__ = [
     "end_effector_agreement",
     "calibration_tolerance",
     "surface_consistency",
+    "temporal_depth_noise",
 ]
 
 
@@ -140,6 +141,58 @@ def fuse_frame(rec: Recording, t: int, *, voxel_m: float = 0.002, nb_neighbors: 
     if nb_neighbors and nb_neighbors > 0:
         pts, _ = remove_statistical_outliers(pts, nb_neighbors, std_ratio)
     return pts
+
+
+#: a second difference's residual from the median of 8 neighbours' has 1 + pi / 16 times its variance
+NEIGHBOUR_MEDIAN_INFLATION = math.sqrt(1.0 + math.pi / 16.0)
+
+
+def temporal_depth_noise(rec: Recording, frames: Optional[int] = None, *, erode_px: int = 2,
+                         min_pixels: int = 200) -> float:
+    """Robust standard deviation [m] of a depth pixel on the object from frame to frame, along its ray.
+
+    Over every camera's object pixels (masks eroded by ``erode_px``: no silhouette edge) whose depth is valid in
+    three consecutive frames, the second difference d[t+1] - 2 d[t] + d[t-1] holds six times the variance of the
+    depth's noise and the surface's acceleration along the ray. The acceleration is the same a few millimetres
+    away: the median of eight pixels' about 7 mm off (a ring of ``5 * width / 848`` pixels, beyond the few pixels a
+    depth camera's noise is correlated over) is taken off, leaving the noise (:data:`NEIGHBOUR_MEDIAN_INFLATION`).
+    Scaled from depth to the distance along the pixel's ray. It is what a tracked point lifted with its depth
+    scatters by, frame to frame, when the tracker itself is exact
+    (:func:`~empm_gym.identification.data.track_noise`). NaN with fewer than ``min_pixels`` such pixels (no masks,
+    fewer than 3 frames)."""
+    from scipy import ndimage
+
+    T = rec.num_frames if frames is None else min(int(frames), rec.num_frames)
+    if T < 3 or not rec.has_masks:
+        return float("nan")
+    ring = max(2, int(round(5.0 * rec.width / 848.0)))
+    offsets = [(dr, dc) for dr in (-ring, 0, ring) for dc in (-ring, 0, ring) if dr or dc]
+    vals = []
+    for c, cam in enumerate(rec.cameras):
+        rr, cc = np.mgrid[0:rec.height, 0:rec.width]
+        stretch = np.sqrt(1.0 + ((cc - cam.K[0, 2]) / cam.K[0, 0]) ** 2 + ((rr - cam.K[1, 2]) / cam.K[1, 1]) ** 2)
+        win = []
+        for t in range(T):
+            m = ndimage.binary_erosion(np.asarray(rec.mask(c, t), bool), iterations=int(erode_px))
+            win.append(np.where(m, rec.depth(c, t), 0.0))
+            if len(win) < 3:
+                continue
+            a, b, d = win
+            win.pop(0)
+            ok = (a > 0) & (b > 0) & (d > 0)
+            if ok.sum() < 9:
+                continue
+            acc = np.where(ok, (d - 2.0 * b + a) * stretch, np.nan)
+            pad = np.pad(acc, ring, constant_values=np.nan)
+            nb = np.stack([pad[ring + dr:ring + dr + rec.height, ring + dc:ring + dc + rec.width]
+                           for dr, dc in offsets])
+            enough = ok & (np.isfinite(nb).sum(0) >= 4)
+            if enough.any():
+                vals.append(acc[enough] - np.nanmedian(nb[:, enough], axis=0))
+    v = np.concatenate(vals) if vals else np.zeros(0)
+    if len(v) < min_pixels:
+        return float("nan")
+    return float(np.median(np.abs(v)) / 0.6745 / np.sqrt(6.0) / NEIGHBOUR_MEDIAN_INFLATION)
 
 
 def fit_table_plane(points: np.ndarray, *, distance_threshold_m: float = 0.004, iterations: int = 1000,

@@ -423,3 +423,35 @@ def test_end_effectors_without_controls_or_masks_are_not_measured(phystwin_dir):
 
     out = end_effector_agreement(Recording(phystwin_dir))
     assert out["offset_m"] is None and not out["trusted"] and out["why"]
+
+
+def test_a_trackers_error_is_told_from_the_depths_and_its_tracks_weigh_less(tmp_path):
+    """The depth's own frame-to-frame noise (temporal_depth_noise) is the synthesiser's at the object's distance;
+    exact tracks scatter by just that, keep their full weight and no note; tracks jittered by 1.5 px scatter across
+    their rays by 1.5 px at the object's distance, and weigh what inverse variance gives them, in the fit's loss
+    too."""
+    from empm_gym.identification.data import load_recording
+    from empm_gym.identification.offline import Objective
+    from empm_gym.perception import synth as S
+
+    kw = dict(frames=24, cameras=3, width=320, height=180, seed=4, progress=False, effect="none",
+              script="press-release")
+    clean = S.synthesize(tmp_path / "clean", "dough", **kw)
+    noisy = S.synthesize(tmp_path / "noisy", "dough", track_error=(1.5, 0.0, 0.0), **kw)
+    rec = Recording(clean)
+    z = np.median(np.concatenate([rec.depth(c, 0)[rec.mask(c, 0) & (rec.depth(c, 0) > 0)] for c in range(3)]))
+    sigma = F.temporal_depth_noise(rec)
+    assert sigma == pytest.approx(1.5e-3 * (z / 0.5) ** 2, rel=0.15)
+    load = dict(dx=0.02, particles_per_cell=1, progress=False, warn=False)
+    info = {}
+    scene, obs, _ = load_recording(clean, info=info, **load)
+    assert obs.track_weight == 1.0 and info["track_note"] is None
+    assert info["track_noise"]["scatter_m"] == pytest.approx(sigma, rel=0.15)
+    assert info["track_noise"]["across_ray_m"] < 0.2 * sigma
+    info = {}
+    scene, obs, _ = load_recording(noisy, info=info, **load)
+    n = info["track_noise"]
+    assert n["across_ray_m"] == pytest.approx(1.5 * z / rec.cameras[0].K[0, 0], rel=0.25)
+    assert obs.track_weight == pytest.approx((1.5 * sigma / n["scatter_m"]) ** 2, rel=1e-6) and obs.track_weight < 0.3
+    assert "2D tracker" in info["track_note"]
+    assert Objective(scene, obs, 24, l_trk=100.0).l_trk == pytest.approx(100.0 * obs.track_weight)

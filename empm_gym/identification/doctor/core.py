@@ -530,7 +530,8 @@ def _ee_orientations(scene: Scene, T: int) -> Optional[np.ndarray]:
 
 def _per_frame_losses(objective: Objective, X: np.ndarray) -> Dict[str, np.ndarray]:
     """Per-frame scores of X [T, N, 3]: Chamfer [m], tracking mean squared error [m^2], median tracking
-    error [m] and the doctor's held-out score ``loss`` = Chamfer + median tracking error [m].
+    error [m] and the doctor's held-out score ``loss`` = Chamfer + median tracking error [m] (times the square
+    root of the tracks' weight, :attr:`~empm_gym.identification.problem.Observations.track_weight`).
 
     The score uses the median over visible tracks, not the fit's mean square: a tracked point whose
     neighbourhood tears or slips is carried badly by the locally affine embedding, and one such outlier
@@ -551,7 +552,9 @@ def _per_frame_losses(objective: Objective, X: np.ndarray) -> Dict[str, np.ndarr
             if vis[t].any():
                 out["track_mse"][t + 1] = float(np.mean(err[t][vis[t]] ** 2))
                 out["track_median"][t + 1] = float(np.median(err[t][vis[t]]))
-        out["loss"][1:] = out["chamfer"][1:] + np.nan_to_num(out["track_median"][1:], nan=0.0)
+        # tracks noisier than their depth (a 2D tracker's error, Observations.track_weight) count for less
+        out["loss"][1:] = out["chamfer"][1:] + np.sqrt(objective.track_weight) * np.nan_to_num(
+            out["track_median"][1:], nan=0.0)
     return out
 
 
@@ -1366,6 +1369,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
               "noise_sigma_m": noise, "observed_motion_m": motion, "driven_motion_m": driven, "grid": grid,
               "control_lag": {k: _finite_or_none(v) if isinstance(v, float) else v for k, v in lag.items()},
               "deterministic": bool(scene.deterministic), "notes": grid_notes,
+              "track_weight": float(obs.track_weight),  # < 1: the tracks scatter more than their depth explains
               **({"calibration": calibration} if calibration is not None else {})}
     still = max(3.0 * noise, 2e-3)
     if motion < still and driven < still:
