@@ -47,8 +47,11 @@ def lift_tracks(rec, *, frames: Optional[int] = None) -> Tuple[np.ndarray, np.nd
     """World-frame tracks [T, M, 3] (m) and visibility [T, M] from every camera's 2D tracks.
 
     A track is visible where its camera marks it visible, its pixel lies in the image and on the object
-    mask (when there are masks) and the depth there is valid; its 3D point is the back-projected depth.
+    (:func:`~empm_gym.perception.fusion.object_mask`, when there are masks) and the depth there is valid; its 3D
+    point is the back-projected depth.
     """
+    from empm_gym.perception.fusion import object_mask
+
     T = rec.num_frames if frames is None else int(frames)
     cams = rec.cameras
     out, vis = [], []
@@ -58,7 +61,7 @@ def lift_tracks(rec, *, frames: Optional[int] = None) -> Tuple[np.ndarray, np.nd
         P = np.zeros(tr.shape[:2] + (3,))
         for t in range(T):
             d = rec.depth(c, t)
-            m = rec.mask(c, t) if rec.has_masks else None
+            m = object_mask(rec, c, t) if rec.has_masks else None
             r = np.round(tr[t, :, 0]).astype(np.int64)
             q = np.round(tr[t, :, 1]).astype(np.int64)
             ok = v[t] & np.isfinite(tr[t]).all(1) & (r >= 0) & (r < rec.height) & (q >= 0) & (q < rec.width)

@@ -54,6 +54,7 @@ __all__ = [
     "calibration_tolerance",
     "surface_consistency",
     "temporal_depth_noise",
+    "object_mask",
 ]
 
 
@@ -113,6 +114,15 @@ def fuse_views(depths: Sequence[np.ndarray], cameras: Sequence[Camera], masks: O
     return np.concatenate(out, axis=0) if out else np.zeros((0, 3))
 
 
+def object_mask(rec: Recording, cam: int, t: int) -> np.ndarray:
+    """The pixels [H, W] bool that measure the object in camera ``cam`` at frame ``t``: its mask less every pixel
+    that an end-effector's mask claims too. A segmenter's masks overlap where the object meets a gripper or a hand
+    (a mask that bleeds a few pixels onto it), and the depth there is as often the end-effector's surface."""
+    m = np.asarray(rec.mask(cam, t), bool)
+    ctl = rec.controller_mask(cam, t) if rec.has_controller_masks else None
+    return m if ctl is None else m & ~np.asarray(ctl, bool)
+
+
 def frame_points(rec: Recording, t: int, *, cams: Optional[Sequence[int]] = None, use_mask: bool = True,
                  erode_px: int = 1, min_depth_m: float = 0.1, max_depth_m: float = 5.0) -> np.ndarray:
     """Raw fused object points [N, 3] (m, world) of frame ``t`` from the given cameras (default all)."""
@@ -122,7 +132,7 @@ def frame_points(rec: Recording, t: int, *, cams: Optional[Sequence[int]] = None
                              f"(or pass use_mask=False)")
     allc = rec.cameras
     depths = [rec.depth(c, t) for c in cams]
-    masks = [rec.mask(c, t) for c in cams] if use_mask else None
+    masks = [object_mask(rec, c, t) for c in cams] if use_mask else None
     return fuse_views(depths, [allc[c] for c in cams], masks, erode_px=erode_px, min_depth_m=min_depth_m,
                       max_depth_m=max_depth_m)
 
@@ -173,7 +183,7 @@ def temporal_depth_noise(rec: Recording, frames: Optional[int] = None, *, erode_
         stretch = np.sqrt(1.0 + ((cc - cam.K[0, 2]) / cam.K[0, 0]) ** 2 + ((rr - cam.K[1, 2]) / cam.K[1, 1]) ** 2)
         win = []
         for t in range(T):
-            m = ndimage.binary_erosion(np.asarray(rec.mask(c, t), bool), iterations=int(erode_px))
+            m = ndimage.binary_erosion(object_mask(rec, c, t), iterations=int(erode_px))
             win.append(np.where(m, rec.depth(c, t), 0.0))
             if len(win) < 3:
                 continue
