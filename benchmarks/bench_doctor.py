@@ -192,10 +192,15 @@ def make(args):
     if unknown:
         raise SystemExit(f"--only-scripts / --every-effect-on: unknown script(s) {unknown}; known: {', '.join(SCRIPTS)}")
     # a rig with a real one's calibration and depth errors (the recording only; the signatures are the physics')
-    sensor_kw = dict(calibration_error=tuple(args.calibration_error), depth_bias=args.depth_bias)
+    # and a 2D tracker's and a segmenter's errors
+    sensor_kw = dict(calibration_error=tuple(args.calibration_error), depth_bias=args.depth_bias,
+                     track_error=tuple(args.track_error), mask_error_px=args.mask_error)
     sensor_suffix = ("" if not (any(args.calibration_error) or args.depth_bias) else
                      f"-cal{1e3 * args.calibration_error[0]:g}mm{args.calibration_error[1]:g}deg"
                      f"-bias{100 * args.depth_bias:g}pc")
+    if any(args.track_error) or args.mask_error:
+        sensor_suffix += (f"-trk{args.track_error[0]:g}px{args.track_error[1]:g}-{100 * args.track_error[2]:g}pc"
+                          f"-mask{args.mask_error}")
     for effect in effects:
         parts = effect.split("+")
         scripts = (list(dict.fromkeys([NATURAL[effect], second_script(args.object, effect), FIRST_OTHER[effect]]))
@@ -1176,6 +1181,11 @@ def _parser():
                         "directions; empm synth --calibration-error); the problems' names end in -cal...")
     p.add_argument("--depth-bias", type=float, default=0.0, metavar="FRAC",
                    help="--make: each camera's depth scaled by 1 +- FRAC (empm synth --depth-bias)")
+    p.add_argument("--track-error", type=float, nargs=3, default=(0.0, 0.0, 0.0),
+                   metavar=("JITTER", "DRIFT", "OUTLIERS"),
+                   help="--make: the tracks get a tracker's errors (empm synth --track-error); names end in -trk...")
+    p.add_argument("--mask-error", type=int, default=0, metavar="PX",
+                   help="--make: the object masks grown by PX pixels (empm synth --mask-error); names end in -mask...")
     p.add_argument("--vary-physics", action="store_true",
                    help="with --make: each seed its own E, effect parameters, grid offset and particle jitter "
                         "(VARY_FACTORS; names start with v_); without it every seed is one simulation, other noise")
