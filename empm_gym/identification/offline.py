@@ -182,10 +182,11 @@ class Objective:
             raise ValueError(f"frames={frames} exceeds the {obs.num_frames} observed frames")
         if observation not in OBSERVATION_MODELS:
             raise ValueError(f"observation must be one of {OBSERVATION_MODELS}, got {observation!r}")
-        # a tracker's own error lowers the tracks' weight (Observations.track_weight, 1 for tracks of the depth alone)
+        self.frames, self.l_dist, self.l_trk, self.direction = frames, float(l_dist), float(l_trk), chamfer
+        # a tracker's own error lowers the tracks' weight (Observations.track_weight, 1 for tracks of the depth alone):
+        # the tracking term's factor in the loss is l_trk * track_weight
         self.track_weight = float(obs.track_weight)
-        self.frames, self.l_dist, self.l_trk, self.direction = (frames, float(l_dist), float(l_trk) * self.track_weight,
-                                                                 chamfer)
+        self.track_term = self.l_trk * self.track_weight
         self._carry_mats = {}  # (id(embedding index), particles) -> (that index, its sparse matrix): :meth:`_carry`
         self.observation = observation
         rng = np.random.default_rng(seed)
@@ -271,7 +272,7 @@ class Objective:
         loss = self.l_dist * terms.mean()
         if self.track_index is not None:
             pred = self._predicted_tracks(X)
-            loss = loss + self.l_trk * tracking_loss(pred, self.tracks[1:], self.visible[1:])
+            loss = loss + self.track_term * tracking_loss(pred, self.tracks[1:], self.visible[1:])
         return loss
 
     @staticmethod
@@ -314,10 +315,10 @@ class Objective:
     def per_frame(self, X: np.ndarray) -> np.ndarray:
         """Per-frame terms [frames - 1] of the loss (frames 1 .. F-1) whose mean is :meth:`numpy`.
 
-        Frame t's term is l_dist * Chamfer_t + l_trk * (squared tracking error summed over the tracks
-        visible at t) / (mean number of visible tracks per frame), so that the mean over frames weighs every
-        visible track entry equally, as :meth:`torch` does (the mean over the frames that hold observed points:
-        a frame without them is NaN). Non-finite input gives large finite terms.
+        Frame t's term is l_dist * Chamfer_t + l_trk * w * (squared tracking error summed over the tracks
+        visible at t) / (mean number of visible tracks per frame), w the tracks' weight (:attr:`track_weight`), so
+        that the mean over frames weighs every visible track entry equally, as :meth:`torch` does (the mean over the
+        frames that hold observed points: a frame without them is NaN). Non-finite input gives large finite terms.
         """
         n = int(self.seen[1:self.frames].sum())
         if not np.all(np.isfinite(X[: self.frames])):
@@ -329,7 +330,7 @@ class Objective:
             if vis.any():
                 pred = self._predicted_tracks(np.asarray(X, np.float64))
                 sq = np.where(vis, np.sum((pred - self.tracks[1:]) ** 2, -1), 0.0)
-                out = out + self.l_trk * sq.sum(1) / (vis.sum() / n)
+                out = out + self.track_term * sq.sum(1) / (vis.sum() / n)
         return out
 
 

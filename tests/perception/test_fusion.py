@@ -454,7 +454,8 @@ def test_a_trackers_error_is_told_from_the_depths_and_its_tracks_weigh_less(tmp_
     assert n["across_ray_m"] == pytest.approx(1.5 * z / rec.cameras[0].K[0, 0], rel=0.25)
     assert obs.track_weight == pytest.approx((1.5 * sigma / n["scatter_m"]) ** 2, rel=1e-6) and obs.track_weight < 0.3
     assert "2D tracker" in info["track_note"]
-    assert Objective(scene, obs, 24, l_trk=100.0).l_trk == pytest.approx(100.0 * obs.track_weight)
+    objective = Objective(scene, obs, 24, l_trk=100.0)
+    assert objective.l_trk == 100.0 and objective.track_term == pytest.approx(100.0 * obs.track_weight)
 
 
 def test_a_mask_that_bleeds_onto_the_end_effectors_gives_them_back_their_pixels(tmp_path):
