@@ -878,6 +878,13 @@ def add_depth_noise(depth: np.ndarray, cos_incidence: np.ndarray, rng: np.random
     return np.where(valid, noisy, 0.0)
 
 
+def _finite_nonnegative(named_values) -> None:
+    """ValueError naming the first of ``(name, value)`` that is not a finite value >= 0."""
+    for name, v in named_values:
+        if not (math.isfinite(v) and v >= 0.0):
+            raise ValueError(f"{name} must be a finite value >= 0, got {v!r}")
+
+
 def sensor_errors(cameras: Sequence[Camera], calibration_error: Sequence[float] = (0.0, 0.0),
                   depth_bias: float = 0.0, *, seed: int = 0) -> dict:
     """Errors of a real rig's calibration and depth, drawn per camera for a synthetic recording.
@@ -895,10 +902,8 @@ def sensor_errors(cameras: Sequence[Camera], calibration_error: Sequence[float] 
 
     t_m, r_deg = (float(v) for v in calibration_error)
     bias = float(depth_bias)
-    for name, v in (("calibration_error translation (m)", t_m), ("calibration_error rotation (deg)", r_deg),
-                    ("depth_bias", bias)):
-        if not (math.isfinite(v) and v >= 0.0):
-            raise ValueError(f"{name} must be a finite value >= 0, got {v!r}")
+    _finite_nonnegative((("calibration_error translation (m)", t_m), ("calibration_error rotation (deg)", r_deg),
+                         ("depth_bias", bias)))
     if t_m > 0.05 or r_deg > 5.0 or bias > 0.1:
         raise ValueError(f"sensor errors this large ({t_m:g} m, {r_deg:g} deg, depth bias {bias:g}) are a broken "
                          f"calibration, not a calibrated rig's error: at most 0.05 m, 5 deg and 0.1")
@@ -929,10 +934,8 @@ def _check_tracker_errors(track_error: Sequence[float], mask_error_px: int) -> T
     if len(tuple(track_error)) != 3:
         raise ValueError(f"track_error must be (jitter px, drift px per frame, outlier fraction), got {track_error!r}")
     jit, drift, frac = (float(v) for v in track_error)
-    for name, v in (("track_error jitter (px)", jit), ("track_error drift (px per frame)", drift),
-                    ("track_error outlier fraction", frac)):
-        if not (math.isfinite(v) and v >= 0.0):
-            raise ValueError(f"{name} must be a finite value >= 0, got {v!r}")
+    _finite_nonnegative((("track_error jitter (px)", jit), ("track_error drift (px per frame)", drift),
+                         ("track_error outlier fraction", frac)))
     if jit > 20.0 or drift > 5.0 or frac > 0.5:
         raise ValueError(f"tracker errors this large (jitter {jit:g} px, drift {drift:g} px a frame, outliers "
                          f"{frac:g}) are a lost tracker, not a tracker's error: at most 20 px, 5 px and 0.5")
