@@ -144,7 +144,14 @@ def track_noise(tracks: np.ndarray, visible: np.ndarray, cameras: np.ndarray, ce
 
 
 def _track_note(noise: dict) -> Optional[str]:
-    """A sentence for the notes when the tracks weigh less than clean ones (:func:`track_noise`), else None."""
+    """A sentence for the notes when the tracks weigh less than clean ones (:func:`track_noise`), or when their
+    scatter could not be told from the depth's (they then keep their full weight, a tracker's error or not); None
+    without tracks or with tracks as exact as their depth."""
+    if "scatter_m" in noise and not (np.isfinite(noise["scatter_m"]) and np.isfinite(noise["depth_sigma_m"])):
+        return (f"the tracks' frame-to-frame scatter could not be measured against the depth's ({noise['triplets']} "
+                f"three-frame runs of a visible track; the depth's noise "
+                f"{'unknown' if not np.isfinite(noise['depth_sigma_m']) else 'known'}): they keep their full weight in "
+                f"the fit and the held-out score, whatever a 2D tracker's error in them")
     if not noise["weight"] < 1.0:
         return None
     return (f"the tracks scatter {1e3 * noise['scatter_m']:.1f} mm from frame to frame ({1e3 * noise['across_ray_m']:.1f} "

@@ -454,6 +454,11 @@ def test_a_trackers_error_is_told_from_the_depths_and_its_tracks_weigh_less(tmp_
     assert n["across_ray_m"] == pytest.approx(1.5 * z / rec.cameras[0].K[0, 0], rel=0.25)
     assert obs.track_weight == pytest.approx((1.5 * sigma / n["scatter_m"]) ** 2, rel=1e-6) and obs.track_weight < 0.3
     assert "2D tracker" in info["track_note"]
+    # too few tracks to tell their scatter: full weight, and the note says it was not measured
+    from empm_gym.identification.data import _track_note, track_noise
+
+    few = track_noise(obs.tracks[:, :4], obs.visibility[:, :4], np.zeros(4, int), np.zeros((1, 3)), sigma)
+    assert few["weight"] == 1.0 and "could not be measured" in _track_note(few)
     objective = Objective(scene, obs, 24, l_trk=100.0)
     assert objective.l_trk == 100.0 and objective.track_term == pytest.approx(100.0 * obs.track_weight)
 
