@@ -222,6 +222,8 @@ def _identify(args) -> int:
             a["identifiability"]["warnings"].append(body_info["calibration_note"])
         if body_info.get("track_note"):  # the tracks weigh less than the depth's noise alone would let them
             a["identifiability"]["warnings"].append(body_info["track_note"])
+        if body_info.get("rim_note"):  # the masks took in the table's rim around the object: left out
+            a["identifiability"]["warnings"].append(body_info["rim_note"])
         res.extra.update(a)
         undetermined = [k for k, u in a["uncertainty"].items() if not u["determined"]]
     res.save(out)

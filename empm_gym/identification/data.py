@@ -160,6 +160,23 @@ def _track_note(noise: dict) -> Optional[str]:
             f"and the held-out score")
 
 
+#: the share of a frame's points that the table's rim (:func:`~empm_gym.perception.fusion.drop_table_rim`) takes,
+#: in the median frame, above which the notes say the masks reach onto the table (a renderer's exact masks: under
+#: 0.3 %, a segmenter's 3 pixels: 5-15 %; benchmarks/RESULTS.md, session 85)
+RIM_NOTE_SHARE = 0.01
+
+
+def _rim_note(stats, band_m) -> Optional[str]:
+    """A sentence for the notes when the object's masks took in the table around its base (``stats``: each frame's
+    ``points`` and ``rim_dropped`` from :func:`~empm_gym.perception.fusion.fuse_frame`); None otherwise."""
+    share = [r["rim_dropped"] / r["points"] for r in stats if r.get("points")]
+    if band_m is None or not share or np.median(share) < RIM_NOTE_SHARE:
+        return None
+    return (f"the object's masks reach onto the table around its base: {100 * np.median(share):.1f} % of a frame's "
+            f"points (median; at most {100 * max(share):.1f} %) lay within {1e3 * band_m:.1f} mm of the table with no "
+            f"side of the body rising above them and were left out (a segmenter's mask wider than the object)")
+
+
 def attach_grippers(configs, positions, grip, particles, dx: float):
     """Closed sphere / capsule grippers that do not reach the frame-0 particles, grown until they do.
 
@@ -206,11 +223,12 @@ def frame0_body(rec, plane, cfgs, pos, grip, orient=None, *, dx: float, particle
     into a closed box gripper the body is taken to reach (:func:`empm_gym.perception.fusion.complete_occluded`)."""
     from empm_gym.perception.fusion import (carve_with_depth, complete_by_symmetry, complete_occluded,
                                             complete_unseen_side, end_effector_sdf, fuse_frame, initial_particles,
-                                            inside_end_effectors, inside_open_end_effectors, view_gap_deg,
-                                            within_footprint)
+                                            inside_end_effectors, inside_open_end_effectors, table_rim_band,
+                                            view_gap_deg, within_footprint)
 
     body = points if points is not None else fuse_frame(rec, 0, voxel_m=voxel_m, table_plane=plane,
-                                                        min_height_m=0.5 * voxel_m)
+                                                        min_height_m=0.5 * voxel_m,
+                                                        rim_band_m=table_rim_band(rec, voxel_m))
     if len(body) == 0:
         raise ValueError(f"{rec.path}: frame 0 has no object points (check the masks and depth)")
     orient0 = None if orient is None else orient[0]
@@ -690,7 +708,8 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     """
     from tqdm.auto import tqdm
 
-    from empm_gym.perception.fusion import estimate_table_plane, fuse_frame, load_controls, temporal_depth_noise
+    from empm_gym.perception.fusion import (estimate_table_plane, fuse_frame, load_controls, table_rim_band,
+                                            temporal_depth_noise)
     from empm_gym.perception.recording import controls_to_end_effectors
 
     rec = open_recording(rec_dir, refine_calibration=refine_calibration, info=info)
@@ -703,8 +722,18 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
                          f"the simulator needs a z-up world frame with a horizontal table (recalibrate c2w)")
     height = -off / n[2]
     plane = (np.array([0.0, 0.0, 1.0]), -height)
-    pts = [fuse_frame(rec, t, voxel_m=voxel_m, table_plane=plane, min_height_m=0.5 * voxel_m)
+    depth_sigma = temporal_depth_noise(rec, T)  # the depth's noise: the table's band and the tracks' weight
+    band = table_rim_band(rec, voxel_m, sigma_m=depth_sigma)
+    rim = [{} for _ in range(T)]
+    pts = [fuse_frame(rec, t, voxel_m=voxel_m, table_plane=plane, min_height_m=0.5 * voxel_m, rim_band_m=band,
+                      stats=rim[t])
            for t in tqdm(range(T), desc="fuse point clouds", disable=not progress, leave=False)]
+    rim_note = _rim_note(rim, band)
+    if rim_note and warn:
+        _log.warning("%s: %s", rec.path, rim_note)
+    if info is not None:
+        info.update(table_rim={"band_m": band, "dropped": [r["rim_dropped"] for r in rim],
+                               "points": [r["points"] for r in rim]}, rim_note=rim_note)
     empty = [t for t, p in enumerate(pts) if len(p) == 0]
     if len(empty) == T - 1 and 0 not in empty:
         raise ValueError(f"{rec.path}: only frame 0 of {T} holds object points: nothing to compare a simulation with "
@@ -736,7 +765,7 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
         else:
             cams = np.concatenate([np.full(rec.tracks(c)[1].shape[1], c) for c in range(rec.num_cameras)])
             noise = track_noise(tracks, vis, cams, np.stack([cam.c2w[:3, 3] for cam in rec.cameras]),
-                                temporal_depth_noise(rec, T))
+                                depth_sigma)
     note = _track_note(noise)
     if note and warn:
         _log.warning("%s: %s", rec.path, note)

@@ -55,6 +55,8 @@ __all__ = [
     "surface_consistency",
     "temporal_depth_noise",
     "object_mask",
+    "drop_table_rim",
+    "table_rim_band",
 ]
 
 
@@ -139,18 +141,75 @@ def frame_points(rec: Recording, t: int, *, cams: Optional[Sequence[int]] = None
 
 def fuse_frame(rec: Recording, t: int, *, voxel_m: float = 0.002, nb_neighbors: int = 20, std_ratio: float = 2.0,
                table_plane: Optional[Tuple[np.ndarray, float]] = None, min_height_m: float = 0.0,
-               **kw) -> np.ndarray:
+               rim_band_m: Optional[float] = None, stats: Optional[dict] = None, **kw) -> np.ndarray:
     """Object points [N, 3] (m, world) of frame ``t``: all views fused, voxel-downsampled at ``voxel_m`` (m),
     statistical outliers removed (``nb_neighbors``, ``std_ratio``); with ``table_plane`` also points less
-    than ``min_height_m`` (m) above the table are dropped. Extra keywords go to :func:`frame_points`."""
+    than ``min_height_m`` (m) above the table are dropped, and with ``rim_band_m`` the table's points a mask
+    took in around the object's base (:func:`drop_table_rim`, reaching ``2 * voxel_m`` or 4 mm; ``stats``, a
+    dict, receives ``points`` and ``rim_dropped``). Extra keywords go to :func:`frame_points`."""
     pts = frame_points(rec, t, **kw)
     if table_plane is not None and len(pts):
         n, off = table_plane
         pts = pts[pts @ np.asarray(n, float) + off >= min_height_m]
     pts = voxel_downsample(pts, voxel_m)
+    dropped = 0
+    if table_plane is not None and rim_band_m is not None and len(pts):
+        pts, dropped = drop_table_rim(pts, table_plane, rim_band_m, reach_m=max(2.0 * voxel_m, 0.004))
+    if stats is not None:
+        stats.update(points=len(pts) + dropped, rim_dropped=dropped)
     if nb_neighbors and nb_neighbors > 0:
         pts, _ = remove_statistical_outliers(pts, nb_neighbors, std_ratio)
     return pts
+
+
+#: the table's band, in depth-noise standard deviations: a point of the table seen through a mask that bleeds
+#: onto it lies this close above the table's plane (2.5 sigma holds 99 % of them), :func:`table_rim_band`
+TABLE_RIM_SIGMAS = 2.5
+
+
+def table_rim_band(rec: Recording, voxel_m: float, *, frames: int = 30,
+                   sigma_m: Optional[float] = None) -> Optional[float]:
+    """The height [m] above the table under which a point of the object's masks may be the table's own
+    (:func:`drop_table_rim`): :data:`TABLE_RIM_SIGMAS` times the depth's noise ``sigma_m`` (m; default measured on
+    the first ``frames`` frames, :func:`temporal_depth_noise`), at least half of ``voxel_m``. None when the noise
+    cannot be measured (fewer than 3 frames in a row that see the object, no masks): then no point is taken for
+    the table's."""
+    sigma = temporal_depth_noise(rec, frames) if sigma_m is None else float(sigma_m)
+    return max(0.5 * float(voxel_m), TABLE_RIM_SIGMAS * sigma) if np.isfinite(sigma) else None
+
+
+def drop_table_rim(points: np.ndarray, table_plane: Tuple[np.ndarray, float], band_m: float, *,
+                   reach_m: float = 0.004, max_low_share: float = 0.5) -> Tuple[np.ndarray, int]:
+    """``(points [M, 3], dropped)``: ``points`` [N, 3] (m) less the table's points that a segmenter's mask took in
+    around the object's base. A mask that bleeds a few pixels past the object's silhouette where it stands on the
+    table (or past its top, onto the table behind it) puts a rim of table points, within the depth's noise of the
+    plane, around the body. The object's own points that low are the foot of a side that rises from the table:
+    a point less than ``band_m`` above the table is kept only where a point ``band_m`` to ``2 * band_m`` high lies
+    within ``reach_m`` of it across the table, itself with a point ``2 * band_m`` to ``3 * band_m`` high within
+    ``reach_m`` (the side rising above it: the table's own noise reaches past one band on a few points, not two).
+    Nothing is dropped when more than ``max_low_share`` of the points lie that low or none reaches ``3 * band_m``
+    (a flat object the depth cannot tell from the table)."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    n = np.asarray(table_plane[0], np.float64)
+    n = n / np.linalg.norm(n)
+    h = pts @ n + float(table_plane[1])
+    low = h < band_m
+    if not low.any() or low.mean() > max_low_share or h.max() < 3.0 * band_m:
+        return pts, 0
+    from scipy.spatial import cKDTree
+
+    foot = pts - h[:, None] * n  # on the table: distances across it
+
+    def near(a, b):
+        """Of the points ``a`` (a mask), those with a point of ``b`` (a mask) within reach across the table."""
+        out = np.zeros(len(pts), bool)
+        if a.any() and b.any():
+            out[np.flatnonzero(a)] = np.isfinite(cKDTree(foot[b]).query(foot[a], distance_upper_bound=reach_m)[0])
+        return out
+
+    side = near((h >= band_m) & (h < 2.0 * band_m), (h >= 2.0 * band_m) & (h < 3.0 * band_m))
+    keep = ~low | near(low, side)
+    return pts[keep], int((~keep).sum())
 
 
 #: a second difference's residual from the median of 8 neighbours' has 1 + pi / 16 times its variance
