@@ -8,8 +8,10 @@ as a user's recording (:func:`empm_gym.identification.data.load_recording`): the
 (:func:`empm_gym.perception.fusion.temporal_depth_noise`), the lifted tracks' scatter along and across their rays
 and the weight they keep in the fit (:func:`empm_gym.identification.data.track_noise`). Scored against the truth:
 the fused object points' distance to the true body's surface over every frame (median and 90th percentile, m),
-with the recorded masks as they are and with :func:`empm_gym.perception.fusion.object_mask` (the end-effectors'
-pixels given back). Prints one row per recording and a summary per error size:
+with the recorded masks as they are, with :func:`empm_gym.perception.fusion.object_mask` (the end-effectors'
+pixels given back) and as the loader gives them (also the table's rim left out,
+:func:`empm_gym.perception.fusion.drop_table_rim`; ``rim`` is the share of a frame's points that goes, median).
+Prints one row per recording and a summary per error size:
 
     python benchmarks/bench_tracks_masks.py --objects dough,rope,lump --scripts press-release,squeeze-lift \\
         --errors 0,0,0,0 0.5,0.05,0.01,1 1,0.1,0.02,2 2,0.3,0.05,3 --jsonl out.jsonl
@@ -36,7 +38,7 @@ def measure(rec_dir: Path, frames: int) -> dict:
     from empm_gym.perception.recording import Recording
 
     info = {}
-    load_recording(rec_dir, dx=0.02, particles_per_cell=1, progress=False, warn=False, info=info)
+    _, obs, _ = load_recording(rec_dir, dx=0.02, particles_per_cell=1, progress=False, warn=False, info=info)
     true_x = np.load(rec_dir / "ground_truth_particles.npz")["positions"]
     rec = Recording(rec_dir)
     n, off = estimate_table_plane(rec)
@@ -52,6 +54,11 @@ def measure(rec_dir: Path, frames: int) -> dict:
         d = np.concatenate(d)
         out[f"surface_median_{label}_m"] = float(np.median(d))
         out[f"surface_p90_{label}_m"] = float(np.percentile(d, 90))
+    # as loaded: object_mask and the table's rim left out (fusion.drop_table_rim)
+    d = np.concatenate([surface_distance(p, true_x[t]) for t, p in enumerate(obs.points[:frames]) if len(p)])
+    out["surface_median_loader_m"], out["surface_p90_loader_m"] = float(np.median(d)), float(np.percentile(d, 90))
+    rim = info["table_rim"]
+    out["rim_share"] = float(np.median(np.array(rim["dropped"]) / np.maximum(1, rim["points"])))
     return out
 
 
@@ -75,7 +82,7 @@ def main(argv=None) -> int:
         raise SystemExit("--errors: each size is JITTER,DRIFT,OUTLIERS,MASK_PX (MASK_PX a whole number)")
     rows = []
     print(f"{'recording':46s} {'depth mm':>8s} {'across mm':>9s} {'scatter mm':>10s} {'weight':>6s} "
-          f"{'surface median mm':>18s} {'surface p90 mm':>15s}")
+          f"{'surface median mm':>26s} {'surface p90 mm':>23s} {'rim':>5s}")
     with tempfile.TemporaryDirectory() as tmp:
         for obj in args.objects.split(","):
             for script in args.scripts.split(","):
@@ -92,21 +99,24 @@ def main(argv=None) -> int:
                         mm = lambda v: f"{1e3 * v:4.2f}"  # noqa: E731
                         print(f"{name:46s} {mm(r['depth_sigma_m']):>8s} {mm(r['across_ray_m']):>9s} "
                               f"{mm(r['scatter_m']):>10s} {r['weight']:6.2f} "
-                              f"{mm(r['surface_median_raw_m']):>9s} -> {mm(r['surface_median_object_mask_m']):>4s} "
-                              f"{mm(r['surface_p90_raw_m']):>6s} -> {mm(r['surface_p90_object_mask_m']):>4s}",
-                              flush=True)
+                              f"{mm(r['surface_median_raw_m']):>9s} -> {mm(r['surface_median_object_mask_m']):>4s} -> "
+                              f"{mm(r['surface_median_loader_m']):>4s} {mm(r['surface_p90_raw_m']):>6s} -> "
+                              f"{mm(r['surface_p90_object_mask_m']):>4s} -> {mm(r['surface_p90_loader_m']):>4s} "
+                              f"{100 * r['rim_share']:4.1f}%", flush=True)
                         if args.jsonl:
                             with open(args.jsonl, "a") as f:
                                 f.write(json.dumps(r) + "\n")
     print("\nby error size (medians over recordings): track weight; surface median and p90, masks as recorded -> "
-          "object_mask [mm]")
+          "object_mask -> as loaded (the table's rim left out) [mm]; the share of the points the rim took")
     for err in errors:
         sel = [r for r in rows if tuple(r["track_error"]) + (r["mask_error_px"],) == err]
         med = lambda k: float(np.median([r[k] for r in sel]))  # noqa: E731
         print(f"  jitter {err[0]:g} px, drift {err[1]:g} px, outliers {100 * err[2]:g} %, mask +{int(err[3])} px: "
               f"weight {med('weight'):.2f} (min {min(r['weight'] for r in sel):.2f}); surface median "
-              f"{1e3 * med('surface_median_raw_m'):.2f} -> {1e3 * med('surface_median_object_mask_m'):.2f}, p90 "
-              f"{1e3 * med('surface_p90_raw_m'):.2f} -> {1e3 * med('surface_p90_object_mask_m'):.2f}")
+              f"{1e3 * med('surface_median_raw_m'):.2f} -> {1e3 * med('surface_median_object_mask_m'):.2f} -> "
+              f"{1e3 * med('surface_median_loader_m'):.2f}, p90 {1e3 * med('surface_p90_raw_m'):.2f} -> "
+              f"{1e3 * med('surface_p90_object_mask_m'):.2f} -> {1e3 * med('surface_p90_loader_m'):.2f}; rim "
+              f"{100 * med('rim_share'):.1f} %")
     return 0
 
 

@@ -161,8 +161,8 @@ def _track_note(noise: dict) -> Optional[str]:
 
 
 #: the share of a frame's points that the table's rim (:func:`~empm_gym.perception.fusion.drop_table_rim`) takes,
-#: in the median frame, above which the notes say the masks reach onto the table (a renderer's exact masks: under
-#: 0.3 %, a segmenter's 3 pixels: 5-15 %; benchmarks/RESULTS.md, session 85)
+#: in the median frame, above which the notes say the masks reach onto the table (a renderer's exact masks: 0.0 %;
+#: masks grown by 2-3 pixels: 0.3-5.7 % at 848 x 480, 3.6-8.3 % at 320 x 180; benchmarks/RESULTS.md, session 85)
 RIM_NOTE_SHARE = 0.01
 
 
