@@ -154,7 +154,10 @@ def fuse_frame(rec: Recording, t: int, *, voxel_m: float = 0.002, nb_neighbors: 
     pts = voxel_downsample(pts, voxel_m)
     dropped = 0
     if table_plane is not None and rim_band_m is not None and len(pts):
-        pts, dropped = drop_table_rim(pts, table_plane, rim_band_m, reach_m=max(2.0 * voxel_m, 0.004))
+        reach = max(2.0 * voxel_m, 0.004)
+        pts, dropped = drop_table_rim(pts, table_plane, rim_band_m, reach_m=reach,
+                                      end_effectors=_end_effector_points(rec, t, kw.get("cams"), voxel_m),
+                                      near_m=2.0 * reach)
     if stats is not None:
         stats.update(points=len(pts) + dropped, rim_dropped=dropped)
     if nb_neighbors and nb_neighbors > 0:
@@ -178,17 +181,39 @@ def table_rim_band(rec: Recording, voxel_m: float, *, frames: int = 30,
     return max(0.5 * float(voxel_m), TABLE_RIM_SIGMAS * sigma) if np.isfinite(sigma) else None
 
 
+def _end_effector_points(rec: Recording, t: int, cams: Optional[Sequence[int]], voxel_m: float) -> Optional[np.ndarray]:
+    """The end-effectors' points [N, 3] (m) of frame ``t`` (their masks' depth, voxel-downsampled), or None when the
+    recording has no controller masks."""
+    if not rec.has_controller_masks:
+        return None
+    cams = list(range(rec.num_cameras)) if cams is None else list(cams)
+    masks = [rec.controller_mask(c, t) for c in cams]
+    if all(m is None for m in masks):
+        return None
+    masks = [np.zeros((rec.height, rec.width), bool) if m is None else m for m in masks]
+    pts = fuse_views([rec.depth(c, t) for c in cams], [rec.cameras[c] for c in cams], masks, erode_px=0)
+    return voxel_downsample(pts, voxel_m)
+
+
+#: a low point with this many points one band higher within reach is the foot of a side (:func:`drop_table_rim`):
+#: the table's own noise puts a stray point over the band, not several together
+SIDE_POINTS = 3
+
+
 def drop_table_rim(points: np.ndarray, table_plane: Tuple[np.ndarray, float], band_m: float, *,
-                   reach_m: float = 0.004, max_low_share: float = 0.5) -> Tuple[np.ndarray, int]:
+                   reach_m: float = 0.004, max_low_share: float = 0.5, end_effectors: Optional[np.ndarray] = None,
+                   near_m: float = 0.008) -> Tuple[np.ndarray, int]:
     """``(points [M, 3], dropped)``: ``points`` [N, 3] (m) less the table's points that a segmenter's mask took in
     around the object's base. A mask that bleeds a few pixels past the object's silhouette where it stands on the
     table (or past its top, onto the table behind it) puts a rim of table points, within the depth's noise of the
     plane, around the body. The object's own points that low are the foot of a side that rises from the table:
     a point less than ``band_m`` above the table is kept only where a point ``band_m`` to ``2 * band_m`` high lies
     within ``reach_m`` of it across the table, itself with a point ``2 * band_m`` to ``3 * band_m`` high within
-    ``reach_m`` (the side rising above it: the table's own noise reaches past one band on a few points, not two).
-    Nothing is dropped when more than ``max_low_share`` of the points lie that low or none reaches ``3 * band_m``
-    (a flat object the depth cannot tell from the table)."""
+    ``reach_m`` (the side rising above it: the table's own noise reaches past one band on a few points, not two),
+    where :data:`SIDE_POINTS` such points one band higher do (a foot whose side above is hidden), or within
+    ``near_m`` of a point of ``end_effectors`` [K, 3] (m; a gripper's plate hides the side above the
+    object's foot below it). Nothing is dropped when more than ``max_low_share`` of the points lie that low or none
+    reaches ``3 * band_m`` (a flat object the depth cannot tell from the table)."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     n = np.asarray(table_plane[0], np.float64)
     n = n / np.linalg.norm(n)
@@ -200,15 +225,21 @@ def drop_table_rim(points: np.ndarray, table_plane: Tuple[np.ndarray, float], ba
 
     foot = pts - h[:, None] * n  # on the table: distances across it
 
-    def near(a, b):
-        """Of the points ``a`` (a mask), those with a point of ``b`` (a mask) within reach across the table."""
+    def near(a, b, k=1):
+        """Of the points ``a`` (a mask), those with ``k`` points of ``b`` (a mask) within reach across the table."""
         out = np.zeros(len(pts), bool)
-        if a.any() and b.any():
-            out[np.flatnonzero(a)] = np.isfinite(cKDTree(foot[b]).query(foot[a], distance_upper_bound=reach_m)[0])
+        if a.sum() and b.sum() >= k:
+            d = cKDTree(foot[b]).query(foot[a], k=[k], distance_upper_bound=reach_m)[0][:, 0]
+            out[np.flatnonzero(a)] = np.isfinite(d)
         return out
 
-    side = near((h >= band_m) & (h < 2.0 * band_m), (h >= 2.0 * band_m) & (h < 3.0 * band_m))
-    keep = ~low | near(low, side)
+    first = (h >= band_m) & (h < 2.0 * band_m)
+    side = near(first, (h >= 2.0 * band_m) & (h < 3.0 * band_m))
+    keep = ~low | near(low, side) | near(low, first, SIDE_POINTS)
+    if end_effectors is not None and len(end_effectors) and not keep.all():
+        by_ee = cKDTree(np.asarray(end_effectors, np.float64).reshape(-1, 3)).query(
+            pts[~keep], distance_upper_bound=near_m)[0]
+        keep[np.flatnonzero(~keep)[np.isfinite(by_ee)]] = True
     return pts[keep], int((~keep).sum())
 
 

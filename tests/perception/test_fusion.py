@@ -508,16 +508,30 @@ def test_the_tables_rim_is_dropped_and_the_bodys_foot_is_kept():
                           np.stack([u, -side, z], 1), np.stack([a.ravel(), b.ravel(), np.full(a.size, 0.03)], 1)])
     box = box + rng.normal(0, sig, box.shape)
     box = box[box[:, 2] >= 0.0015]  # as the loader: under half a voxel goes first
-    xy = rng.uniform(-0.038, 0.038, (4000, 2))
+    xy = rng.uniform(-0.038, 0.038, (6000, 2))
     xy = xy[(np.abs(xy).max(1) > 0.030) & (np.abs(xy).max(1) < 0.038)]  # 10-18 mm outside the box's sides
-    rim = np.concatenate([xy, (np.abs(rng.normal(0, sig, len(xy))) + 0.0015)[:, None]], 1)  # over the first cut
-    in_band = rim[:, 2] < band  # the table's noise reaches over the band on a few: those stay (a band, not a cut)
+    rim = np.concatenate([xy, rng.normal(0, sig, (len(xy), 1))], 1)
+    rim = rim[rim[:, 2] >= 0.0015]  # the table's noise over the first cut
+    in_band = rim[:, 2] < band  # over the band on a few: those stay (a band, not a cut)
     plane = (np.array([0.0, 0.0, 1.0]), 0.0)
-    assert (box[:, 2] < band).sum() > 100 and in_band.sum() > 1000  # the box's own foot lies in the band too
+    assert (box[:, 2] < band).sum() > 100 and in_band.sum() > 300  # the box's own foot lies in the band too
     for body in (box, box + [0.0, 0.0, 0.03]):  # standing on the table; held 3 cm above it
         kept, dropped = F.drop_table_rim(np.concatenate([body, rim]), plane, band, reach_m=0.004)
         assert dropped == in_band.sum()
         np.testing.assert_array_equal(kept, np.concatenate([body, rim[~in_band]]))
+    # a foot whose side above a gripper hides: seen up to 7 mm (one band higher) and kept; seen only under the band,
+    # kept where a gripper's points lie within near_m, else taken for the table's
+    y, zf = np.meshgrid(np.linspace(-0.02, 0.02, 21), np.linspace(0.0015, 0.007, 6))
+    foot = np.stack([np.full(y.size, 0.06), y.ravel(), zf.ravel()], 1)
+    kept, dropped = F.drop_table_rim(np.concatenate([box, foot]), plane, band, reach_m=0.004)
+    assert dropped == 0
+    low_foot = foot[foot[:, 2] < band]
+    grip = np.stack([np.full(21, 0.065), np.linspace(-0.02, 0.02, 21), np.full(21, 0.01)], 1)
+    kept, dropped = F.drop_table_rim(np.concatenate([box, low_foot]), plane, band, reach_m=0.004)
+    assert dropped == len(low_foot)
+    kept, dropped = F.drop_table_rim(np.concatenate([box, low_foot]), plane, band, reach_m=0.004,
+                                     end_effectors=grip, near_m=0.01)
+    assert dropped == 0
     flat = np.stack([a.ravel(), b.ravel(), np.full(a.size, 0.002)], 1)
     kept, dropped = F.drop_table_rim(np.concatenate([flat, rim]), plane, band, reach_m=0.004)
     assert dropped == 0 and len(kept) == len(flat) + len(rim)
