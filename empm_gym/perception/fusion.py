@@ -156,7 +156,7 @@ def fuse_frame(rec: Recording, t: int, *, voxel_m: float = 0.002, nb_neighbors: 
     if table_plane is not None and rim_band_m is not None and len(pts):
         reach = max(2.0 * voxel_m, 0.004)
         pts, dropped = drop_table_rim(pts, table_plane, rim_band_m, reach_m=reach,
-                                      end_effectors=_end_effector_points(rec, t, kw.get("cams"), voxel_m),
+                                      end_effectors=lambda: _end_effector_points(rec, t, kw.get("cams"), voxel_m),
                                       near_m=2.0 * reach)
     if stats is not None:
         stats.update(points=len(pts) + dropped, rim_dropped=dropped)
@@ -201,7 +201,7 @@ SIDE_POINTS = 3
 
 
 def drop_table_rim(points: np.ndarray, table_plane: Tuple[np.ndarray, float], band_m: float, *,
-                   reach_m: float = 0.004, max_low_share: float = 0.5, end_effectors: Optional[np.ndarray] = None,
+                   reach_m: float = 0.004, max_low_share: float = 0.5, end_effectors=None,
                    near_m: float = 0.008) -> Tuple[np.ndarray, int]:
     """``(points [M, 3], dropped)``: ``points`` [N, 3] (m) less the table's points that a segmenter's mask took in
     around the object's base. A mask that bleeds a few pixels past the object's silhouette where it stands on the
@@ -211,8 +211,8 @@ def drop_table_rim(points: np.ndarray, table_plane: Tuple[np.ndarray, float], ba
     within ``reach_m`` of it across the table, itself with a point ``2 * band_m`` to ``3 * band_m`` high within
     ``reach_m`` (the side rising above it: the table's own noise reaches past one band on a few points, not two),
     where :data:`SIDE_POINTS` such points one band higher do (a foot whose side above is hidden), or within
-    ``near_m`` of a point of ``end_effectors`` [K, 3] (m; a gripper's plate hides the side above the
-    object's foot below it). Nothing is dropped when more than ``max_low_share`` of the points lie that low or none
+    ``near_m`` of a point of ``end_effectors`` [K, 3] (m, or a function returning them or None, called only when a
+    point would go; a gripper's plate hides the side above the object's foot below it). Nothing is dropped when more than ``max_low_share`` of the points lie that low or none
     reaches ``3 * band_m`` (a flat object the depth cannot tell from the table)."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     n = np.asarray(table_plane[0], np.float64)
@@ -236,10 +236,11 @@ def drop_table_rim(points: np.ndarray, table_plane: Tuple[np.ndarray, float], ba
     first = (h >= band_m) & (h < 2.0 * band_m)
     side = near(first, (h >= 2.0 * band_m) & (h < 3.0 * band_m))
     keep = ~low | near(low, side) | near(low, first, SIDE_POINTS)
-    if end_effectors is not None and len(end_effectors) and not keep.all():
-        by_ee = cKDTree(np.asarray(end_effectors, np.float64).reshape(-1, 3)).query(
-            pts[~keep], distance_upper_bound=near_m)[0]
-        keep[np.flatnonzero(~keep)[np.isfinite(by_ee)]] = True
+    if end_effectors is not None and not keep.all():
+        ee = end_effectors() if callable(end_effectors) else end_effectors
+        if ee is not None and len(ee):
+            by_ee = cKDTree(np.asarray(ee, np.float64).reshape(-1, 3)).query(pts[~keep], distance_upper_bound=near_m)[0]
+            keep[np.flatnonzero(~keep)[np.isfinite(by_ee)]] = True
     return pts[keep], int((~keep).sum())
 
 
