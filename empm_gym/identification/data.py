@@ -166,11 +166,17 @@ def _track_note(noise: dict) -> Optional[str]:
 RIM_NOTE_SHARE = 0.01
 
 
-def _rim_note(stats, band_m) -> Optional[str]:
+def _rim_note(stats, band_m, has_masks: bool = True) -> Optional[str]:
     """A sentence for the notes when the object's masks took in the table around its base (``stats``: each frame's
-    ``points`` and ``rim_dropped`` from :func:`~empm_gym.perception.fusion.fuse_frame`); None otherwise."""
+    ``points`` and ``rim_dropped`` from :func:`~empm_gym.perception.fusion.fuse_frame`), or when that could not be
+    looked for (``band_m`` None: the depth's noise unmeasured, on a recording with masks); None otherwise."""
+    if band_m is None:
+        return None if not has_masks else (
+            "the table's rim was not looked for: the depth's frame-to-frame noise could not be measured (no three "
+            "frames in a row see the object), so table points that a mask wider than the object takes in around its "
+            "base, within the noise of the table, are kept as the object's")
     share = [r["rim_dropped"] / r["points"] for r in stats if r.get("points")]
-    if band_m is None or not share or np.median(share) < RIM_NOTE_SHARE:
+    if not share or np.median(share) < RIM_NOTE_SHARE:
         return None
     return (f"the object's masks reach onto the table around its base: {100 * np.median(share):.1f} % of a frame's "
             f"points (median; at most {100 * max(share):.1f} %) lay within {1e3 * band_m:.1f} mm of the table with no "
@@ -728,7 +734,7 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
     pts = [fuse_frame(rec, t, voxel_m=voxel_m, table_plane=plane, min_height_m=0.5 * voxel_m, rim_band_m=band,
                       stats=rim[t])
            for t in tqdm(range(T), desc="fuse point clouds", disable=not progress, leave=False)]
-    rim_note = _rim_note(rim, band)
+    rim_note = _rim_note(rim, band, rec.has_masks)
     if rim_note and warn:
         _log.warning("%s: %s", rec.path, rim_note)
     if info is not None:

@@ -570,3 +570,8 @@ def test_a_mask_that_bleeds_onto_the_table_loses_the_tables_rim_and_says_so(tmp_
     assert sum(info["table_rim"]["dropped"]) < 0.002 * sum(info["table_rim"]["points"]), info["table_rim"]
     assert info["rim_note"] is None and max(far) < 0.005, far
     assert 3.0e-3 < info["table_rim"]["band_m"] < 6.0e-3  # 2.5 times the synthesiser's 1.5-1.7 mm
+    # where the depth's noise cannot be measured the rim is not looked for, and the note says so (with masks)
+    from empm_gym.identification.data import _rim_note
+
+    assert _rim_note([{"points": 100, "rim_dropped": 0}], None).startswith("the table's rim was not looked for")
+    assert _rim_note([{"points": 100, "rim_dropped": 0}], None, has_masks=False) is None
