@@ -224,6 +224,8 @@ def _identify(args) -> int:
             a["identifiability"]["warnings"].append(body_info["track_note"])
         if body_info.get("rim_note"):  # the masks took in the table's rim around the object: left out
             a["identifiability"]["warnings"].append(body_info["rim_note"])
+        if body_info.get("table_track_note"):  # tracks that strayed onto the table through such masks: left out
+            a["identifiability"]["warnings"].append(body_info["table_track_note"])
         res.extra.update(a)
         undetermined = [k for k, u in a["uncertainty"].items() if not u["determined"]]
     res.save(out)

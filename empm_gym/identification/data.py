@@ -20,7 +20,7 @@ from empm_gym.sim import MaterialConfig, TableConfig
 
 from .problem import Observations, Scene, Views
 
-__all__ = ["load_recording", "load_views", "lift_tracks", "track_noise", "attach_grippers"]
+__all__ = ["load_recording", "load_views", "lift_tracks", "tracks_on_table", "track_noise", "attach_grippers"]
 
 _log = logging.getLogger("empm_gym.identification")
 
@@ -78,6 +78,73 @@ def lift_tracks(rec, *, frames: Optional[int] = None) -> Tuple[np.ndarray, np.nd
         out.append(P)
         vis.append(v)
     return np.concatenate(out, axis=1), np.concatenate(vis, axis=1)
+
+
+#: a tracked point within the table's band (:func:`~empm_gym.perception.fusion.table_rim_band`) at least this far
+#: (m) from every point the fusion kept of its frame, and :data:`TABLE_TRACK_EE_CLEAR_M` from every end-effector, is
+#: the table's (:func:`tracks_on_table`); seed 25's full-resolution recordings without a tracker's or a segmenter's
+#: error have none such, their body's feet that a gripper hides lie 2-4 cm from the fused points within 2 cm of a
+#: gripper (benchmarks/RESULTS.md, session 86)
+TABLE_TRACK_FAR_M = 0.015
+#: see :data:`TABLE_TRACK_FAR_M`
+TABLE_TRACK_EE_CLEAR_M = 0.03
+
+
+def tracks_on_table(tracks: np.ndarray, visible: np.ndarray, points: Sequence[np.ndarray],
+                    table_plane: Tuple[np.ndarray, float], band_m: Optional[float], ee_configs=(),
+                    ee_positions=None, ee_orientations=None) -> np.ndarray:
+    """[T, M] bool: the visible entries of the lifted ``tracks`` [T, M, 3] (m) that are the table's, not the
+    object's. A mask wider than the object lets a 2D track that strays off it (a tracker's gross error, a point at
+    the silhouette's edge) keep its visibility on a pixel that sees the table around or behind the body: lifted,
+    it lies on the table's plane, centimetres from the object. Such an entry is less than ``band_m`` above the table
+    (the table's own depth noise), more than :data:`TABLE_TRACK_FAR_M` from every point of ``points[t]`` (the
+    frame's fused object points, the table's rim already out, :func:`~empm_gym.perception.fusion.drop_table_rim`)
+    and more than :data:`TABLE_TRACK_EE_CLEAR_M` from every end-effector (``ee_configs``, ``ee_positions`` [T, K, 3],
+    ``ee_orientations`` [T, K, 4] or None; the foot of a body that a gripper hides from the depth is tracked next to
+    it). None are taken with ``band_m`` None (the depth's noise unmeasured) nor in a frame whose object lies flat
+    (:func:`~empm_gym.perception.fusion.lies_flat`)."""
+    from scipy.spatial import cKDTree
+
+    from empm_gym.perception.fusion import end_effector_sdf, lies_flat
+
+    P = np.asarray(tracks, np.float64)
+    vis = np.asarray(visible, bool)
+    out = np.zeros(vis.shape, bool)
+    if band_m is None:
+        return out
+    n = np.asarray(table_plane[0], np.float64)
+    n = n / np.linalg.norm(n)
+    off = float(table_plane[1])
+    for t in range(min(len(points), P.shape[0])):
+        pts = np.asarray(points[t], np.float64).reshape(-1, 3)
+        if not len(pts) or lies_flat(pts @ n + off, band_m):
+            continue
+        idx = np.flatnonzero(vis[t] & (P[t] @ n + off < band_m))
+        if not len(idx):
+            continue
+        idx = idx[cKDTree(pts).query(P[t, idx])[0] > TABLE_TRACK_FAR_M]
+        for k, cfg in enumerate(ee_configs):
+            if not len(idx):
+                break
+            q = None if ee_orientations is None else ee_orientations[t][k]
+            idx = idx[end_effector_sdf(P[t, idx], cfg, ee_positions[t][k], q) > TABLE_TRACK_EE_CLEAR_M]
+        out[t, idx] = True
+    return out
+
+
+#: the share of the visible track entries that :func:`tracks_on_table` takes, above which the notes say so
+TABLE_TRACK_NOTE_SHARE = 0.002
+
+
+def _table_track_note(dropped: int, visible: int, band_m: Optional[float]) -> Optional[str]:
+    """A sentence for the notes when :func:`tracks_on_table` took over :data:`TABLE_TRACK_NOTE_SHARE` of the
+    ``visible`` track entries (``dropped`` of them); None otherwise."""
+    if not visible or dropped <= TABLE_TRACK_NOTE_SHARE * visible:
+        return None
+    return (f"{dropped} of {visible} visible track entries ({100 * dropped / visible:.1f} %) lay on the table "
+            f"(within {1e3 * band_m:.1f} mm of it, over {1e3 * TABLE_TRACK_FAR_M:.0f} mm from the object's points and "
+            f"{1e3 * TABLE_TRACK_EE_CLEAR_M:.0f} mm from the end-effectors) and were left out: a tracker's points that "
+            f"strayed off the object onto pixels a mask wider than the object takes in")
 
 
 #: the least weight :func:`track_noise` gives tracks
@@ -764,8 +831,14 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
         cfgs, _ = attach_grippers(cfgs, pos, grip, x0, dx)
     tracks = vis = None
     noise = {"weight": 1.0}
+    table_tracks, table_track_note = None, None
     if use_tracks and rec.has_tracks:
         tracks, vis = lift_tracks(rec, frames=T)
+        seen = int(vis.sum())
+        on_table = tracks_on_table(tracks, vis, pts, plane, band, cfgs, pos, orient)
+        vis &= ~on_table
+        table_tracks = {"dropped": on_table.sum(1).tolist(), "visible": seen}
+        table_track_note = _table_track_note(int(on_table.sum()), seen, band)
         if not vis[0].any():
             tracks = vis = None
         else:
@@ -773,10 +846,11 @@ def load_recording(rec_dir, *, dx: float = 0.01, particles_per_cell: float = 27,
             noise = track_noise(tracks, vis, cams, np.stack([cam.c2w[:3, 3] for cam in rec.cameras]),
                                 depth_sigma)
     note = _track_note(noise)
-    if note and warn:
-        _log.warning("%s: %s", rec.path, note)
+    for line in (table_track_note, note):
+        if line and warn:
+            _log.warning("%s: %s", rec.path, line)
     if info is not None:
-        info.update(track_noise=noise, track_note=note)
+        info.update(track_noise=noise, track_note=note, table_tracks=table_tracks, table_track_note=table_track_note)
     obs = Observations(rec.fps, pts, tracks=tracks, visibility=vis, surface=True, track_weight=noise["weight"])
     scene = Scene(x0, vol, fps=rec.fps, ee_configs=cfgs, ee_positions=pos[:T], ee_grip=grip[:T],
                   ee_orientations=None if orient is None else orient[:T],

@@ -200,6 +200,14 @@ def _end_effector_points(rec: Recording, t: int, cams: Optional[Sequence[int]], 
 SIDE_POINTS = 3
 
 
+def lies_flat(heights: np.ndarray, band_m: float, max_low_share: float = 0.5) -> bool:
+    """Whether an object whose points stand ``heights`` [N] (m) above the table lies too flat for the depth to tell
+    its points from the table's within ``band_m`` of it: more than ``max_low_share`` of them that low, or none
+    reaching ``3 * band_m`` (:func:`drop_table_rim`)."""
+    h = np.asarray(heights, np.float64)
+    return bool(len(h) and ((h < band_m).mean() > max_low_share or h.max() < 3.0 * band_m))
+
+
 def drop_table_rim(points: np.ndarray, table_plane: Tuple[np.ndarray, float], band_m: float, *,
                    reach_m: float = 0.004, max_low_share: float = 0.5, end_effectors=None,
                    near_m: float = 0.008) -> Tuple[np.ndarray, int]:
@@ -219,7 +227,7 @@ def drop_table_rim(points: np.ndarray, table_plane: Tuple[np.ndarray, float], ba
     n = n / np.linalg.norm(n)
     h = pts @ n + float(table_plane[1])
     low = h < band_m
-    if not low.any() or low.mean() > max_low_share or h.max() < 3.0 * band_m:
+    if not low.any() or lies_flat(h, band_m, max_low_share):
         return pts, 0
     from scipy.spatial import cKDTree
 

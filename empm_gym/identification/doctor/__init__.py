@@ -101,8 +101,8 @@ def load_for_doctor(rec_dir, *, dx: Optional[float] = None, particles_per_cell: 
                 f"({len(scene.particles)} particles, and more substeps; a rope at 5 mm took 8x); --dx {DEFAULT_DX:g} "
                 f"gives a quicker, coarser look." if wp.get_device(device).is_cpu else "")
         logging.getLogger("empm_gym.identification").warning("%s: %s.%s", rec_dir, grid_notes[0], slow)
-    notes = [info[k] for k in ("calibration_note", "rim_note", "track_note", "hidden_note", "trim_note")
-             if info.get(k)] + grid_notes
+    notes = [info[k] for k in ("calibration_note", "rim_note", "table_track_note", "track_note", "hidden_note",
+                               "trim_note") if info.get(k)] + grid_notes
     if "unseen_side" in info:  # a side of the body the end-effectors hide from cameras all around: a prior's
         notes.insert(0, "frame-0 body: " + info["unseen_side"]["note"])
     return scene, obs, views, info, notes
