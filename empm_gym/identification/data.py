@@ -83,8 +83,8 @@ def lift_tracks(rec, *, frames: Optional[int] = None) -> Tuple[np.ndarray, np.nd
 #: a tracked point within the table's band (:func:`~empm_gym.perception.fusion.table_rim_band`) at least this far
 #: (m) from every point the fusion kept of its frame, and :data:`TABLE_TRACK_EE_CLEAR_M` from every end-effector, is
 #: the table's (:func:`tracks_on_table`); seed 25's full-resolution recordings without a tracker's or a segmenter's
-#: error have none such, their body's feet that a gripper hides lie 2-4 cm from the fused points within 2 cm of a
-#: gripper (benchmarks/RESULTS.md, session 86)
+#: error have none such: their body's feet tracked 1.5-4 cm from the fused points lie within 3 cm of an end-effector
+#: or above the band (benchmarks/RESULTS.md, session 86)
 TABLE_TRACK_FAR_M = 0.015
 #: see :data:`TABLE_TRACK_FAR_M`
 TABLE_TRACK_EE_CLEAR_M = 0.03
