@@ -10,7 +10,10 @@ and the weight they keep in the fit (:func:`empm_gym.identification.data.track_n
 the fused object points' distance to the true body's surface over every frame (median and 90th percentile, m),
 with the recorded masks as they are, with :func:`empm_gym.perception.fusion.object_mask` (the end-effectors'
 pixels given back) and as the loader gives them (also the table's rim left out,
-:func:`empm_gym.perception.fusion.drop_table_rim`; ``rim`` is the share of a frame's points that goes, median).
+:func:`empm_gym.perception.fusion.drop_table_rim`; ``rim`` is the share of a frame's points that goes, median);
+the visible track entries over 1 cm from the true surface as lifted and as loaded (the tracked points on the table
+left out, :func:`empm_gym.identification.data.tracks_on_table`), with how many were left out and how many of those
+lay within 5 mm of the surface.
 Prints one row per recording and a summary per error size:
 
     python benchmarks/bench_tracks_masks.py --objects dough,rope,lump --scripts press-release,squeeze-lift \\
@@ -59,6 +62,25 @@ def measure(rec_dir: Path, frames: int) -> dict:
     out["surface_median_loader_m"], out["surface_p90_loader_m"] = float(np.median(d)), float(np.percentile(d, 90))
     rim = info["table_rim"]
     out["rim_share"] = float(np.median(np.array(rim["dropped"]) / np.maximum(1, rim["points"])))
+    # the tracks: visible entries over 1 cm from the true surface as lifted and as loaded (the tracked points on the
+    # table left out, data.tracks_on_table), and the entries left out that lay on it (under 5 mm)
+    if obs.tracks is not None:
+        from scipy.spatial import cKDTree
+
+        from empm_gym.identification.data import lift_tracks
+        from empm_gym.identification.offline import body_surface
+
+        P, vis = lift_tracks(rec, frames=frames)
+        kept = np.asarray(obs.visibility, bool)[:frames]
+        off = {"recorded": 0, "loader": 0, "dropped": 0, "dropped_on_surface": 0}
+        for t in range(frames):
+            d = cKDTree(body_surface(true_x[t])).query(P[t])[0]
+            gone = vis[t] & ~kept[t]
+            off["recorded"] += int((vis[t] & (d > 0.01)).sum())
+            off["loader"] += int((kept[t] & (d > 0.01)).sum())
+            off["dropped"] += int(gone.sum())
+            off["dropped_on_surface"] += int((gone & (d < 0.005)).sum())
+        out.update({f"tracks_off_{k}": v for k, v in off.items()}, tracks_visible=int(vis.sum()))
     return out
 
 
@@ -82,7 +104,7 @@ def main(argv=None) -> int:
         raise SystemExit("--errors: each size is JITTER,DRIFT,OUTLIERS,MASK_PX (MASK_PX a whole number)")
     rows = []
     print(f"{'recording':46s} {'depth mm':>8s} {'across mm':>9s} {'scatter mm':>10s} {'weight':>6s} "
-          f"{'surface median mm':>26s} {'surface p90 mm':>23s} {'rim':>5s}")
+          f"{'surface median mm':>26s} {'surface p90 mm':>23s} {'rim':>5s} {'tracks > 1 cm off':>18s}")
     with tempfile.TemporaryDirectory() as tmp:
         for obj in args.objects.split(","):
             for script in args.scripts.split(","):
@@ -102,7 +124,7 @@ def main(argv=None) -> int:
                               f"{mm(r['surface_median_raw_m']):>9s} -> {mm(r['surface_median_object_mask_m']):>4s} -> "
                               f"{mm(r['surface_median_loader_m']):>4s} {mm(r['surface_p90_raw_m']):>6s} -> "
                               f"{mm(r['surface_p90_object_mask_m']):>4s} -> {mm(r['surface_p90_loader_m']):>4s} "
-                              f"{100 * r['rim_share']:4.1f}%", flush=True)
+                              f"{100 * r['rim_share']:4.1f}% {_tracks_off(r):>18s}", flush=True)
                         if args.jsonl:
                             with open(args.jsonl, "a") as f:
                                 f.write(json.dumps(r) + "\n")
@@ -116,8 +138,20 @@ def main(argv=None) -> int:
               f"{1e3 * med('surface_median_raw_m'):.2f} -> {1e3 * med('surface_median_object_mask_m'):.2f} -> "
               f"{1e3 * med('surface_median_loader_m'):.2f}, p90 {1e3 * med('surface_p90_raw_m'):.2f} -> "
               f"{1e3 * med('surface_p90_object_mask_m'):.2f} -> {1e3 * med('surface_p90_loader_m'):.2f}; rim "
-              f"{100 * med('rim_share'):.1f} %")
+              f"{100 * med('rim_share'):.1f} %; tracks > 1 cm off {_tracks_off(sel)}")
     return 0
+
+
+def _tracks_off(rows) -> str:
+    """'recorded -> loaded (left out, of them on the surface)': visible track entries over 1 cm from the true
+    surface, summed over ``rows`` (one row or several)."""
+    rows = [rows] if isinstance(rows, dict) else rows
+    rows = [r for r in rows if "tracks_visible" in r]
+    if not rows:
+        return "-"
+    total = lambda k: sum(r[k] for r in rows)  # noqa: E731
+    return (f"{total('tracks_off_recorded')} -> {total('tracks_off_loader')} ({total('tracks_off_dropped')}, "
+            f"{total('tracks_off_dropped_on_surface')})")
 
 
 if __name__ == "__main__":
