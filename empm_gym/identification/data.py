@@ -105,21 +105,18 @@ def tracks_on_table(tracks: np.ndarray, visible: np.ndarray, points: Sequence[np
     (:func:`~empm_gym.perception.fusion.lies_flat`)."""
     from scipy.spatial import cKDTree
 
-    from empm_gym.perception.fusion import end_effector_sdf, lies_flat
+    from empm_gym.perception.fusion import end_effector_sdf, lies_flat, table_heights
 
     P = np.asarray(tracks, np.float64)
     vis = np.asarray(visible, bool)
     out = np.zeros(vis.shape, bool)
     if band_m is None:
         return out
-    n = np.asarray(table_plane[0], np.float64)
-    n = n / np.linalg.norm(n)
-    off = float(table_plane[1])
     for t in range(min(len(points), P.shape[0])):
         pts = np.asarray(points[t], np.float64).reshape(-1, 3)
-        if not len(pts) or lies_flat(pts @ n + off, band_m):
+        if not len(pts) or lies_flat(table_heights(pts, table_plane)[0], band_m):
             continue
-        idx = np.flatnonzero(vis[t] & (P[t] @ n + off < band_m))
+        idx = np.flatnonzero(vis[t] & (table_heights(P[t], table_plane)[0] < band_m))
         if not len(idx):
             continue
         idx = idx[cKDTree(pts).query(P[t, idx])[0] > TABLE_TRACK_FAR_M]

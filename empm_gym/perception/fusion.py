@@ -200,6 +200,14 @@ def _end_effector_points(rec: Recording, t: int, cams: Optional[Sequence[int]], 
 SIDE_POINTS = 3
 
 
+def table_heights(points: np.ndarray, table_plane: Tuple[np.ndarray, float]) -> Tuple[np.ndarray, np.ndarray]:
+    """``(heights [N] m, unit normal [3])``: how far ``points`` [N, 3] (m) lie above the table ``(normal, offset)``
+    (the normal scaled to unit length, the offset as given)."""
+    n = np.asarray(table_plane[0], np.float64)
+    n = n / np.linalg.norm(n)
+    return np.asarray(points, np.float64).reshape(-1, 3) @ n + float(table_plane[1]), n
+
+
 def lies_flat(heights: np.ndarray, band_m: float, max_low_share: float = 0.5) -> bool:
     """Whether an object whose points stand ``heights`` [N] (m) above the table lies too flat for the depth to tell
     its points from the table's within ``band_m`` of it: more than ``max_low_share`` of them that low, or none
@@ -223,9 +231,7 @@ def drop_table_rim(points: np.ndarray, table_plane: Tuple[np.ndarray, float], ba
     point would go; a gripper's plate hides the side above the object's foot below it). Nothing is dropped when more than ``max_low_share`` of the points lie that low or none
     reaches ``3 * band_m`` (a flat object the depth cannot tell from the table)."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
-    n = np.asarray(table_plane[0], np.float64)
-    n = n / np.linalg.norm(n)
-    h = pts @ n + float(table_plane[1])
+    h, n = table_heights(pts, table_plane)
     low = h < band_m
     if not low.any() or lies_flat(h, band_m, max_low_share):
         return pts, 0
@@ -795,9 +801,7 @@ def close_against_table(points: np.ndarray, table_plane: Tuple[np.ndarray, float
     under the table are dropped.
     """
     pts = np.asarray(points, np.float64).reshape(-1, 3)
-    n = np.asarray(table_plane[0], np.float64)
-    n = n / np.linalg.norm(n)
-    h = pts @ n + float(table_plane[1])
+    h, n = table_heights(pts, table_plane)
     pts, h = pts[h >= 0], h[h >= 0]
     if len(pts) == 0:
         return pts
@@ -864,8 +868,7 @@ def initial_particles(points: np.ndarray, *, dx: float, particles_per_cell: floa
     x, vol = sample_points(pts, dx, particles_per_cell, voxel=h, fill_interior=True, fill_layers=fill_layers,
                            open_thin=open_thin, align_lattice=align_lattice, seed=seed, jitter=jitter)
     if table_plane is not None:
-        n, off = table_plane
-        keep = x @ (np.asarray(n, float) / np.linalg.norm(n)) + off >= 0.0
+        keep = table_heights(x, table_plane)[0] >= 0.0
         x, vol = x[keep], vol[keep]
     return x, vol
 
