@@ -356,7 +356,7 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     """
     from .data import AXIS_VARIANT
     from .offline import Objective, default_bounds
-    from .problem import ParamSpace, _ForwardSim
+    from .problem import ParamSpace, _ForwardSim, run_together
 
     names = list(result.params)
     n = len(names)
@@ -384,6 +384,7 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     coarse_dropped = False
     if coarser is not None:
         variants.append((f"coarser grid dx = {coarser.dx:.3g} m", coarser))
+    objs, sims = [], []
     for b, (label, sc) in enumerate(variants):
         obj = objective
         if b > 0:
@@ -392,8 +393,12 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
             obj = Objective(sc, observations, F, observation=objective.observation, l_dist=objective.l_dist,
                             l_trk=objective.l_trk, chamfer=objective.direction,
                             **{k: v for k, v in result.extra.get("objective", {}).items() if k in ("max_points", "seed")})
-        sim = _ForwardSim(sc, [m for m, _ in mats], [mu for _, mu in mats])
-        X, div, _ = sim.run(F)
+        objs.append(obj)
+        sims.append(_ForwardSim(sc, [m for m, _ in mats], [mu for _, mu in mats]))
+        variants[b] = (label, sc)
+    # every body's and grid's probes advanced together (side by side on a GPU; one after the other on a CPU)
+    runs = run_together([sim.steps(F, queued=True) for sim in sims])
+    for b, ((label, sc), obj, (X, div, _)) in enumerate(zip(variants, objs, runs)):
         diverged += div
         L = np.stack([obj.per_frame(X[:, w]) for w in range(len(cand))])
         L = L[:, obj.seen[1:F]]  # a frame without observed points is not scored
