@@ -44,7 +44,7 @@ keys = ["base", "base_bound_check", "candidates", "clock", "confidence", "effect
         "viscosity_box_raised",
         "script", "signature_m",
         "stage_wall_s",
-        "truth", "variants", "wall_s"]
+        "truth", "uncertainty", "identifiability", "variants", "wall_s"]
 with open(os.environ["OUT"] + "/slim.jsonl", "w") as f:
     for p in sorted(glob.glob(os.environ["W"] + "/dump/*.json")):
         r = json.load(open(p))

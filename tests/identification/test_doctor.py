@@ -1402,14 +1402,23 @@ def test_doctor_cli_marks_fits_at_their_search_bound(tmp_path, capsys, monkeypat
                           {**fit, "effect": "plasticity", "params": {"E": 2.3e4, "yield_stress": 9.9e5},
                            "at_search_bound": ["yield_stress"], "toward_absence": ["yield_stress"],
                            "gain": {"gain": 0.06, "significant": True}}],
-           "not_ruled_out": [{"effect": "viscosity"}]}
+           "not_ruled_out": [{"effect": "viscosity"}],
+           "uncertainty": {"E": {"interval": [2.1e4, 3.9e4], "level": 0.95, "determined": True, "bounded_only": None},
+                           "grip_friction": {"interval": [0.0, 1.2], "level": 0.95, "determined": False,
+                                             "bounded_only": "upper"}},
+           "identifiability": {"warnings": ["grip_friction: the loss is flat within the frame-to-frame noise below "
+                                            "the fit"]}}
     seen = {}
     monkeypatch.setattr(doctor, "diagnose_recording", lambda *a, **k: seen.update(k) or res)
     assert main(["doctor", str(tmp_path), "--out", str(tmp_path / "out"), "--control-delay", "1.5",
                  "--viscosity-raise", "3"]) == 0
     assert seen["control_delay"] == 1.5  # handed on to delay the controls (delayed_controls checks the value)
-    assert seen["config"].viscosity_raise == 3.0
+    assert seen["config"].viscosity_raise == 3.0 and seen["config"].intervals
     out = capsys.readouterr().out
+    # the named fit's values with their intervals; one the frames do not fix says so, and why
+    assert "gripper_slip E = 2.994e+04 (95 % interval 2.1e+04 to 3.9e+04)\n" in out
+    assert ("gripper_slip grip_friction = 0.8967 (95 %: at most 1.2): not determined (the loss is flat within the "
+            "frame-to-frame noise below the fit)\n") in out
     assert "base model: E=2000 (at bound)" in out
     assert "(significant); fitted E=2.994e+04, grip_friction=0.8967\n" in out
     assert "fitted E=2003 (at bound), fracture_strain=0.02 (at bound)" in out
@@ -1420,6 +1429,8 @@ def test_doctor_cli_marks_fits_at_their_search_bound(tmp_path, capsys, monkeypat
     assert "fitted E=2.3e+04, yield_stress=9.9e+05 (at bound, where the effect vanishes: not named)" in out
     # one round that named an effect points to the rounds, for a recording that lacks two
     assert "to look for a second missing effect on top of gripper_slip: the same command with --rounds 2" in out
+    assert main(["doctor", str(tmp_path), "--out", str(tmp_path / "out"), "--no-intervals", "--quiet"]) == 0
+    assert not seen["config"].intervals
 
 
 def test_variants_are_the_same_body_on_another_discretisation():
@@ -2273,7 +2284,7 @@ def test_frames_where_the_object_is_wholly_hidden_are_neither_fitted_nor_scored(
     assert (tmp_path / "report.md").exists() and json.loads((tmp_path / "doctor.json").read_text())["hidden_frames"] == [5]
     assert res["hidden_frames"] == [5] and any("wholly hidden in frames 5 " in n for n in res["notes"])
     # where the time went: the stages add up to the diagnosis's wall time, and the report says it
-    assert list(res["stage_wall_s"]) == ["base fit", "candidates", "signatures", "variants",
+    assert list(res["stage_wall_s"]) == ["base fit", "candidates", "signatures", "variants", "intervals",
                                          "verdict and localisation"]
     assert sum(res["stage_wall_s"].values()) == pytest.approx(res["wall_time_s"], abs=0.06)
     assert f"wall time [s]: {res['wall_time_s']:.1f} (base fit" in (tmp_path / "report.md").read_text()

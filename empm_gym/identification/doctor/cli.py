@@ -10,7 +10,7 @@ __all__ = ["register"]
 
 def _doctor(args) -> int:
     from . import DoctorConfig, DoctorError, diagnose_recording
-    from .core import interval_text, fitted_text
+    from .core import fitted_text, interval_rows, interval_text
     from .report import gap_summary
 
     effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
@@ -18,7 +18,7 @@ def _doctor(args) -> int:
         cfg = DoctorConfig(train_fraction=args.train_fraction, base_iters=args.iters, candidate_iters=args.iters,
                            popsize=args.popsize, variants=args.variants, variant_iters=args.variant_iters,
                            viscosity_raise=args.viscosity_raise, deterministic=args.deterministic,
-                           rounds=args.rounds)
+                           rounds=args.rounds, intervals=not args.no_intervals)
         res = diagnose_recording(args.rec_dir, out_dir=args.out, base=args.base, config=cfg, dx=args.dx,
                                  particles_per_cell=args.particles_per_cell, device=args.device,
                                  progress=not args.quiet, effects=effects, view_bodies=not args.no_view_bodies,
@@ -43,6 +43,9 @@ def _doctor(args) -> int:
                 + (f", penalty {100 * g['threshold']:.0f} %" if g.get("threshold") is not None else "") + ")")
             print(f"  {c['effect']:24s} held-out Chamfer {1e3 * c['heldout']['chamfer_m']:.2f} mm, loss gain "
                   f"{100 * g.get('gain', float('nan')):+.1f} %{test} {word}; fitted {fitted_text(c)}")
+    for r in interval_rows(res):
+        print(f"  {res['effect'] if res['effect'] != 'none' else 'base model'} {r['parameter']} = {r['value']} "
+              f"({r['interval']})" + ("" if r["determined"] == "yes" else f": not determined ({r['why not']})"))
     for n in res.get("notes", []):
         print(f"  note: {n}")
     for r in res.get("rounds", ()):
@@ -123,6 +126,9 @@ def register(subparsers) -> None:
                    help="diagnoses in a row: where one names an effect, the next fits the base model with it and "
                         "tries the catalogue's other effects on top, for a recording that lacks more than one "
                         "(default 1; each round costs about one diagnosis more, its outputs in OUT/round2, ...)")
+    p.add_argument("--no-intervals", action="store_true",
+                   help="skip the 95 %% intervals of the chosen model's parameters (probe simulations around its "
+                        "fit, as `empm identify` gives them)")
     p.add_argument("--keep-calibration", action="store_true",
                    help="use the recorded camera poses as they are, even where the cameras disagree (by default "
                         "cameras whose frame-0 points disagree beyond 1.5 mm are shifted onto one surface, in "

@@ -80,7 +80,7 @@ from empm_gym.sim.config import end_effector_speed
 from empm_gym.sim.effects import BASE_TABLE_FRICTION, EFFECTS, PARAMETERS, effect_of
 
 from ..data import TRIMMED_BODY, frame_ranges
-from ..offline import Objective, fit_losses, identify
+from ..offline import FitResult, Objective, fit_losses, identify
 from ..problem import Observations, Scene, Views, _ForwardSim, run_together, substeps_for
 from ..uncertainty import block_bootstrap_indices, gain_is_significant, measurement_noise, paired_gain_test
 
@@ -198,6 +198,17 @@ class DoctorConfig:
     viscosity fits gained 5.9, -3.2 and 0.1 % against it (7.5, 5.0 and 12.4 % in the first pass): on these
     recordings the numerical damping of a finer clock explains about as much as the missing viscosity. Kept for
     a material far more viscous than the cap, where a user may try it (``empm doctor --viscosity-raise 3``)."""
+
+    intervals: bool = True
+    """The chosen model's parameters (the named effect's fit, else the base model's) get 95 % intervals and a
+    word on whether the recording determines them (:func:`~empm_gym.identification.uncertainty.assess_fit`, as
+    ``empm identify`` gives them: probe simulations around the fit on the doctor's body, two other particle
+    lattices, the bodies rebuilt without each camera and the trimmed one, and a grid finer or coarser), in
+    ``doctor.json``'s ``uncertainty`` and ``identifiability``, ``material.json``'s fit section and the notes
+    (:func:`_intervals`). A held-out gain says which model explains the recording; it says nothing of how
+    firmly the frames fix its values: on the CPU test's dough pressed without an effect (truth 20 kPa) the
+    elastic model's fitting loss lies within 5 % of its lowest from 0.1 to 1.5 times the truth, and the fit
+    chose 30.2 kPa (benchmarks/RESULTS.md, session 87). False: no intervals (each costs a few probe batches)."""
 
     carried: Tuple[str, ...] = ()
     """Parameters of the base material's effects fitted again with E in every fit, the base model's included, each
@@ -451,6 +462,9 @@ class _Fit:
     """The base model only: the candidate whose fit found the E it is taken at (:func:`_best_base`), or None."""
     probe: Optional[dict] = None
     """Its search's check against a lattice over its box (:func:`_probed`), or None where none was made."""
+    result: Optional[FitResult] = None
+    """Identification's result of its search (its objective's settings and box, what :func:`_intervals` rebuilds
+    the loss from); its values are ``params``, which :func:`_best_base` may take from another fit."""
 
 
 def _check_inputs(scene: Scene, obs: Observations, cfg: DoctorConfig) -> Tuple[int, int]:
@@ -616,7 +630,7 @@ def _fit(name, scene, obs, params, init, bounds, base_mat, frames, cfg, progress
                    popsize=cfg.popsize, sigma0=cfg.sigma0 if sigma0 is None else sigma0, l_trk=cfg.l_trk,
                    max_points=cfg.max_points, seed=cfg.seed, progress=progress, extra_starts=starts)
     return _Fit(name=name, params=dict(res.params), material=res.material, friction=float(res.friction),
-                fit_loss=float(res.loss), wall_s=float(res.wall_time_s))
+                fit_loss=float(res.loss), wall_s=float(res.wall_time_s), result=res)
 
 
 def _variant_starts(like: "_Fit", base_fit: "_Fit", variant_base: "_Fit",
@@ -733,7 +747,7 @@ def _fit_candidates(specs: Sequence[tuple], obs: Observations, progress: bool, d
     out = []
     for (name, _, _, (ps, bounds, start_mat, sc)), res in zip(specs, results):
         f = _Fit(name=name, params=dict(res.params), material=res.material, friction=float(res.friction),
-                 fit_loss=float(res.loss), wall_s=float(res.wall_time_s))
+                 fit_loss=float(res.loss), wall_s=float(res.wall_time_s), result=res)
         f.added, f.scene, f.bounds, f.start_material = len(ps), sc, bounds, start_mat
         out.append(f)
     return out
@@ -1337,6 +1351,8 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     t_start = time.perf_counter()
     if cfg.deterministic:
         scene = dataclasses.replace(scene, deterministic=True)
+    if callable(other_bodies):  # built once, when first asked for (the variants, then the intervals)
+        other_bodies = _once(other_bodies)
     T, F = _check_inputs(scene, obs, cfg)
     hidden = [int(t) for t in np.nonzero(~obs.seen[:T])[0]]
     heldout = [t for t in range(F, T) if t not in hidden]  # a frame where the object is wholly hidden is not scored
@@ -1648,6 +1664,12 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     at_bound = _params_at_bound(winner) if winner is not None else []
     if at_bound:
         warnings.append(at_bound_note(winner.name, winner.params, winner.bounds, at_bound, cfg.viscosity_cap))
+    t_int = time.perf_counter()
+    intervals = (_intervals(chosen, scene, obs, F, cfg, other_bodies, progress) if cfg.intervals else {})
+    if intervals:
+        clock["intervals"] = time.perf_counter() - t_int
+        warnings += [n for n in [undetermined_note(winner.name if winner else "the base model", chosen.params,
+                                                   intervals)] if n]
     # candidates these held-out frames can neither show nor exclude: what keeps a `none` from full confidence
     undecided = not_ruled_out(as_dicts, winner.name if winner else None)
     result.update({
@@ -1700,6 +1722,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
         "split": None if split is None else split.name,
         "variants": robustness,
         "base": _fit_dict(base_fit, cfg),
+        **intervals,
         "base_bound_check": bound_check,
         "candidates": [_fit_dict(f, cfg) for f in ranked],
         "evidence": {"features": loc["features"], "features_with_effect": loc["features_best"],
@@ -1722,6 +1745,82 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     result["stage_wall_s"] = {k: round(v, 2) for k, v in clock.items()}  # the report's files not included
     _write_outputs(result, winner or base_fit, (X, fits, per, loc, F), scene, obs, out_dir, views=views)
     return result
+
+
+def _once(build):
+    """``build()``'s value, built at the first call and kept."""
+    kept = []
+
+    def get():
+        if not kept:
+            kept.append(build())
+        return kept[0]
+    return get
+
+
+def _intervals(chosen: "_Fit", scene: Scene, obs: Observations, F: int, cfg: DoctorConfig, other_bodies,
+               progress: bool) -> dict:
+    """``{"uncertainty", "identifiability"}`` of the chosen model's fit (:attr:`DoctorConfig.intervals`):
+    :func:`~empm_gym.identification.uncertainty.assess_fit` around its values, on its own loss (the fitting
+    frames, the fit's objective) and clock, with the frame-0 body rebuilt from fewer views and trimmed to the
+    measured surface (``other_bodies``, built if the variants did not need them) as the body's share. Empty
+    where the fit has no search of its own to rebuild the loss from."""
+    from ..uncertainty import assess_fit
+
+    if chosen.result is None or chosen.scene is None:
+        return {}
+    res = dataclasses.replace(chosen.result, params=dict(chosen.params), material=chosen.material,
+                              friction=chosen.friction, loss=chosen.fit_loss)
+    sc = _fit_scene(chosen.scene, chosen.material, tuple(chosen.params))
+    bodies = other_bodies() if callable(other_bodies) else other_bodies
+    others = [(item[0], None if item[1] is None else dataclasses.replace(
+        item[1], motion_margin=sc.motion_margin, material=sc.material, table_friction=sc.table_friction,
+        dt_materials=sc.dt_materials, deterministic=sc.deterministic)) for item in bodies]
+    if progress:
+        print(f"doctor: intervals of {chosen.name}'s {', '.join(chosen.params)} (probe simulations around the fit)",
+              flush=True)
+    a = assess_fit(res, sc, obs, other_bodies=others, seed=cfg.seed)
+    return {"uncertainty": a["uncertainty"], "identifiability": a["identifiability"]}
+
+
+def interval_words(u: dict) -> str:
+    """One parameter's interval (:func:`~empm_gym.identification.uncertainty.assess_fit`'s ``uncertainty``
+    entry) in words: an interval open on one side is a bound."""
+    lo, hi = u["interval"]
+    lvl = f"{100 * u['level']:.0f} %"
+    if not lo > 0.0 and not np.isfinite(hi):  # every resample's minimum ran off both ways
+        return f"{lvl}: unbounded either way"
+    return {"upper": f"{lvl}: at most {hi:.4g}", "lower": f"{lvl}: at least {lo:.4g}"}.get(
+        u.get("bounded_only"), f"{lvl} interval {lo:.4g} to {hi:.4g}")
+
+
+def undetermined_note(model: str, params: Dict[str, float], intervals: dict) -> Optional[str]:
+    """The note for the chosen model's parameters that the recording does not determine (:func:`_intervals`),
+    None where it determines them all."""
+    unc = intervals.get("uncertainty") or {}
+    bad = [k for k, u in unc.items() if not u.get("determined", True)]
+    if not bad:
+        return None
+    why = [w for w in (intervals.get("identifiability") or {}).get("warnings", [])
+           if any(w.startswith(f"{k}: ") for k in bad)]
+    return (f"{model}'s fitted " + ", ".join(f"{k} = {params[k]:.4g} ({interval_words(unc[k])})" for k in bad)
+            + f" {'is' if len(bad) == 1 else 'are'} not determined by these frames ({'; '.join(why)}): the verdict "
+              f"rests on the held-out gain, not on these values; do not read them as a measurement")
+
+
+def interval_rows(result: dict) -> List[dict]:
+    """The chosen model's parameters with their intervals (:func:`_intervals`), one row each, for the report and
+    the command line: ``parameter``, ``value``, ``95 % interval``, ``determined`` and ``why not``."""
+    unc = result.get("uncertainty") or {}
+    chosen = named_candidate(result) or result.get("base") or {}
+    warns = (result.get("identifiability") or {}).get("warnings", [])
+    rows = []
+    for k, u in unc.items():
+        rows.append({"parameter": k, "value": f"{chosen.get('params', {}).get(k, float('nan')):.4g}",
+                     "interval": interval_words(u),
+                     "determined": "yes" if u["determined"] else "no",
+                     "why not": "; ".join(w[len(k) + 2:] for w in warns if w.startswith(f"{k}: "))})
+    return rows
 
 
 def named_candidate(result: dict) -> Optional[dict]:
@@ -2923,7 +3022,8 @@ def _write_outputs(result: dict, chosen: Optional[_Fit], sims, scene: Scene, obs
     if chosen is not None:
         fit = {"method": "doctor", "effect": result["effect"], "params": list(chosen.params),
                "frames_used_range": result["fit_frames"], "fps": obs.fps, "dx": scene.dx,
-               "heldout_loss": chosen.heldout.get("loss"), "notes": result.get("notes", [])}
+               "heldout_loss": chosen.heldout.get("loss"), "notes": result.get("notes", []),
+               **_jsonable({k: result[k] for k in ("uncertainty", "identifiability") if k in result})}
         write_material(d / "material.json", chosen.material.replace(friction=chosen.friction), fit=fit)
         files["material"] = str(d / "material.json")
     if sims is not None:
@@ -2999,6 +3099,9 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
     tables = {f"The held-out gap (frames {gap['frames'][0]} to {gap['frames'][-1]}, mean per frame)"
               + (f": {gap['note']}" if gap.get("note") else ""): gap_rows(gap),
               "Candidates (held-out frames)": rows}
+    if interval_rows(result):
+        tables[f"How firmly the fitting frames fix {effect if best_w is not None else 'the base model'}'s values (material.json)"] = \
+            interval_rows(result)
     var = result.get("variants") or {}
     vrows = [{"candidate": name, "variant": t["variant"], "fitted": ", ".join(f"{k}={v:.4g}" for k, v in t["params"].items()),
               "held-out loss gain [%]": 100 * t["gain"], "threshold [%]": 100 * t["threshold"],
