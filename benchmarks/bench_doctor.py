@@ -424,6 +424,7 @@ def diagnose_all(problems: Path, args):
                  "wall_s": wall})))
         truth, verdict = prob["truth"], res["effect"]
         row = _row(res, truth, path.stem, prob["script"], prob.get("signature_m"), wall, prob.get("parted"))
+        row["intervals"] = interval_check(res, prob, problem_object(path, prob))
         if "signatures" in prob:
             row["signatures"] = prob["signatures"]
         red = row["reduction"]
@@ -437,6 +438,58 @@ def diagnose_all(problems: Path, args):
               f"{wall:6.1f} s" + (f"  effects named in {args.rounds} rounds: {' + '.join(row['effects']) or 'none'}"
                                   if args.rounds > 1 else ""), flush=True)
     summarise(rows)
+
+
+#: The density the doctor assumes (its base material's): from motion alone it determines E, a yield stress and a
+#: viscosity only as ratios to the density, so the truth is compared at this density (:func:`interval_check`).
+DOCTOR_DENSITY = 1000.0
+
+
+def interval_check(res: dict, prob: dict, obj: Optional[str]) -> list:
+    """The chosen model's intervals (``doctor.json``'s ``uncertainty``, :attr:`DoctorConfig.intervals`) against the
+    truth, which the benchmark alone reads (the problem's object, effect and parameters): one entry per parameter,
+    ``{param, fit, interval, determined, truth, covered}``, where the verdict is the true model (the named effect
+    is the recording's, or both are ``none``); [] elsewhere, for two effects, without intervals and where the
+    object ``obj`` (:func:`problem_object`) is unknown. E, a yield
+    stress and a viscosity are compared at the doctor's density (:data:`DOCTOR_DENSITY`); a stiffness field's
+    slope is not compared (its axis is the reconstructed body's, not the truth's). A confident wrong value is
+    ``determined`` and not ``covered``."""
+    from empm_gym.identification.doctor.core import named_candidate
+    from empm_gym.identification.uncertainty import DENSITY_SCALED
+    from empm_gym.perception.synth import effect_material
+
+    unc, truth = res.get("uncertainty") or {}, prob["truth"]
+    if not unc or "+" in truth or res.get("effect") != truth or obj is None:
+        return []
+    mat = effect_material(obj, truth, prob.get("truth_params") or None, **(prob.get("base_params") or {}))[0]
+    fit = (named_candidate(res) or res["base"])["params"]
+    out = []
+    for k, u in unc.items():
+        t = None if k.startswith("stiffness_slope") else float(mat.E if k == "E" else mat.get(k))
+        if t is not None and k in DENSITY_SCALED:
+            t *= DOCTOR_DENSITY / float(mat.density)
+        lo, hi = (float("inf") if v is None else float(v) for v in u["interval"])
+        lo = 0.0 if u["interval"][0] is None else lo
+        out.append({"param": k, "fit": fit.get(k), "interval": u["interval"], "determined": u["determined"],
+                    "truth": t, "covered": None if t is None else bool(lo <= t <= hi)})
+    return out
+
+
+def _intervals_summary(rows) -> None:
+    """How the chosen model's intervals (:func:`interval_check`) fare against the truth: the values the recordings
+    determine that the interval covers, those it misses (a confident wrong value), and those said not determined."""
+    checks = [c for r in rows for c in r.get("intervals") or () if c["truth"] is not None]
+    if not checks:
+        return
+    det = [c for c in checks if c["determined"]]
+    missed = [(r["recording"], c) for r in rows for c in r.get("intervals") or ()
+              if c["truth"] is not None and c["determined"] and not c["covered"]]
+    print(f"\nthe chosen model's 95 % intervals against the truth (where the verdict is the true model): {len(checks)} "
+          f"values; determined {len(det)}, of them covered {sum(c['covered'] for c in det)}; not determined "
+          f"{len(checks) - len(det)}, of them covered {sum(c['covered'] for c in checks if not c['determined'])}")
+    for name, c in missed:
+        print(f"  determined but missed: {name} {c['param']} = {c['fit']:.4g}, interval {c['interval']}, truth "
+              f"{c['truth']:.4g}")
 
 
 def _row(res: dict, truth: str, name: str, script: str, signature_m, wall_s: float, parted=None) -> dict:
@@ -969,6 +1022,7 @@ def _summarise_one(rows, floor_rows=()):
     _against_the_recordings_own_simulation(bench, floor_rows)
     _shown_on_the_body(bench, floor_rows)
     _clock_damping(bench)
+    _intervals_summary(rows)
     if rest:
         print(f"\n=== other recordings: scripts besides each effect's two (the first runs' second scripts, the rope's "
               f"push-slide with viscosity; {len(rest)} recordings)")

@@ -766,3 +766,32 @@ def test_floors_with_the_true_part_in_the_grippers_swap_only_what_the_closed_gri
     (pushed,) = bench.floors(slide_problems, args)
     assert pushed["held_volume_m3"] == pushed["true_held_volume_m3"] == 0.0
     assert pushed["true_held_floor_chamfer_m"] == pushed["floor_chamfer_m"]
+
+
+def test_the_chosen_models_intervals_are_checked_against_the_truth_at_the_doctors_density(bench, tmp_path, capsys):
+    """A plastic dough (the synthesiser's E 20 kPa and yield stress 1 kPa at 1200 kg/m^3) named plasticity: E and
+    the yield stress are compared at the doctor's 1000 kg/m^3 (16.7 kPa, 833 Pa); an interval that holds the truth
+    covers it, one that misses it while saying the value is determined is a confident wrong value and is listed.
+    A wrong verdict, two effects or no intervals are not checked."""
+    unc = {"E": {"interval": [1.2e4, 2.0e4], "determined": True, "level": 0.95},
+           "yield_stress": {"interval": [900.0, 1100.0], "determined": True, "level": 0.95}}
+    res = {"effect": "plasticity", "uncertainty": unc, "base": {"params": {"E": 3e4}},
+           "candidates": [{"effect": "plasticity", "params": {"E": 1.6e4, "yield_stress": 1000.0}}]}
+    prob = {"truth": "plasticity", "truth_params": {"yield_stress": 1000.0}, "base_params": {}}
+    checks = bench.interval_check(res, prob, "dough")
+    assert [(c["param"], round(c["truth"], 1), c["covered"]) for c in checks] == [
+        ("E", round(20e3 / 1.2, 1), True), ("yield_stress", round(1000.0 / 1.2, 1), False)]
+    assert bench.interval_check({**res, "effect": "gripper_slip"}, prob, "dough") == []
+    assert bench.interval_check(res, {**prob, "truth": "plasticity+viscosity"}, "dough") == []
+    assert bench.interval_check({**res, "uncertainty": None}, prob, "dough") == []
+    # a none recording: the base model's E against the object's own
+    none = {"effect": "none", "uncertainty": {"E": {"interval": [0.0, None], "determined": False, "level": 0.95}},
+            "base": {"params": {"E": 3e4}}, "candidates": []}
+    [c] = bench.interval_check(none, {"truth": "none", "base_params": {}}, "dough")
+    assert c["covered"] and not c["determined"]  # an interval open above holds every stiffer value
+    rows = [{**_row("dough-press-release-3-plasticity", "plasticity", "plasticity", "press-release", 0.01),
+             "intervals": checks},
+            {**_row("dough-press-release-3-none", "none", "none", "press-release", 0.01), "intervals": [c]}]
+    out = _summarise(bench, tmp_path, capsys, rows)
+    assert ("3 values; determined 2, of them covered 1; not determined 1, of them covered 1" in out
+            and "determined but missed: dough-press-release-3-plasticity yield_stress = 1000" in out), out

@@ -90,8 +90,8 @@ def test_a_trackers_and_a_segmenters_errors_leave_the_fit_and_the_verdict_as_on_
     # how firmly the frames fix E: on this flat landscape, not at all, and every output says so; the clean fit's
     # interval covers the truth, the noisy fit's lies at its bound (what the errors do to the body and the tracks
     # is no noise that an interval holds: it says that the data ask for a value outside its box)
-    u = clean["uncertainty"]["E"]
-    assert not u["determined"] and u["interval"][0] <= 20e3 <= u["interval"][1], u
+    u, truth = clean["uncertainty"]["E"], 20e3 * 1000.0 / 1200.0  # the doctor's density is 1000, the dough's 1200
+    assert not u["determined"] and u["interval"][0] <= truth <= u["interval"][1], u
     assert not noisy["uncertainty"]["E"]["determined"] and any(
         w.startswith("E: ") and "outside the box searched" in w for w in noisy["identifiability"]["warnings"])
     for r in res.values():
@@ -101,6 +101,8 @@ def test_a_trackers_and_a_segmenters_errors_leave_the_fit_and_the_verdict_as_on_
     assert fit["uncertainty"] == json.loads(json.dumps(clean["uncertainty"]))
     report = (tmp_path / "doctor-clean" / "report.md").read_text()
     assert "## How firmly the fitting frames fix the base model's values (material.json)" in report
+    assert f"- base E [Pa]: {clean['base']['params']['E']:.4g} (95 %: at most " in report
+    assert "; not determined by these frames)" in report
 
 
 def test_a_mask_that_takes_in_the_table_around_the_ringed_dough_leaves_it_none(tmp_path):

@@ -1823,6 +1823,15 @@ def interval_rows(result: dict) -> List[dict]:
     return rows
 
 
+def _base_E_text(result: dict) -> str:
+    """The base model's E for the report's verdict, with its interval where the base model is the chosen one."""
+    E = result["base"]["params"]["E"]
+    u = (result.get("uncertainty") or {}).get("E") if result.get("effect") == "none" else None
+    if not u:
+        return f"{E:.4g}"
+    return f"{E:.4g} ({interval_words(u)}" + ("" if u["determined"] else "; not determined by these frames") + ")"
+
+
 def named_candidate(result: dict) -> Optional[dict]:
     """The candidate (``doctor.json``'s ``candidates`` entry) of a diagnosis's named effect; None under ``none``."""
     return next((c for c in result.get("candidates", ()) if c["effect"] == result.get("effect")), None)
@@ -3129,7 +3138,7 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
         "not ruled out (the held-out frames neither show nor exclude it)": ", ".join(e["effect"] for e in undecided)}
     write_report_md(d / "report.md", {k: result[k] for k in ("effect", "confidence", "reason", "decidable")} |
                     undecided_text | firsts_text |
-                    {"base E [Pa]": result["base"]["params"]["E"], "noise sigma [mm]": 1e3 * result["noise_sigma_m"],
+                    {"base E [Pa]": _base_E_text(result), "noise sigma [mm]": 1e3 * result["noise_sigma_m"],
                      "worst phase and region (base model)": where.get("worst_cell"),
                      "wall time [s]": f"{result['wall_time_s']:.1f} ("
                      + ", ".join(f"{k} {v:.1f}" for k, v in result.get("stage_wall_s", {}).items()) + ")"} | sig_text,
