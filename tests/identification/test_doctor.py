@@ -2572,3 +2572,23 @@ def test_the_variants_check_refutes_a_gain_that_no_other_discretisation_keeps_a_
         assert all(t["holds"] for t in rec["tests"]) and rec["robust"] is robust, rec
         if not robust:
             assert rec["not_reproduced"] and "60.0 %" in rec["why"] and "6.9 %" in rec["why"], rec["why"]
+
+
+def test_a_value_the_frames_do_not_fix_is_said_so_with_its_bound_and_why():
+    """The chosen model's intervals in words (report, CLI, notes): a two-sided interval, a bound where the
+    resamples' minima ran off one way, "unbounded" where they ran off both ways; the note names only the values
+    not determined, each with the reason assess_fit gave it, and there is none when every value is determined."""
+    from empm_gym.identification.doctor.core import interval_words, undetermined_note
+
+    u = {"interval": [2.1e4, 3.9e4], "level": 0.95, "determined": True, "bounded_only": None}
+    assert interval_words(u) == "95 % interval 2.1e+04 to 3.9e+04"
+    assert interval_words({**u, "interval": [0.0, 6.02e4], "bounded_only": "upper"}) == "95 %: at most 6.02e+04"
+    assert interval_words({**u, "interval": [4e3, None], "bounded_only": "lower"}) == "95 %: at least 4000"
+    assert interval_words({**u, "interval": [0.0, math.inf]}) == "95 %: unbounded either way"
+    intervals = {"uncertainty": {"E": u, "yield_stress": {**u, "interval": [0.0, math.inf], "determined": False}},
+                 "identifiability": {"warnings": ["yield_stress: correlated with E (r = +1.00)", "grid: coarse"]}}
+    note = undetermined_note("plasticity", {"E": 3e4, "yield_stress": 1087.0}, intervals)
+    assert note.startswith("plasticity's fitted yield_stress = 1087 (95 %: unbounded either way) is not determined "
+                           "by these frames (yield_stress: correlated with E (r = +1.00))"), note
+    assert "E = " not in note and "grid" not in note
+    assert undetermined_note("plasticity", {"E": 3e4}, {"uncertainty": {"E": u}}) is None

@@ -1786,12 +1786,17 @@ def _intervals(chosen: "_Fit", scene: Scene, obs: Observations, F: int, cfg: Doc
 def interval_words(u: dict) -> str:
     """One parameter's interval (:func:`~empm_gym.identification.uncertainty.assess_fit`'s ``uncertainty``
     entry) in words: an interval open on one side is a bound."""
-    lo, hi = u["interval"]
+    lo, hi = u["interval"]  # doctor.json writes an open end (infinite) as null
+    lo, hi = 0.0 if lo is None else float(lo), math.inf if hi is None else float(hi)
     lvl = f"{100 * u['level']:.0f} %"
     if not lo > 0.0 and not np.isfinite(hi):  # every resample's minimum ran off both ways
         return f"{lvl}: unbounded either way"
-    return {"upper": f"{lvl}: at most {hi:.4g}", "lower": f"{lvl}: at least {lo:.4g}"}.get(
-        u.get("bounded_only"), f"{lvl} interval {lo:.4g} to {hi:.4g}")
+    side = u.get("bounded_only")
+    if side == "upper":
+        return f"{lvl}: at most {hi:.4g}"
+    if side == "lower":
+        return f"{lvl}: at least {lo:.4g}"
+    return f"{lvl} interval {lo:.4g} to {hi:.4g}"
 
 
 def undetermined_note(model: str, params: Dict[str, float], intervals: dict) -> Optional[str]:
