@@ -498,6 +498,14 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                             f"may help)")
         if reasons[k]:
             unc[k]["determined"] = False
+            if hi < space.bounds[k][0] or lo > space.bounds[k][1]:
+                # the resamples' minima of a local model that does not fit this loss (or has none: a ridge, a
+                # kink) lie wholly outside the box searched: quoted as an interval, they would be a number no data
+                # support (the doctor's plastic dough, session 87: E = 38.7 kPa in a box from 19 kPa, with an
+                # "interval" of 0 to 0.015 Pa)
+                unc[k].update(interval=[_from_z(space, k, -np.inf), _from_z(space, k, np.inf)], bounded_only=None)
+                reasons[k].append(f"the loss's local model puts its minimum outside the box searched ({lo:.4g} to "
+                                  f"{hi:.4g} over the resamples): no interval is given")
             warnings += [f"{k}: {r}" for r in reasons[k]]
     return {"uncertainty": unc,
             "identifiability": {

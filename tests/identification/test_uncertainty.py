@@ -3,6 +3,7 @@ parameters (flat loss, at the bound, E with density, a coarse grid) and the E / 
 makes only their ratio identifiable from motion."""
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -324,3 +325,28 @@ def test_resolving_dx_halves_the_cell_until_the_body_is_three_cells_across():
     coarse = rope(0.006)
     scene, levels = resolving_dx(coarse, lambda dx: None)
     assert scene is coarse and len(levels) == 1
+
+def test_minima_wholly_outside_the_box_give_no_interval_and_say_why(monkeypatch):
+    """Where the loss's local model puts every resample's minimum far outside the search box (a ridge or a kink it
+    does not fit: the doctor's plastic dough, session 87, had E = 38.7 kPa "within" 0 to 0.015 Pa), no interval is
+    quoted: the value is not determined, its interval is the parameter's whole range, and the reason says so. The
+    same fit with the local model's own minima keeps its interval."""
+    import empm_gym.identification.uncertainty as U
+
+    p = scenes.rope_lift(E=E_TRUE, frames=8, seed=1, same_body=True)
+    r = identify(p.obs, p.scene, params=("E",), method="cmaes", init={"E": E_TRUE}, iters=1, popsize=4,
+                 progress=False)
+    a = assess_fit(r, p.scene, p.obs, resample_bodies=0, refine_grid=False)
+    real = U.newton_bootstrap
+
+    def far(*args, **kw):  # every minimum 30 log-units below: E times e^-30
+        nb = real(*args, **kw)
+        return {**nb, "draws": nb["draws"] - 30.0, "step": nb["step"] - 30.0}
+
+    monkeypatch.setattr(U, "newton_bootstrap", far)
+    b = assess_fit(r, p.scene, p.obs, resample_bodies=0, refine_grid=False)
+    lo, hi = a["uncertainty"]["E"]["interval"]
+    assert 0.0 < lo < hi < math.inf
+    assert not b["uncertainty"]["E"]["determined"] and b["uncertainty"]["E"]["interval"] == [0.0, math.inf]
+    assert any(w.startswith("E: the loss's local model puts its minimum outside the box searched")
+               for w in b["identifiability"]["warnings"]), b["identifiability"]["warnings"]
