@@ -66,6 +66,7 @@ Nothing here reads a synthesiser's answer file, file names or script timing: onl
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import time
@@ -208,7 +209,7 @@ class DoctorConfig:
     (:func:`_intervals`). A held-out gain says which model explains the recording; it says nothing of how
     firmly the frames fix its values: on the CPU test's dough pressed without an effect (truth 20 kPa) the
     elastic model's fitting loss lies within 5 % of its lowest from 0.1 to 1.5 times the truth, and the fit
-    chose 30.2 kPa (benchmarks/RESULTS.md, session 87). False: no intervals (each costs a few probe batches)."""
+    chose 35.6 kPa (benchmarks/RESULTS.md, session 87). False: no intervals (each costs a few probe batches)."""
 
     carried: Tuple[str, ...] = ()
     """Parameters of the base material's effects fitted again with E in every fit, the base model's included, each
@@ -1352,7 +1353,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     if cfg.deterministic:
         scene = dataclasses.replace(scene, deterministic=True)
     if callable(other_bodies):  # built once, when first asked for (the variants, then the intervals)
-        other_bodies = _once(other_bodies)
+        other_bodies = functools.cache(other_bodies)
     T, F = _check_inputs(scene, obs, cfg)
     hidden = [int(t) for t in np.nonzero(~obs.seen[:T])[0]]
     heldout = [t for t in range(F, T) if t not in hidden]  # a frame where the object is wholly hidden is not scored
@@ -1665,7 +1666,7 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     if at_bound:
         warnings.append(at_bound_note(winner.name, winner.params, winner.bounds, at_bound, cfg.viscosity_cap))
     t_int = time.perf_counter()
-    intervals = (_intervals(chosen, scene, obs, F, cfg, other_bodies, progress) if cfg.intervals else {})
+    intervals = (_intervals(chosen, obs, cfg, other_bodies, progress) if cfg.intervals else {})
     if intervals:
         clock["intervals"] = time.perf_counter() - t_int
         warnings += [n for n in [undetermined_note(winner.name if winner else "the base model", chosen.params,
@@ -1747,19 +1748,15 @@ def diagnose(scene: Scene, obs: Observations, views: Optional[Views] = None, *, 
     return result
 
 
-def _once(build):
-    """``build()``'s value, built at the first call and kept."""
-    kept = []
-
-    def get():
-        if not kept:
-            kept.append(build())
-        return kept[0]
-    return get
+def _like(body: Scene, scene: Scene) -> Scene:
+    """A rebuilt frame-0 body (``other_bodies``' scene) simulated as ``scene`` is: its grid margin, material, table,
+    clock and determinism."""
+    return dataclasses.replace(body, motion_margin=scene.motion_margin, material=scene.material,
+                               table_friction=scene.table_friction, dt_materials=scene.dt_materials,
+                               deterministic=scene.deterministic)
 
 
-def _intervals(chosen: "_Fit", scene: Scene, obs: Observations, F: int, cfg: DoctorConfig, other_bodies,
-               progress: bool) -> dict:
+def _intervals(chosen: "_Fit", obs: Observations, cfg: DoctorConfig, other_bodies, progress: bool) -> dict:
     """``{"uncertainty", "identifiability"}`` of the chosen model's fit (:attr:`DoctorConfig.intervals`):
     :func:`~empm_gym.identification.uncertainty.assess_fit` around its values, on its own loss (the fitting
     frames, the fit's objective) and clock, with the frame-0 body rebuilt from fewer views and trimmed to the
@@ -1773,9 +1770,7 @@ def _intervals(chosen: "_Fit", scene: Scene, obs: Observations, F: int, cfg: Doc
                               friction=chosen.friction, loss=chosen.fit_loss)
     sc = _fit_scene(chosen.scene, chosen.material, tuple(chosen.params))
     bodies = other_bodies() if callable(other_bodies) else other_bodies
-    others = [(item[0], None if item[1] is None else dataclasses.replace(
-        item[1], motion_margin=sc.motion_margin, material=sc.material, table_friction=sc.table_friction,
-        dt_materials=sc.dt_materials, deterministic=sc.deterministic)) for item in bodies]
+    others = [(item[0], None if item[1] is None else _like(item[1], sc)) for item in bodies]
     if progress:
         print(f"doctor: intervals of {chosen.name}'s {', '.join(chosen.params)} (probe simulations around the fit)",
               flush=True)
@@ -1806,11 +1801,16 @@ def undetermined_note(model: str, params: Dict[str, float], intervals: dict) -> 
     bad = [k for k, u in unc.items() if not u.get("determined", True)]
     if not bad:
         return None
-    why = [w for w in (intervals.get("identifiability") or {}).get("warnings", [])
-           if any(w.startswith(f"{k}: ") for k in bad)]
+    why = [f"{k}: {r}" for k in bad for r in _reasons(intervals, k)]
     return (f"{model}'s fitted " + ", ".join(f"{k} = {params[k]:.4g} ({interval_words(unc[k])})" for k in bad)
             + f" {'is' if len(bad) == 1 else 'are'} not determined by these frames ({'; '.join(why)}): the verdict "
               f"rests on the held-out gain, not on these values; do not read them as a measurement")
+
+
+def _reasons(intervals: dict, k: str) -> List[str]:
+    """Why parameter ``k`` is not determined: its warnings in ``intervals``' (or a result's) ``identifiability``."""
+    return [w[len(k) + 2:] for w in (intervals.get("identifiability") or {}).get("warnings", [])
+            if w.startswith(f"{k}: ")]
 
 
 def interval_rows(result: dict) -> List[dict]:
@@ -1818,13 +1818,12 @@ def interval_rows(result: dict) -> List[dict]:
     the command line: ``parameter``, ``value``, ``95 % interval``, ``determined`` and ``why not``."""
     unc = result.get("uncertainty") or {}
     chosen = named_candidate(result) or result.get("base") or {}
-    warns = (result.get("identifiability") or {}).get("warnings", [])
     rows = []
     for k, u in unc.items():
         rows.append({"parameter": k, "value": f"{chosen.get('params', {}).get(k, float('nan')):.4g}",
                      "interval": interval_words(u),
                      "determined": "yes" if u["determined"] else "no",
-                     "why not": "; ".join(w[len(k) + 2:] for w in warns if w.startswith(f"{k}: "))})
+                     "why not": "; ".join(_reasons(result, k))})
     return rows
 
 
@@ -1955,10 +1954,7 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
         other_bodies = other_bodies() if checked else ()
     variants = [(f"grid shifted and particles resampled ({k + 1})", "discretisation", _variant_scene(scene, k))
                 for k in range(cfg.variants)]
-    variants += [(item[0], item[2] if len(item) > 2 else "body",
-                  dataclasses.replace(item[1], motion_margin=scene.motion_margin, material=scene.material,
-                                      table_friction=scene.table_friction, dt_materials=scene.dt_materials,
-                                      deterministic=scene.deterministic))
+    variants += [(item[0], item[2] if len(item) > 2 else "body", _like(item[1], scene))
                  for item in other_bodies if item[1] is not None]
     out = {"variants": [label for label, _, _ in variants] if checked else [], "base": [], "candidates": {},
            "not_built": [item[0] for item in other_bodies if item[1] is None] if checked else [],
@@ -3113,9 +3109,10 @@ def _figures_and_report(result: dict, sims, scene: Scene, obs: Observations, d: 
     tables = {f"The held-out gap (frames {gap['frames'][0]} to {gap['frames'][-1]}, mean per frame)"
               + (f": {gap['note']}" if gap.get("note") else ""): gap_rows(gap),
               "Candidates (held-out frames)": rows}
-    if interval_rows(result):
-        tables[f"How firmly the fitting frames fix {effect if best_w is not None else 'the base model'}'s values (material.json)"] = \
-            interval_rows(result)
+    firmness = interval_rows(result)
+    if firmness:
+        tables[f"How firmly the fitting frames fix {effect if best_w is not None else 'the base model'}'s values "
+               f"(material.json)"] = firmness
     var = result.get("variants") or {}
     vrows = [{"candidate": name, "variant": t["variant"], "fitted": ", ".join(f"{k}={v:.4g}" for k, v in t["params"].items()),
               "held-out loss gain [%]": 100 * t["gain"], "threshold [%]": 100 * t["threshold"],
