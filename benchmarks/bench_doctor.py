@@ -448,7 +448,8 @@ DOCTOR_DENSITY = 1000.0
 def interval_check(res: dict, prob: dict, obj: Optional[str]) -> list:
     """The chosen model's intervals (``doctor.json``'s ``uncertainty``, :attr:`DoctorConfig.intervals`) against the
     truth, which the benchmark alone reads (the problem's object, effect and parameters): one entry per parameter,
-    ``{param, fit, interval, determined, truth, covered}``, where the verdict is the true model (the named effect
+    ``{param, fit, interval, determined, truth, covered}`` (and one per combination of two correlated values that
+    the doctor reports, ``yield_stress/E`` say), where the verdict is the true model (the named effect
     is the recording's, or both are ``none``); [] elsewhere, for two effects, without intervals and where the
     object ``obj`` (:func:`problem_object`) is unknown. E, a yield
     stress and a viscosity are compared at the doctor's density (:data:`DOCTOR_DENSITY`); a stiffness field's
@@ -463,14 +464,22 @@ def interval_check(res: dict, prob: dict, obj: Optional[str]) -> list:
         return []
     mat = effect_material(obj, truth, prob.get("truth_params") or None, **(prob.get("base_params") or {}))[0]
     fit = (named_candidate(res) or res["base"])["params"]
+
+    def true(k):
+        if k.startswith("stiffness_slope"):
+            return None
+        t = float(mat.E if k == "E" else mat.get(k))
+        return t * DOCTOR_DENSITY / float(mat.density) if k in DENSITY_SCALED else t
+
+    combos = [(name, c) for name, c in ((res.get("identifiability") or {}).get("combinations") or {}).items()
+              if "exponent" in c]  # two correlated values' combination (uncertainty.pair_combination)
     out = []
-    for k, u in unc.items():
-        t = None if k.startswith("stiffness_slope") else float(mat.E if k == "E" else mat.get(k))
-        if t is not None and k in DENSITY_SCALED:
-            t *= DOCTOR_DENSITY / float(mat.density)
+    for k, u, f, t in ([(k, u, fit.get(k), true(k)) for k, u in unc.items()]
+                       + [(name, c, c["value"], None if None in (true(c["of"][0]), true(c["of"][1]))
+                           else true(c["of"][1]) * true(c["of"][0]) ** c["exponent"]) for name, c in combos]):
         lo, hi = (float("inf") if v is None else float(v) for v in u["interval"])
         lo = 0.0 if u["interval"][0] is None else lo
-        out.append({"param": k, "fit": fit.get(k), "interval": u["interval"], "determined": u["determined"],
+        out.append({"param": k, "fit": f, "interval": u["interval"], "determined": u["determined"],
                     "truth": t, "covered": None if t is None else bool(lo <= t <= hi)})
     return out
 

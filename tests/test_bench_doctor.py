@@ -781,6 +781,13 @@ def test_the_chosen_models_intervals_are_checked_against_the_truth_at_the_doctor
     checks = bench.interval_check(res, prob, "dough")
     assert [(c["param"], round(c["truth"], 1), c["covered"]) for c in checks] == [
         ("E", round(20e3 / 1.2, 1), True), ("yield_stress", round(1000.0 / 1.2, 1), False)]
+    # the combination the doctor reports for two correlated values: yield_stress/E is the same at any density
+    combo = {"value": 0.06, "interval": [0.055, 0.065], "level": 0.95, "determined": True, "of": ["E", "yield_stress"],
+             "exponent": -1.0, "unit": "-"}
+    both = {**res, "identifiability": {"combinations": {"yield_stress/E": combo,
+                                                        "E/density": {"value": 16.0, "unit": "m^2/s^2"}}}}
+    assert [(c["param"], round(c["truth"], 4), c["covered"]) for c in bench.interval_check(both, prob, "dough")][2:] \
+        == [("yield_stress/E", 0.05, False)]
     assert bench.interval_check({**res, "effect": "gripper_slip"}, prob, "dough") == []
     assert bench.interval_check(res, {**prob, "truth": "plasticity+viscosity"}, "dough") == []
     assert bench.interval_check({**res, "uncertainty": None}, prob, "dough") == []

@@ -610,6 +610,8 @@ def view_jackknife_bodies(rec_dir, scene, *, particles_per_cell: float, voxel_m:
 MIN_TRIMMED_SHARE = 0.01
 #: The label of that body (a variant of the doctor's, ``doctor.json``'s ``variants``).
 TRIMMED_BODY = "body trimmed to the measured surface"
+#: How :func:`trimmed_body`'s label ends where the trim would remove (almost) nothing: no share is left out.
+SAME_BODY = "the doctor's body already is that body"
 
 
 def trimmed_body(rec_dir, scene, *, particles_per_cell: float) -> Tuple[str, object]:
@@ -640,7 +642,7 @@ def trimmed_body(rec_dir, scene, *, particles_per_cell: float) -> Tuple[str, obj
     less = 1.0 - float(np.sum(sc.volumes)) / max(float(np.sum(scene.volumes)), 1e-30)
     if share < MIN_TRIMMED_SHARE and less < MIN_TRIMMED_SHARE:
         return (f"{TRIMMED_BODY}: {100 * share:.1f} % of the particles lay outside the measured surface, under "
-                f"{100 * MIN_TRIMMED_SHARE:g} %: the doctor's body already is that body"), None
+                f"{100 * MIN_TRIMMED_SHARE:g} %: {SAME_BODY}"), None
     grip0 = np.asarray(scene.ee_grip)[0] if scene.ee_grip is not None and len(scene.ee_configs) else ()
     held = any(g and cfg.shape == "box" for g, cfg in zip(grip0, scene.ee_configs))
     return (f"{TRIMMED_BODY} ({100 * share:.1f} % of the particles removed, {100 * less:.1f} % of the volume"

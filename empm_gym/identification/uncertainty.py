@@ -273,8 +273,9 @@ def newton_bootstrap(per_frame: np.ndarray, dz: np.ndarray, *, n_boot: int = 200
     than 0.3 of its unit vector) get +-inf.
 
     Returns ``step`` [n] (the Newton step of all frames), ``H`` [n, n], ``g`` [n], ``draws`` [n_boot, n]
-    (Newton steps of the resamples), ``residual`` (rms misfit of the quadratic relative to the spread of
-    the mean loss over the design).
+    (Newton steps of the resamples), ``g_draws`` [n_boot, n] and ``H_draws`` [n_boot, n, n] (the resamples'
+    gradients and curvatures), ``residual`` (rms misfit of the quadratic relative to the spread of the mean loss
+    over the design).
     """
     L = np.asarray(per_frame, np.float64)
     dz = np.asarray(dz, np.float64)
@@ -308,7 +309,8 @@ def newton_bootstrap(per_frame: np.ndarray, dz: np.ndarray, *, n_boot: int = 200
                 unbounded += direction * V[:, k] * (np.abs(V[:, k]) > 0.3)
         s[unbounded != 0] = np.sign(unbounded[unbounded != 0]) * np.inf
         steps[b] = s
-    return {"step": steps[0], "g": g[0], "H": H[0], "draws": steps[1:], "residual": residual}
+    return {"step": steps[0], "g": g[0], "H": H[0], "draws": steps[1:], "g_draws": g[1:], "H_draws": H[1:],
+            "residual": residual}
 
 
 def assess_fit(result, scene, observations, *, level: float = 0.95, step: float = 0.1, n_boot: int = 2000,
@@ -354,7 +356,7 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     {...}}``, both for the material file's ``fit`` section; ``bounded_only`` is "upper" or "lower" where the
     interval runs out of the search box on one side only (:func:`one_sided_bound`), else None.
     """
-    from .data import AXIS_VARIANT
+    from .data import AXIS_VARIANT, SAME_BODY, TRIMMED_BODY
     from .offline import Objective, default_bounds
     from .problem import ParamSpace, _ForwardSim, run_together
 
@@ -373,7 +375,7 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     mu0 = result.friction if result.friction is not None else scene.table_friction
     mats = [space.material(c, base, mu0) for c in cand]
     rng = np.random.default_rng(seed)
-    draws_all, diverged, nbs, labels = [], [], [], []
+    draws_all, curv_all, diverged, nbs, labels = [], [], [], [], []
     variants = [("fitted body", scene)] + [(f"lattice {b}", None) for b in range(1, 1 + int(resample_bodies))]
     variants += [(label, sc) for label, sc in other_bodies if sc is not None]
     skipped = [label for label, sc in other_bodies if sc is None]
@@ -412,8 +414,10 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
             coarse_dropped = True
             continue
         draws_all.append(nb["draws"])
+        curv_all.append((nb["g_draws"], nb["H_draws"]))
     nb = nbs[0]
     pooled = np.concatenate(draws_all)
+    G, Hs = (np.concatenate(x) for x in zip(*curv_all))  # every kept body's resamples' gradients and curvatures
     shape_note = None
     n_shape = len(other_bodies) - len(skipped)  # bodies rebuilt from other views or completions
     axis_only = n_shape > 0 and all(label.startswith(AXIS_VARIANT) for label, sc in other_bodies if sc is not None)
@@ -440,7 +444,7 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
         unc[k] = {"interval": interval, "level": level, "determined": True,
                   "bounded_only": one_sided_bound(space, k, lo_z, hi_z)}
     # correlations between fitted parameters (finite draws only)
-    corr = {}
+    corr, combos = {}, {}
     fin = np.all(np.isfinite(pooled), 1)
     if n > 1 and fin.sum() > 10:
         C = np.corrcoef(pooled[fin].T)
@@ -448,11 +452,20 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
             for j in range(i + 1, n):
                 r = float(C[i, j]) if np.isfinite(C[i, j]) else 0.0
                 corr[f"{names[i]},{names[j]}"] = r
-                if abs(r) > 0.95:
-                    for a, b in ((i, j), (j, i)):
-                        reasons[names[a]].append(f"correlated with {names[b]} (r = {r:+.2f}): only a combination of "
-                                                 f"the two is determined")
-    combos = {}
+                if abs(r) <= CORRELATED:
+                    continue
+                # E (or a yield stress, a viscosity) with the density: their ratio, below, is the combination
+                by_density = "density" in (names[i], names[j]) and {names[i], names[j]} & set(DENSITY_SCALED)
+                pc = None if by_density else pair_combination(
+                    space, names[i], names[j], z0[[i, j]], nb["H"][np.ix_([i, j], [i, j])], G[:, [i, j]],
+                    Hs[:, [i, j]][:, :, [i, j]], r, level=level)
+                if pc is not None:
+                    combos[_power_name(names[i], names[j], pc["exponent"])] = pc
+                what = (f"only the combination {_power_name(names[i], names[j], pc['exponent'])} = "
+                        f"{pc['value']:.4g} is determined (see the combinations)" if pc and pc["determined"]
+                        else "at most a combination of the two is determined")
+                for a, b in ((i, j), (j, i)):
+                    reasons[names[a]].append(f"correlated with {names[b]} (r = {r:+.2f}): {what}")
     rho_fitted = "density" in names
     for k in DENSITY_SCALED:
         if k not in names:
@@ -479,6 +492,12 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
         warnings.append(f"{len(diverged)} of {len(cand) * len(variants)} probe simulations diverged: the interval "
                         f"is approximate")
     for label in skipped:
+        if label.endswith(SAME_BODY):  # the trim would remove almost nothing: no share is left out
+            continue
+        if label.startswith(TRIMMED_BODY):
+            warnings.append(f"the frame-0 body could not be rebuilt as the {label}: the interval leaves out that "
+                            f"body's share of the body's shape")
+            continue
         warnings.append(f"the frame-0 body could not be rebuilt {label}: the interval leaves out that view's share "
                         f"of the body's shape")
     if shape_note:
@@ -525,6 +544,95 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                                  for lab, m in zip(labels, nbs)} if n == 1 else None),
                 "warnings": warnings, "combinations": combos, "correlation": corr, "resolution": resolution,
                 "curvature": nb["H"].tolist(), "quadratic_misfit": nb["residual"]}}
+
+
+#: Above this correlation of two fitted parameters' minima over the resamples, neither is determined alone.
+CORRELATED = 0.95
+
+
+def _power_name(a: str, b: str, p: float) -> str:
+    """``b * a^p`` written for a reader: "yield_stress/E", "viscosity/E^0.5", "grip_friction*E^2"."""
+    if p == -1.0:
+        return f"{b}/{a}"
+    if p == 1.0:
+        return f"{b}*{a}"
+    return f"{b}/{a}^{-p:g}" if p < 0 else f"{b}*{a}^{p:g}"
+
+
+def _power_unit(ua: str, ub: str, p: float) -> str:
+    """SI unit of ``b * a^p`` from the parameters' units ("-" for none)."""
+    if ua == ub:
+        return "-" if 1.0 + p == 0.0 else (ua if 1.0 + p == 1.0 else f"{ua}^{1.0 + p:g}")
+    if ua == "-":
+        return ub
+    pa = ua if p == 1.0 else f"{ua}^{p:g}"
+    return pa if ub == "-" else f"{ub} {pa}"
+
+
+def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarray, g_draws: np.ndarray,
+                     H_draws: np.ndarray, r: float, *, level: float = 0.95) -> Optional[dict]:
+    """The combination of two correlated log-scale parameters ``a`` and ``b`` that the frames fix.
+
+    Two correlated values lie on a ridge of the loss: along it the loss is flat (or falls: a yield stress and E
+    where the frames show where yield begins but not the stiffness, whose resamples' Newton steps run off to
+    infinity), across it the loss is curved. The direction across it is the stiffer eigenvector of ``H`` (the
+    all-frames curvature of the pair, [2, 2], in the optimiser's coordinates of ``space``, a
+    :class:`~.problem.ParamSpace`): on log scales, the power law ``b * a^p`` in SI units that stays constant
+    along the ridge. ``p`` is snapped to a quarter where the curvature across is at least 1 / 1.25^2 of the
+    stiffest (the interval at most a quarter wider), else rounded to two decimals. Each resample (gradients
+    ``g_draws`` [m, 2] and curvatures ``H_draws`` [m, 2, 2], :func:`newton_bootstrap`'s, pooled over bodies)
+    puts the loss's minimum along that direction from the fit ``z_fit`` somewhere: the ``level`` interval of the
+    combination there (a resample with no curvature along it runs off: an open end).
+
+    Returns ``{"value" (at the fit), "interval", "level", "unit", "of", "exponent", "correlation", "determined",
+    "note"}``; ``determined`` where the interval is closed and spans at most :data:`WIDE_INTERVAL` of ``b``'s
+    search box (log scale): the standard ``b`` alone would be held to if ``a`` were known. None where either
+    parameter is not on a log scale (nu, the stiffness slopes: no power law), the loss is not curved across
+    any direction, or the stiff direction runs along ``a`` (then ``b`` does not enter)."""
+    from empm_gym.sim.effects import parameter
+
+    if parameter(a).transform != "log" or parameter(b).transform != "log" or len(g_draws) < 3:
+        return None
+    w, V = np.linalg.eigh(np.asarray(H, float))
+    if not w[1] > 0.0 or abs(V[1, 1]) < 1e-3:
+        return None
+    p_exact = float(V[0, 1] / V[1, 1])
+    across = lambda p: float(np.array([p, 1.0]) @ H @ np.array([p, 1.0])) / (1.0 + p * p)
+    p = round(4.0 * p_exact) / 4.0
+    if p == 0.0 or across(p) < w[1] / 1.25 ** 2:
+        p = round(p_exact, 2)
+    if p == 0.0:
+        return None
+    u = np.array([p, 1.0]) / np.hypot(p, 1.0)
+    sa, sb = parameter(a).scale, parameter(b).scale
+    # log of b * a^p in SI units at the fit; a step t along u moves it by t * |(p, 1)|
+    c_fit = z_fit[1] + np.log(sb) + p * (z_fit[0] + np.log(sa))
+    slope = np.einsum("i,i->", u, np.array([p, 1.0]))
+    gu = np.asarray(g_draws, float) @ u
+    hu = np.einsum("i,mij,j->m", u, np.asarray(H_draws, float), u)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(hu > 0.0, -gu / np.where(hu > 0.0, hu, 1.0), np.where(gu > 0.0, -np.inf, np.inf))
+    c = c_fit + slope * t
+    q = [(1.0 - level) / 2.0, 1.0 - (1.0 - level) / 2.0]
+    lo, hi = (float(x) for x in (np.quantile(c, q) if np.all(np.isfinite(c)) else _inf_quantiles(c, q)))
+    ib = list(space.names).index(b)
+    box = space.z_hi[ib] - space.z_lo[ib]  # held to b's own standard, as if a were known
+    name = _power_name(a, b, p)
+    determined = bool(np.isfinite(lo) and np.isfinite(hi) and hi - lo <= WIDE_INTERVAL * box)
+    lvl = f"{100 * level:.0f} %"
+    if determined:
+        note = f"{a} and {b} are correlated (r = {r:+.2f}): the frames fix {name}, not either alone"
+    elif not (np.isfinite(lo) and np.isfinite(hi)):
+        note = (f"{a} and {b} are correlated (r = {r:+.2f}), and the loss has no minimum along {name} in more than "
+                f"{(1.0 - level) / 2.0:.1%} of the resamples: not determined either")
+    else:
+        note = (f"{a} and {b} are correlated (r = {r:+.2f}), and even {name}'s {lvl} interval spans "
+                f"{(hi - lo) / box:.0%} of {b}'s search box (log scale): not determined either")
+    with np.errstate(over="ignore"):
+        interval = [float(np.exp(lo)), float(np.exp(hi))]
+    return {"value": float(np.exp(c_fit)), "interval": interval, "level": level,
+            "unit": _power_unit(parameter(a).unit, parameter(b).unit, p), "of": [a, b], "exponent": p,
+            "correlation": float(r), "determined": determined, "note": note}
 
 
 def box_reasons(space, name: str, z_fit: float, z_min: float, lo_z: float, hi_z: float, *,

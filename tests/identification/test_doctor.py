@@ -2592,3 +2592,30 @@ def test_a_value_the_frames_do_not_fix_is_said_so_with_its_bound_and_why():
                            "by these frames (yield_stress: correlated with E (r = +1.00))"), note
     assert "E = " not in note and "grid" not in note
     assert undetermined_note("plasticity", {"E": 3e4}, {"uncertainty": {"E": u}}) is None
+
+
+def test_the_combination_the_frames_fix_is_named_where_its_values_are_not():
+    """Two correlated values (E and the yield stress, r = 0.99) are each not determined; the combination the
+    frames fix (yield_stress/E, a yield strain) is named in the note with its interval and gets its own row of the
+    report's table; one that is not determined either gets a row that says why, and no mention in the note; a
+    ratio to an assumed density (no verdict of its own) gets neither."""
+    from empm_gym.identification.doctor.core import interval_rows, undetermined_note
+
+    u = {"interval": [1e3, 1e6], "level": 0.95, "determined": False, "bounded_only": None}
+    ys_e = {"value": 0.0151, "interval": [0.0142, 0.0160], "level": 0.95, "unit": "-", "of": ["E", "yield_stress"],
+            "exponent": -1.0, "correlation": 0.99, "determined": True, "note": "..."}
+    res = {"effect": "plasticity",
+           "candidates": [{"effect": "plasticity", "params": {"E": 2.0e4, "yield_stress": 302.0}}],
+           "uncertainty": {"E": u, "yield_stress": {**u, "interval": [50.0, 1e4]}},
+           "identifiability": {"warnings": ["E: correlated with yield_stress (r = +0.99): only the combination "
+                                            "yield_stress/E = 0.0151 is determined (see the combinations)"],
+                               "combinations": {"yield_stress/E": ys_e,
+                                                "E/density": {"value": 20.0, "unit": "m^2/s^2", "note": "..."}}}}
+    note = undetermined_note("plasticity", res["candidates"][0]["params"], res)
+    assert note.endswith("; what the frames do fix is yield_stress/E = 0.0151 (95 % interval 0.0142 to 0.016)"), note
+    rows = interval_rows(res)
+    assert [r["parameter"] for r in rows] == ["E", "yield_stress", "yield_stress/E"], rows
+    assert rows[2]["value"] == "0.0151" and rows[2]["determined"] == "yes" and rows[2]["why not"] == ""
+    res["identifiability"]["combinations"]["yield_stress/E"] = {**ys_e, "determined": False, "note": "too wide"}
+    assert "what the frames do fix" not in undetermined_note("plasticity", res["candidates"][0]["params"], res)
+    assert interval_rows(res)[2]["why not"] == "too wide"

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from empm_gym.identification.data import SAME_BODY, TRIMMED_BODY
 from empm_gym.identification.offline import identify
 from empm_gym.identification.problem import Observations, Scene, simulate_frames
 from empm_gym.identification.uncertainty import (WIDE_INTERVAL, assess_fit, body_thickness, box_reasons, grid_resolution,
@@ -140,7 +141,9 @@ def test_other_bodies_put_the_shape_into_the_interval(exact_fits):
     thin = dataclasses.replace(p.scene, particles=x, volumes=v)
     alone = assess_fit(r, p.scene, p.obs, resample_bodies=0)
     both = assess_fit(r, p.scene, p.obs, resample_bodies=0,
-                      other_bodies=[("thin", thin), ("without camera 2: encloses no volume", None)])
+                      other_bodies=[("thin", thin), ("without camera 2: encloses no volume", None),
+                                    (f"{TRIMMED_BODY}: 0.4 % of the particles lay outside it: {SAME_BODY}", None),
+                                    (f"{TRIMMED_BODY}: the views close no body", None)])
     m = both["identifiability"]["body_minima"]
     assert set(m) == {"fitted body", "thin"}
     lo0, hi0 = alone["uncertainty"]["E"]["interval"]
@@ -151,6 +154,8 @@ def test_other_bodies_put_the_shape_into_the_interval(exact_fits):
     assert lo <= lo0 * 1.01 and hi > hi0
     w = " ".join(both["identifiability"]["warnings"])
     assert "could not be rebuilt without camera 2" in w
+    # a trim that would remove almost nothing leaves no share out; one that failed says so as such
+    assert "0.4 %" not in w and f"could not be rebuilt as the {TRIMMED_BODY}: the views close no body" in w, w
     assert "rebuilt from other views or completions (1 bodies)" in both["identifiability"]["method"]
     note = assess_fit(r, p.scene, p.obs, resample_bodies=0, body_note="single-view (1 camera(s), ...)")
     assert "shape is taken as given (single-view (1 camera(s), ...))" in " ".join(
@@ -350,3 +355,73 @@ def test_minima_wholly_outside_the_box_give_no_interval_and_say_why(monkeypatch)
     assert not b["uncertainty"]["E"]["determined"] and b["uncertainty"]["E"]["interval"] == [0.0, math.inf]
     assert any(w.startswith("E: the loss's local model puts its minimum outside the box searched")
                for w in b["identifiability"]["warnings"]), b["identifiability"]["warnings"]
+
+
+def _ridge(p: float, across: float, n: int, seed: int = 0):
+    """Resamples' gradients and curvatures of a loss with a flat ridge along which b * a^p is constant: curved
+    (100 per unit^2) across it only, each resample's minimum across it moved by N(0, ``across``) (log units of
+    the combination). Returns (H, g_draws, H_draws)."""
+    u = np.array([p, 1.0]) / math.hypot(p, 1.0)
+    H = 100.0 * np.outer(u, u)
+    d = np.random.default_rng(seed).normal(0.0, across, n) / math.hypot(p, 1.0)  # step along u
+    return H, -(H @ u)[None] * d[:, None], np.repeat(H[None], n, 0)
+
+
+def test_the_combination_two_correlated_values_share_is_found_with_its_interval():
+    """A loss with a flat ridge of constant yield_stress / E (the frames show where yield begins, not the
+    stiffness; every resample's Newton step runs off along it) gives that ratio, its value at the fit and an
+    interval of the resamples' minima across the ridge; a ridge of constant yield_stress / sqrt(E) gives that
+    power; minima spread as widely across the ridge as the box is wide are not determined, and neither is a loss
+    that some resamples find not curved across it; nu (no log scale) gives no power law."""
+    from empm_gym.identification.problem import ParamSpace
+    from empm_gym.identification.uncertainty import pair_combination
+
+    space = ParamSpace(["E", "yield_stress"], {"E": (1e3, 1e7), "yield_stress": (50.0, 1e6)})
+    fit = [math.log(2e4 / 1e6), math.log(300.0 / 1e3)]  # E 20 kPa, yield stress 300 Pa
+    for p, ratio in ((1.0, 300.0 / 2e4), (0.5, 300.0 / math.sqrt(2e4))):
+        c = pair_combination(space, "E", "yield_stress", fit, *_ridge(-p, 0.02, 4000), 0.99)
+        assert c["exponent"] == -p and c["of"] == ["E", "yield_stress"] and c["determined"], c
+        assert c["value"] == pytest.approx(ratio, rel=1e-9)
+        lo, hi = c["interval"]
+        # 95 % of a spread of 0.02 in log: about +-4 %
+        assert lo < ratio < hi and 0.07 < math.log(hi / lo) < 0.09, (lo, hi)
+    assert c["unit"] == "Pa^0.5" and "yield_stress/E^0.5" in c["note"]
+    c = pair_combination(space, "E", "yield_stress", fit, *_ridge(-1.0, 1.5, 4000), 0.96)
+    assert not c["determined"] and "not determined either" in c["note"], c
+    H, g, Hs = _ridge(-1.0, 0.02, 4000)
+    Hs[:400] *= -1.0  # a tenth of the resamples: no minimum across the ridge
+    c = pair_combination(space, "E", "yield_stress", fit, H, g, Hs, 0.99)
+    assert not c["determined"] and "no minimum along yield_stress/E" in c["note"], c
+    nu = ParamSpace(["E", "nu"], {"E": (1e3, 1e7), "nu": (-0.5, 0.45)})
+    assert pair_combination(nu, "E", "nu", [0.0, 0.0], *_ridge(-1.0, 0.02, 100), 0.99) is None
+
+
+def test_correlated_values_name_the_combination_the_frames_fix(monkeypatch):
+    """assess_fit on a real fit of E and the table's friction, whose loss is made a ridge of constant
+    friction * E (resamples' minima spread along it and 0.01 across it): both values are not determined, the
+    combination is, with its value at the fit, and each value's reason names it."""
+    import empm_gym.identification.uncertainty as U
+
+    p = scenes.rope_lift(E=E_TRUE, frames=8, seed=1, same_body=True)
+    r = identify(p.obs, p.scene, params=("E", "friction"), method="cmaes", init={"E": E_TRUE}, iters=1, popsize=4,
+                 progress=False)
+    real = U.newton_bootstrap
+
+    def ridge(*args, **kw):
+        nb = real(*args, **kw)
+        n = len(nb["draws"])
+        t = np.random.default_rng(3).normal(0.0, 0.5, n)
+        H, g, Hs = _ridge(1.0, 0.01, n)
+        return {**nb, "draws": np.c_[t, -t + np.random.default_rng(4).normal(0.0, 0.01, n)], "step": np.zeros(2),
+                "H": H, "g_draws": g, "H_draws": Hs}
+
+    monkeypatch.setattr(U, "newton_bootstrap", ridge)
+    a = assess_fit(r, p.scene, p.obs, resample_bodies=0, refine_grid=False)
+    assert not a["uncertainty"]["E"]["determined"] and not a["uncertainty"]["friction"]["determined"]
+    c = a["identifiability"]["combinations"]["friction*E"]
+    assert c["determined"] and c["exponent"] == 1.0 and c["unit"] == "Pa", c
+    assert c["value"] == pytest.approx(r.params["E"] * r.params["friction"], rel=1e-9)
+    lo, hi = c["interval"]
+    assert lo < c["value"] < hi and hi / lo < 1.1
+    w = a["identifiability"]["warnings"]
+    assert any(x.startswith("E: correlated with friction") and "only the combination friction*E" in x for x in w), w

@@ -1802,9 +1802,24 @@ def undetermined_note(model: str, params: Dict[str, float], intervals: dict) -> 
     if not bad:
         return None
     why = [f"{k}: {r}" for k in bad for r in _reasons(intervals, k)]
+    fixed = [f"{name} = {_with_unit(c)} ({interval_words(c)})" for name, c in _pair_combinations(intervals)
+             if c["determined"]]
     return (f"{model}'s fitted " + ", ".join(f"{k} = {params[k]:.4g} ({interval_words(unc[k])})" for k in bad)
             + f" {'is' if len(bad) == 1 else 'are'} not determined by these frames ({'; '.join(why)}): the verdict "
-              f"rests on the held-out gain, not on these values; do not read them as a measurement")
+              f"rests on the held-out gain, not on these values; do not read them as a measurement"
+            + (f"; what the frames do fix is {' and '.join(fixed)}" if fixed else ""))
+
+
+def _pair_combinations(intervals: dict) -> List[tuple]:
+    """``(name, entry)`` of the combinations of two correlated parameters that
+    :func:`~empm_gym.identification.uncertainty.pair_combination` gave (not the ratios to an assumed density)."""
+    combos = (intervals.get("identifiability") or {}).get("combinations") or {}
+    return [(k, c) for k, c in combos.items() if "determined" in c]
+
+
+def _with_unit(c: dict) -> str:
+    """A combination's value with its unit ("0.0151" for a dimensionless one, "2.12 Pa^0.5")."""
+    return f"{c['value']:.4g}" + ("" if c["unit"] == "-" else f" {c['unit']}")
 
 
 def _reasons(intervals: dict, k: str) -> List[str]:
@@ -1824,6 +1839,10 @@ def interval_rows(result: dict) -> List[dict]:
                      "interval": interval_words(u),
                      "determined": "yes" if u["determined"] else "no",
                      "why not": "; ".join(_reasons(result, k))})
+    for name, c in _pair_combinations(result):
+        rows.append({"parameter": name, "value": _with_unit(c),
+                     "interval": interval_words(c), "determined": "yes" if c["determined"] else "no",
+                     "why not": "" if c["determined"] else c["note"]})
     return rows
 
 
