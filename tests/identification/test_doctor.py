@@ -1407,7 +1407,10 @@ def test_doctor_cli_marks_fits_at_their_search_bound(tmp_path, capsys, monkeypat
                            "grip_friction": {"interval": [0.0, 1.2], "level": 0.95, "determined": False,
                                              "bounded_only": "upper"}},
            "identifiability": {"warnings": ["grip_friction: the loss is flat within the frame-to-frame noise below "
-                                            "the fit"]}}
+                                            "the fit"],
+                               "combinations": {"grip_friction*E": {
+                                   "value": 2.684e4, "interval": [2.5e4, 2.9e4], "level": 0.95, "unit": "Pa",
+                                   "of": ["E", "grip_friction"], "exponent": 1.0, "determined": True, "note": "..."}}}}
     seen = {}
     monkeypatch.setattr(doctor, "diagnose_recording", lambda *a, **k: seen.update(k) or res)
     assert main(["doctor", str(tmp_path), "--out", str(tmp_path / "out"), "--control-delay", "1.5",
@@ -1419,6 +1422,7 @@ def test_doctor_cli_marks_fits_at_their_search_bound(tmp_path, capsys, monkeypat
     assert "gripper_slip E = 2.994e+04 (95 % interval 2.1e+04 to 3.9e+04)\n" in out
     assert ("gripper_slip grip_friction = 0.8967 (95 %: at most 1.2): not determined (the loss is flat within the "
             "frame-to-frame noise below the fit)\n") in out
+    assert "gripper_slip grip_friction*E = 2.684e+04 Pa (95 % interval 2.5e+04 to 2.9e+04)\n" in out  # what they fix
     assert "base model: E=2000 (at bound)" in out
     assert "(significant); fitted E=2.994e+04, grip_friction=0.8967\n" in out
     assert "fitted E=2003 (at bound), fracture_strain=0.02 (at bound)" in out
