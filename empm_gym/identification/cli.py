@@ -299,7 +299,8 @@ def _print_uncertainty(extra: dict) -> None:
     for name, c in idf["combinations"].items():
         iv = c.get("interval")
         iv = f" [{iv[0]:.4g}, {iv[1]:.4g}]" if iv else ""
-        print(f"  {name:14s} {c['value']:.4g}{iv} {c['unit']}: {c['note']}")
+        unit = "" if c["unit"] == "-" else f" {c['unit']}"
+        print(f"  {name:14s} {c['value']:.4g}{iv}{unit}: {c['note']}")
     for w in idf["warnings"]:
         print(f"  warning: {w}")
 

@@ -425,3 +425,17 @@ def test_correlated_values_name_the_combination_the_frames_fix(monkeypatch):
     assert lo < c["value"] < hi and hi / lo < 1.1
     w = a["identifiability"]["warnings"]
     assert any(x.startswith("E: correlated with friction") and "only the combination friction*E" in x for x in w), w
+
+
+def test_identify_prints_a_combination_with_its_interval_and_unit(capsys):
+    """`empm identify`'s lines for combinations: a dimensionless one without a unit, a ratio to the density with
+    its unit, each with its interval where it has one."""
+    from empm_gym.identification.cli import _print_uncertainty
+
+    u = {"interval": [1e3, 1e6], "level": 0.95, "determined": False, "bounded_only": None}
+    _print_uncertainty({"uncertainty": {"E": u}, "identifiability": {"warnings": ["E: correlated"], "combinations": {
+        "yield_stress/E": {"value": 0.0151, "interval": [0.0142, 0.016], "unit": "-", "note": "the frames fix it"},
+        "E/density": {"value": 20.0, "unit": "m^2/s^2", "note": "only E/density"}}}})
+    out = capsys.readouterr().out
+    assert "  yield_stress/E 0.0151 [0.0142, 0.016]: the frames fix it\n" in out, out
+    assert "  E/density      20 m^2/s^2: only E/density\n" in out and "warning: E: correlated" in out, out
