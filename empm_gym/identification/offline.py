@@ -320,18 +320,24 @@ class Objective:
         that the mean over frames weighs every visible track entry equally, as :meth:`torch` does (the mean over the
         frames that hold observed points: a frame without them is NaN). Non-finite input gives large finite terms.
         """
+        depth, tracks = self.per_frame_terms(X)
+        return depth if tracks is None else depth + tracks
+
+    def per_frame_terms(self, X: np.ndarray) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+        """:meth:`per_frame`'s two terms apart: (the depth's, l_dist * Chamfer_t; the tracks', None where there are
+        no tracks or none is visible in frames 1 .. F-1). Non-finite input gives large finite depth terms and no
+        track terms."""
         n = int(self.seen[1:self.frames].sum())
         if not np.all(np.isfinite(X[: self.frames])):
-            return np.where(self.seen[1:self.frames], _DIVERGED_LOSS, np.nan)
+            return np.where(self.seen[1:self.frames], _DIVERGED_LOSS, np.nan), None
         Xf = np.asarray(X[: self.frames], np.float64)
-        out = self.l_dist * self.chamfer(self.predicted_points(Xf), first=1, unseen=self.unseen_points(Xf))
-        if self.track_index is not None:
-            vis = self.visible[1:]
-            if vis.any():
-                pred = self._predicted_tracks(np.asarray(X, np.float64))
-                sq = np.where(vis, np.sum((pred - self.tracks[1:]) ** 2, -1), 0.0)
-                out = out + self.track_term * sq.sum(1) / (vis.sum() / n)
-        return out
+        depth = self.l_dist * self.chamfer(self.predicted_points(Xf), first=1, unseen=self.unseen_points(Xf))
+        if self.track_index is None or not self.visible[1:].any():
+            return depth, None
+        vis = self.visible[1:]
+        pred = self._predicted_tracks(np.asarray(X, np.float64))
+        sq = np.where(vis, np.sum((pred - self.tracks[1:]) ** 2, -1), 0.0)
+        return depth, self.track_term * sq.sum(1) / (vis.sum() / n)
 
 
 @dataclass

@@ -439,3 +439,29 @@ def test_identify_prints_a_combination_with_its_interval_and_unit(capsys):
     out = capsys.readouterr().out
     assert "  yield_stress/E 0.0151 [0.0142, 0.016]: the frames fix it\n" in out, out
     assert "  E/density      20 m^2/s^2: only E/density\n" in out and "warning: E: correlated" in out, out
+
+
+@pytest.mark.slow
+def test_depth_and_tracks_that_disagree_widen_the_interval_to_span_both():
+    """A rope lifted whose depth was recorded from a rope of E = 50 kPa and whose tracks from one of E = 150 kPa
+    (as a tracker's bias or a wrong body might make them disagree): each measurement alone puts E near its own
+    rope's, their intervals do not overlap, a warning says so and E's interval spans both, wide enough not to be
+    determined. On the one rope's own depth and tracks the interval holds the truth."""
+    soft = scenes.rope_lift(E=E_TRUE, frames=12, seed=2, same_body=True)
+    stiff = scenes.rope_lift(E=3 * E_TRUE, frames=12, seed=2, same_body=True)
+    mixed = Observations(soft.obs.fps, soft.obs.points, tracks=stiff.obs.tracks, visibility=stiff.obs.visibility)
+    out = {}
+    for name, obs in (("mixed", mixed), ("soft", soft.obs)):
+        r = identify(obs, soft.scene, params=("E",), method="adam", init={"E": 1.5 * E_TRUE}, iters=4, progress=False)
+        out[name] = assess_fit(r, soft.scene, obs, resample_bodies=0, refine_grid=False)
+    src = out["mixed"]["identifiability"]["by_source"]["E"]
+    assert src["depth"][1] < src["tracks"][0], src  # the depth's interval lies wholly below the tracks'
+    assert src["depth"][0] < 1.3 * E_TRUE and src["tracks"][1] > 2.3 * E_TRUE, src
+    u = out["mixed"]["uncertainty"]["E"]
+    assert u["interval"][0] <= src["depth"][1] and u["interval"][1] >= src["tracks"][0], u
+    w = out["mixed"]["identifiability"]["warnings"]
+    assert any(x.startswith("the depth alone puts E at") and "disagree beyond their noise" in x for x in w), w
+    assert not u["determined"] and any(x.startswith("E: the loss is") for x in w), w
+    s = out["soft"]["identifiability"]
+    lo, hi = out["soft"]["uncertainty"]["E"]["interval"]
+    assert lo <= E_TRUE <= hi and "checked against the depth alone and the tracks alone" in s["method"], (lo, hi)
