@@ -407,13 +407,14 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     runs = run_together([sim.steps(F, queued=True) for sim in sims])
     for b, ((label, sc), obj, (X, div, _)) in enumerate(zip(variants, objs, runs)):
         diverged += div
-        L = np.stack([obj.per_frame(X[:, w]) for w in range(len(cand))])
+        terms = [obj.per_frame_terms(X[:, w]) for w in range(len(cand))]  # (depth, tracks or None) per world
+        L = np.stack([d if t is None else d + t for d, t in terms])  # Objective.per_frame's
         L = L[:, obj.seen[1:F]]  # a frame without observed points is not scored
         nb = newton_bootstrap(L, dz, n_boot=n_boot, seed=seed + b)
         nbs.append(nb)
         labels.append(label)
         if b == 0:
-            by_source = _by_source(obj, X, len(cand), F, dz, n_boot=n_boot, seed=seed)
+            by_source = _by_source(obj, terms, F, dz, n_boot=n_boot, seed=seed)
         if sc is coarser is not None and (not np.all(np.isfinite(nb["step"])) or
                                           np.mean(~np.all(np.isfinite(nb["draws"]), 1)) > (1.0 - level) / 2.0):
             # the grid's share is how far the minimum moves; where the coarser grid's loss has none (or its own
@@ -653,11 +654,10 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
             "correlation": float(r), "determined": determined, "note": note}
 
 
-def _by_source(obj, X: np.ndarray, n_worlds: int, F: int, dz: np.ndarray, *, n_boot: int, seed: int) -> dict:
-    """:func:`newton_bootstrap` of the depth's and the tracks' terms of ``obj``'s loss apart
-    (:meth:`~.offline.Objective.per_frame_terms`), on the probes ``X`` [F, worlds, N, 3] of the fitted body:
-    ``{"depth": ..., "tracks": ...}``, or {} where the loss has only one of them."""
-    terms = [obj.per_frame_terms(X[:, w]) for w in range(n_worlds)]
+def _by_source(obj, terms: list, F: int, dz: np.ndarray, *, n_boot: int, seed: int) -> dict:
+    """:func:`newton_bootstrap` of the depth's and the tracks' terms of ``obj``'s loss apart (``terms``: per probe,
+    :meth:`~.offline.Objective.per_frame_terms` of the fitted body's simulation): ``{"depth": ..., "tracks": ...}``,
+    or {} where the loss has only one of them."""
     if obj.l_dist <= 0.0 or any(t is None for _, t in terms):
         return {}
     seen = obj.seen[1:F]
@@ -673,12 +673,17 @@ def _quantiles(v: np.ndarray, q) -> tuple:
 def _sources_apart(space, k: str, i: int, z0: np.ndarray, by_source: dict, q) -> Optional[dict]:
     """Where the depth alone and the tracks alone (:func:`_by_source`) put parameter ``k``'s (index ``i``) minimum in
     intervals (quantiles ``q`` of their resamples) that do not overlap: ``{"warning", "lo_z", "hi_z"}`` (their ends,
-    optimiser coordinates); None where they overlap, an interval is open on the side facing the other, or there
-    are not both."""
+    optimiser coordinates); None where they overlap, where either's end that faces the other is open or outside
+    the search box (the loss of that measurement alone is flat there, or its local model does not fit it: it places
+    nothing there), or where there are not both."""
     if not by_source:
         return None
     (lo_d, hi_d), (lo_t, hi_t) = (_quantiles(z0[i] + by_source[s]["draws"][:, i], q) for s in ("depth", "tracks"))
-    if not (hi_d < lo_t or hi_t < lo_d):
+    zl, zh = space.z_lo[i], space.z_hi[i]
+    # the ends that face each other must lie in the box: a measurement whose minimum runs off that way, or lies
+    # beyond the box, places nothing there
+    facing = (hi_d, lo_t) if hi_d < lo_t else (hi_t, lo_d) if hi_t < lo_d else None
+    if facing is None or not zl <= facing[0] < facing[1] <= zh:
         return None
     words = {s: f"{_from_z(space, k, lo):.4g} to {_from_z(space, k, hi):.4g}"
              for s, lo, hi in (("depth", lo_d, hi_d), ("tracks", lo_t, hi_t))}
