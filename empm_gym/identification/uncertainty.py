@@ -341,12 +341,12 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     held only noise and lattices). A grid that resolves the body (at least that many cells) adds its share on a
     grid :data:`COARSER_GRID` times coarser, while the body keeps :data:`MIN_CELLS_ACROSS` cells there
     (:func:`coarser_grid_scene`): three cells across is not convergence (``empm synth``'s rope at 3.4 cells
-    fitted E 7 % low, outside an interval of noise, lattices and views alone). Where the loss has both a depth
-    and a tracks term, each alone gives its own interval on the fitted body (``identifiability.by_source``); where
-    the two do not overlap, the measurements disagree beyond their noise (a tracker's or a segmenter's error, a
-    wrong body, the Chamfer's own bias: seed 25's dough squeezed and lifted with a tracker's and a segmenter's
-    errors had E 56 kPa "determined" within 9 % against a true 19 kPa, session 87), a warning says so and the
-    interval spans both (its width then decides whether the value is determined). It assumes
+    fitted E 7 % low, outside an interval of noise, lattices and views alone). The fitted body's loss is also
+    split in halves (:data:`SPLITS`): the depth's and the tracks' terms (where it has both), the first and the
+    second half of the fitting frames; each half alone gives its own interval (``identifiability.splits``), and
+    where a pair's do not overlap, a warning says why they may disagree (a tracker's or a segmenter's error, a
+    wrong body, the Chamfer's own bias; a model that does not hold alike over the recording) and the interval
+    spans both (its width then decides whether the value is determined). It assumes
     the model is right up to noise that is stationary and weakly dependent over frames (blocks of frames
     are resampled); the grid's resolution is checked separately.
 
@@ -414,7 +414,7 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
         nbs.append(nb)
         labels.append(label)
         if b == 0:
-            by_source = _by_source(obj, terms, F, dz, n_boot=n_boot, seed=seed)
+            splits = _splits(obj, terms, obj.seen[1:F], dz, n_boot=n_boot, seed=seed)
         if sc is coarser is not None and (not np.all(np.isfinite(nb["step"])) or
                                           np.mean(~np.all(np.isfinite(nb["draws"]), 1)) > (1.0 - level) / 2.0):
             # the grid's share is how far the minimum moves; where the coarser grid's loss has none (or its own
@@ -447,13 +447,15 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
             hi_z = z0[i]
         if np.isposinf(lo_z):
             lo_z = z0[i]
-        apart = _sources_apart(space, k, i, z0, by_source, q)
-        if apart:
-            # the depth alone and the tracks alone put the minimum in places their noise does not join: one of
-            # them holds an error (a tracker's, a segmenter's, the body's, the Chamfer's own bias) that the
-            # bootstrap over frames does not see; the interval spans both, and its width decides, as for any other
-            warnings.append(apart["warning"])
-            lo_z, hi_z = min(lo_z, *apart["lo_z"]), max(hi_z, *apart["hi_z"])
+        for split, halves in splits.items():
+            apart = _halves_apart(space, k, i, z0, split, halves, q)
+            if apart:
+                # two halves of the loss put the minimum in places the frames' noise does not join: the depth and
+                # the tracks (a tracker's, a segmenter's, the body's error, the Chamfer's own bias), or the early
+                # and the late frames (a model that does not hold alike); the bootstrap over frames sees none of
+                # it. The interval spans both, and its width decides, as for any other.
+                warnings.append(apart["warning"])
+                lo_z, hi_z = min(lo_z, *apart["lo_z"]), max(hi_z, *apart["hi_z"])
         interval = [_from_z(space, k, lo_z), _from_z(space, k, hi_z)]
         reasons[k] += box_reasons(space, k, z0[i], z0[i] + nb["step"][i], lo_z, hi_z, level=level)
         unc[k] = {"interval": interval, "level": level, "determined": True,
@@ -551,16 +553,17 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                            + (f", and on a finer grid (dx = {finer.dx:.3g} m)" if finer is not None else "")
                            + (f", and on a coarser grid (dx = {coarser.dx:.3g} m)" if coarser is not None
                               and not coarse_dropped else "")
-                           + ("; checked against the depth alone and the tracks alone" if by_source else "")
+                           + "".join(f"; checked against {' and '.join(SPLITS[sp][0])} alone" for sp in splits)
                            + "; assumes the model is right up to stationary, weakly dependent noise"
                            + ("" if n_shape else " and the frame-0 body's shape")),
                 # per body: where the loss's local model puts the minimum (None: it has none, the loss runs on)
                 "body_minima": ({lab: (_from_z(space, names[0], z0[0] + m["step"][0]) if np.isfinite(m["step"][0])
                                        else None)
                                  for lab, m in zip(labels, nbs)} if n == 1 else None),
-                # where the depth alone and the tracks alone put each value (their level intervals)
-                "by_source": {k: {src: [_from_z(space, k, z0[i] + v) for v in _quantiles(m["draws"][:, i], q)]
-                                  for src, m in by_source.items()} for i, k in enumerate(names)} if by_source else None,
+                # where each half of the loss (SPLITS) alone puts each value: {split: {param: {half: interval}}}
+                "splits": {sp: {k: {h: [_from_z(space, k, z0[i] + v) for v in _quantiles(m["draws"][:, i], q)]
+                                    for h, m in halves.items()} for i, k in enumerate(names)}
+                           for sp, halves in splits.items()},
                 "warnings": warnings, "combinations": combos, "correlation": corr, "resolution": resolution,
                 "curvature": nb["H"].tolist(), "quadratic_misfit": nb["residual"]}}
 
@@ -654,15 +657,34 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
             "correlation": float(r), "determined": determined, "note": note}
 
 
-def _by_source(obj, terms: list, F: int, dz: np.ndarray, *, n_boot: int, seed: int) -> dict:
-    """:func:`newton_bootstrap` of the depth's and the tracks' terms of ``obj``'s loss apart (``terms``: per probe,
-    :meth:`~.offline.Objective.per_frame_terms` of the fitted body's simulation): ``{"depth": ..., "tracks": ...}``,
-    or {} where the loss has only one of them."""
-    if obj.l_dist <= 0.0 or any(t is None for _, t in terms):
-        return {}
-    seen = obj.seen[1:F]
-    return {src: newton_bootstrap(np.stack([t[s] for t in terms])[:, seen], dz, n_boot=n_boot, seed=seed)
-            for s, src in ((0, "depth"), (1, "tracks"))}
+#: The halves a fit's loss is split into to check that each alone puts the values where the other does
+#: (:func:`_splits`): the depth's and the tracks' terms; the first and the second half of the fitting frames. Each
+#: with why the two may disagree beyond the frames' noise.
+SPLITS = {"measurement": (("the depth", "the tracks"),
+                          "one of the two measurements (or the frame-0 body) holds an error that the frames' noise "
+                          "does not show"),
+          "time": (("the first half of the fitting frames", "the second half"),
+                   "the model does not hold alike over the recording (a missing effect, a wrong body, or a "
+                   "measurement error that grows or changes with time)")}
+#: A half of the fitting frames scores at least this many frames, or the split in time is not made.
+MIN_HALF_FRAMES = 4
+
+
+def _splits(obj, terms: list, seen: np.ndarray, dz: np.ndarray, *, n_boot: int, seed: int) -> Dict[str, dict]:
+    """:func:`newton_bootstrap` of halves of the fitted body's loss (``terms``: per probe,
+    :meth:`~.offline.Objective.per_frame_terms` of its simulation; ``seen``: the frames 1 .. F-1 scored), per
+    :data:`SPLITS` entry ``{name: {half: result}}``: the depth's and the tracks' terms (where the loss has both), the
+    first and the second half of the frames (where each holds :data:`MIN_HALF_FRAMES`)."""
+    out = {}
+    if obj.l_dist > 0.0 and all(t is not None for _, t in terms):
+        out["measurement"] = {half: newton_bootstrap(np.stack([t[s] for t in terms])[:, seen], dz, n_boot=n_boot,
+                                                     seed=seed) for s, half in enumerate(SPLITS["measurement"][0])}
+    L = np.stack([d if t is None else d + t for d, t in terms])[:, seen]
+    m = L.shape[1] // 2
+    if m >= MIN_HALF_FRAMES:
+        out["time"] = {half: newton_bootstrap(part, dz, n_boot=n_boot, seed=seed)
+                       for half, part in zip(SPLITS["time"][0], (L[:, :m], L[:, m:]))}
+    return out
 
 
 def _quantiles(v: np.ndarray, q) -> tuple:
@@ -670,29 +692,24 @@ def _quantiles(v: np.ndarray, q) -> tuple:
     return tuple(np.quantile(v, q)) if np.all(np.isfinite(v)) else _inf_quantiles(v, q)
 
 
-def _sources_apart(space, k: str, i: int, z0: np.ndarray, by_source: dict, q) -> Optional[dict]:
-    """Where the depth alone and the tracks alone (:func:`_by_source`) put parameter ``k``'s (index ``i``) minimum in
-    intervals (quantiles ``q`` of their resamples) that do not overlap: ``{"warning", "lo_z", "hi_z"}`` (their ends,
-    optimiser coordinates); None where they overlap, where either's end that faces the other is open or outside
-    the search box (the loss of that measurement alone is flat there, or its local model does not fit it: it places
-    nothing there), or where there are not both."""
-    if not by_source:
-        return None
-    (lo_d, hi_d), (lo_t, hi_t) = (_quantiles(z0[i] + by_source[s]["draws"][:, i], q) for s in ("depth", "tracks"))
+def _halves_apart(space, k: str, i: int, z0: np.ndarray, split: str, halves: dict, q) -> Optional[dict]:
+    """Where the two ``halves`` of a :data:`SPLITS` entry ``split`` (:func:`_splits`) put parameter ``k``'s (index
+    ``i``) minimum in intervals (quantiles ``q`` of their resamples) that do not overlap: ``{"warning", "lo_z",
+    "hi_z"}`` (their ends, optimiser coordinates); None where they overlap, or where either's end that faces the
+    other is open or outside the search box (the loss of that half alone is flat there, or its local model does
+    not fit it: it places nothing there)."""
+    (a, lo_a, hi_a), (b, lo_b, hi_b) = ((h, *_quantiles(z0[i] + nb["draws"][:, i], q)) for h, nb in halves.items())
     zl, zh = space.z_lo[i], space.z_hi[i]
-    # the ends that face each other must lie in the box: a measurement whose minimum runs off that way, or lies
-    # beyond the box, places nothing there
-    facing = (hi_d, lo_t) if hi_d < lo_t else (hi_t, lo_d) if hi_t < lo_d else None
+    # the ends that face each other must lie in the box: a half whose minimum runs off that way, or lies beyond
+    # the box, places nothing there
+    facing = (hi_a, lo_b) if hi_a < lo_b else (hi_b, lo_a) if hi_b < lo_a else None
     if facing is None or not zl <= facing[0] < facing[1] <= zh:
         return None
-    words = {s: f"{_from_z(space, k, lo):.4g} to {_from_z(space, k, hi):.4g}"
-             for s, lo, hi in (("depth", lo_d, hi_d), ("tracks", lo_t, hi_t))}
+    words = [f"{_from_z(space, k, lo):.4g} to {_from_z(space, k, hi):.4g}" for lo, hi in ((lo_a, hi_a), (lo_b, hi_b))]
     lvl = f"{100 * (q[1] - q[0]):.0f} %"
-    return {"warning": (f"the depth alone puts {k} at {words['depth']} and the tracks alone at {words['tracks']} "
-                        f"({lvl} intervals): the two measurements disagree beyond their noise, so one of them (or "
-                        f"the frame-0 body) holds an error that the frames' noise does not show; {k}'s interval "
-                        f"spans both"),
-            "lo_z": (lo_d, lo_t), "hi_z": (hi_d, hi_t)}
+    return {"warning": (f"{a} alone puts {k} at {words[0]} and {b} alone at {words[1]} ({lvl} intervals): they "
+                        f"disagree beyond the frames' noise, so {SPLITS[split][1]}; {k}'s interval spans both"),
+            "lo_z": (lo_a, lo_b), "hi_z": (hi_a, hi_b)}
 
 
 def box_reasons(space, name: str, z_fit: float, z_min: float, lo_z: float, hi_z: float, *,
