@@ -437,6 +437,7 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                       f": the interval includes where the views place its axis, not an error of the prior itself")
     q = [(1.0 - level) / 2.0, 1.0 - (1.0 - level) / 2.0]
     warnings, reasons = [], {k: [] for k in names}
+    disagree = {k: [] for k in names}  # halves of the loss that put k apart (SPLITS): why it is not determined
     unc = {}
     draws = z0[None] + pooled
     # one z-step as a fraction of the box: "at the bound" means within 2 % of the box's z-width of an end
@@ -454,7 +455,7 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                 # the tracks (a tracker's, a segmenter's, the body's error, the Chamfer's own bias), or the early
                 # and the late frames (a model that does not hold alike); the bootstrap over frames sees none of
                 # it. The interval spans both, and its width decides, as for any other.
-                warnings.append(apart["warning"])
+                disagree[k].append(apart["warning"])
                 lo_z, hi_z = min(lo_z, *apart["lo_z"]), max(hi_z, *apart["hi_z"])
         interval = [_from_z(space, k, lo_z), _from_z(space, k, hi_z)]
         reasons[k] += box_reasons(space, k, z0[i], z0[i] + nb["step"][i], lo_z, hi_z, level=level)
@@ -542,7 +543,10 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                 unc[k].update(interval=[_from_z(space, k, -np.inf), _from_z(space, k, np.inf)], bounded_only=None)
                 reasons[k].append(f"the loss's local model puts its minimum outside the box searched ({lo:.4g} to "
                                   f"{hi:.4g} over the resamples): no interval is given")
+            reasons[k] = disagree[k] + reasons[k]  # a wide interval's first cause, where halves disagree
             warnings += [f"{k}: {r}" for r in reasons[k]]
+        else:
+            warnings += disagree[k]
     return {"uncertainty": unc,
             "identifiability": {
                 "method": (f"moving-block bootstrap over the fitted frames ({n_boot} resamples) of the minimum of a "
