@@ -934,6 +934,7 @@ class _CMAES:
         self.hist_p: List[Dict[str, float]] = []
         self.gen_mean: List[Dict[str, float]] = []
         self.pop_losses: List[List[float]] = []
+        self.population: List[List[Dict[str, float]]] = []  # every generation's members (SI), as told
         self._Z = None
 
     def _own_rng(self, fn, *a):
@@ -962,6 +963,7 @@ class _CMAES:
         self.hist_p.append(cand[i])
         self.gen_mean.append(self.space.from_z(self.es.mean[:self.n]))
         self.pop_losses.append(losses)
+        self.population.append([{k: float(v) for k, v in c.items()} for c in cand])
         return i
 
     def generation(self, losses_of) -> Tuple[List[Dict[str, float]], int]:
@@ -970,8 +972,11 @@ class _CMAES:
         return cand, self.tell(cand, losses_of(cand))
 
     def extra(self, popsize: int, sigma0: float) -> dict:
+        # the members this search evaluated and their losses: where else the loss is as low (assess_fit's basins)
         return {"popsize": popsize, "sigma0": sigma0, "evaluations": popsize * len(self.hist_l),
-                "mean_history": self.gen_mean}
+                "mean_history": self.gen_mean, "population": self.population,
+                "population_losses": [[float(v) for v in g] for g in self.pop_losses[-len(self.population):]]
+                if self.population else []}
 
 
 def _losses_of(sim: "_ForwardSim", space: ParamSpace, base_mat: MaterialConfig, scene: Scene, objective: "Objective",

@@ -491,3 +491,40 @@ def test_early_and_late_frames_that_disagree_widen_the_interval_to_span_both():
     w = a["identifiability"]["warnings"]
     assert any(x.startswith("E: the first half of the fitting frames alone puts E at") and "does not hold alike" in x
                for x in w) and not a["uncertainty"]["E"]["determined"], w
+
+
+def test_members_of_the_search_far_from_the_fit_are_tested_against_it(monkeypatch):
+    """The fit's own CMA-ES members far from it are simulated beside the probes and compared with the fit on the
+    same frames. On a rope whose loss has one basin, every such member (all of them let in) is significantly
+    worse than the fit: the interval is the one without them. Where one cannot be told from the fit (as with a
+    second basin: the test's verdict forced), its value joins the interval and is the first reason why E is not
+    determined."""
+    import empm_gym.identification.uncertainty as U
+
+    p = scenes.rope_lift(E=E_TRUE, frames=12, seed=2, same_body=True)
+    r = identify(p.obs, p.scene, params=("E",), method="cmaes", init={"E": E_TRUE}, iters=3, popsize=6,
+                 progress=False)
+    assert len(r.extra["population"]) == 3 and len(r.extra["population_losses"][0]) == 6
+    monkeypatch.setattr(U, "FAR_LOSS", 0.0)
+    alone = assess_fit(r, p.scene, p.obs, resample_bodies=0, refine_grid=False)
+    monkeypatch.setattr(U, "FAR_LOSS", 1e9)  # every member nearly as good as the best: all far ones tested
+    from empm_gym.identification.problem import ParamSpace
+
+    space = ParamSpace(["E"], {k: tuple(v) for k, v in r.extra["bounds"].items()})
+    far = U._far_members(r, space, space.to_z(r.params))
+    assert 2 <= len(far) <= U.MAX_FAR, far
+    seen = []
+    real = U.paired_gain_test
+    monkeypatch.setattr(U, "paired_gain_test", lambda *a, **kw: seen.append(real(*a, **kw)) or seen[-1])
+    tested = assess_fit(r, p.scene, p.obs, resample_bodies=0, refine_grid=False)
+    assert len(seen) == len(far) and all(t["significant"] and t["gain"] > 0.1 for t in seen), seen
+    assert tested["uncertainty"] == alone["uncertainty"]
+    assert not any("own search" in w for w in tested["identifiability"]["warnings"])
+    # a member the frames cannot tell from the fit
+    monkeypatch.setattr(U, "paired_gain_test", lambda *a, **kw: {**real(*a, **kw), "significant": False})
+    two = assess_fit(r, p.scene, p.obs, resample_bodies=0, refine_grid=False)
+    lo, hi = two["uncertainty"]["E"]["interval"]
+    assert all(lo <= m["E"] * (1 + 1e-9) and m["E"] <= hi * (1 + 1e-9) for m, _ in far), (lo, hi, far)
+    assert not two["uncertainty"]["E"]["determined"]
+    w = [x for x in two["identifiability"]["warnings"] if x.startswith("E: ")]
+    assert w[0].startswith("E: the fit's own search evaluated E = ") and "another basin" in w[0], w
