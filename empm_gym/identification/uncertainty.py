@@ -736,8 +736,9 @@ def _far_members(result, space, z0: np.ndarray) -> List[tuple]:
     if not np.isfinite(best) or not pop:
         return []
     width = space.z_hi - space.z_lo
-    members = sorted((float(v), m) for gen, gl in zip(pop, losses) for m, v in zip(gen, gl)
-                     if np.isfinite(v) and v <= best + FAR_LOSS * abs(best) and set(m) == set(space.names))
+    members = sorted(((float(v), m) for gen, gl in zip(pop, losses) for m, v in zip(gen, gl)
+                      if np.isfinite(v) and v <= best + FAR_LOSS * abs(best) and set(m) == set(space.names)),
+                     key=lambda vm: vm[0])  # equal losses keep the search's order
     out, zs = [], [z0]
     for v, m in members:
         z = space.to_z(m)

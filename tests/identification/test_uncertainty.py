@@ -528,3 +528,25 @@ def test_members_of_the_search_far_from_the_fit_are_tested_against_it(monkeypatc
     assert not two["uncertainty"]["E"]["determined"]
     w = [x for x in two["identifiability"]["warnings"] if x.startswith("E: ")]
     assert w[0].startswith("E: the fit's own search evaluated E = ") and "another basin" in w[0], w
+
+
+def test_far_members_are_the_best_of_the_search_away_from_the_fit_and_each_other():
+    """_far_members: members within FAR_LOSS of the best loss, at least FAR_STEP of the box from the fit and from
+    each other, best first, at most MAX_FAR; equal losses (members clamped to the same bound) do not break the
+    order; a fit without a population or a finite loss has none."""
+    import types
+
+    import empm_gym.identification.uncertainty as U
+    from empm_gym.identification.problem import ParamSpace
+
+    space = ParamSpace(["E"], {"E": (1e3, 1e7)})  # a box of log(1e4) = 9.2: FAR_STEP is 0.92 in log E
+    pop = [[{"E": 5e4}, {"E": 5.5e4}, {"E": 1e7}, {"E": 1e7}], [{"E": 2e3}, {"E": 6e5}, {"E": 1e3}, {"E": 2e5}]]
+    losses = [[1.0, 1.01, 1.1, 1.1], [1.2, 1.05, 2.0, 1.3]]
+    r = types.SimpleNamespace(loss=1.0, extra={"population": pop, "population_losses": losses})
+    far = U._far_members(r, space, space.to_z({"E": 5e4}))
+    # 5.5e4 lies too near the fit; 6e5 (1.05), then 1e7 (1.1; its twin is too near it), then 2e3 (1.2); 2e5 (1.3)
+    # and 1e3 (2.0) score worse than 1.25
+    assert [m["E"] for m, _ in far] == [6e5, 1e7, 2e3], far
+    assert U._far_members(types.SimpleNamespace(loss=1.0, extra={}), space, space.to_z({"E": 5e4})) == []
+    assert U._far_members(types.SimpleNamespace(loss=float("nan"), extra=r.extra), space,
+                          space.to_z({"E": 5e4})) == []
