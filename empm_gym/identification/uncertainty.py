@@ -471,7 +471,7 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
             if not test["significant"] and not lo_z <= zm[i] <= hi_z:
                 # a value the search evaluated fits these frames within their noise as well as the fit: the loss
                 # has another basin (or a flat stretch) there that the quadratic about the fit does not see
-                disagree[k].append(_basin_words(space, k, i, zm, test, q))
+                disagree[k].append(_basin_words(space, k, zm, test, q))
                 lo_z, hi_z = min(lo_z, zm[i]), max(hi_z, zm[i])
         for split, halves in splits.items():
             apart = _halves_apart(space, k, i, z0, split, halves, q)
@@ -660,14 +660,14 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
     sa, sb = parameter(a).scale, parameter(b).scale
     # log of b * a^p in SI units at the fit; a step t along u moves it by t * |(p, 1)|
     c_fit = z_fit[1] + np.log(sb) + p * (z_fit[0] + np.log(sa))
-    slope = np.einsum("i,i->", u, np.array([p, 1.0]))
+    slope = float(np.hypot(p, 1.0))
     gu = np.asarray(g_draws, float) @ u
     hu = np.einsum("i,mij,j->m", u, np.asarray(H_draws, float), u)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(hu > 0.0, -gu / np.where(hu > 0.0, hu, 1.0), np.where(gu > 0.0, -np.inf, np.inf))
     c = c_fit + slope * t
     q = [(1.0 - level) / 2.0, 1.0 - (1.0 - level) / 2.0]
-    lo, hi = (float(x) for x in (np.quantile(c, q) if np.all(np.isfinite(c)) else _inf_quantiles(c, q)))
+    lo, hi = (float(x) for x in _quantiles(c, q))
     ib = list(space.names).index(b)
     box = space.z_hi[ib] - space.z_lo[ib]  # held to b's own standard, as if a were known
     name = _power_name(a, b, p)
@@ -750,9 +750,9 @@ def _far_members(result, space, z0: np.ndarray) -> List[tuple]:
     return out
 
 
-def _basin_words(space, k: str, i: int, zm: np.ndarray, test: dict, q) -> str:
+def _basin_words(space, k: str, zm: np.ndarray, test: dict, q) -> str:
     """Why the value ``zm`` (optimiser coordinates) of the fit's search, that :func:`paired_gain_test` (``test``:
-    the fit's gain over it) cannot tell from the fit, leaves parameter ``k`` (index ``i``) not determined."""
+    the fit's gain over it) cannot tell from the fit, leaves parameter ``k`` not determined."""
     vals = ", ".join(f"{n} = {_from_z(space, n, z):.4g}" for n, z in zip(space.names, zm))
     lvl = f"{100 * (q[1] - q[0]):.0f} %"
     return (f"the fit's own search evaluated {vals}, which fits these frames within their noise as well as the fit "
