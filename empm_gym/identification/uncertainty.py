@@ -503,8 +503,8 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                     space, names[i], names[j], z0[[i, j]], nb["H"][np.ix_([i, j], [i, j])], G[:, [i, j]],
                     Hs[:, [i, j]][:, :, [i, j]], r, level=level)
                 if pc is not None:
-                    combos[_power_name(names[i], names[j], pc["exponent"])] = pc
-                what = (f"only the combination {_power_name(names[i], names[j], pc['exponent'])} = "
+                    combos[_power_name(*pc["of"], pc["exponent"])] = pc
+                what = (f"only the combination {_power_name(*pc['of'], pc['exponent'])} = "
                         f"{pc['value']:.4g} is determined (see the combinations)" if pc and pc["determined"]
                         else "at most a combination of the two is determined")
                 for a, b in ((i, j), (j, i)):
@@ -631,24 +631,31 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
     infinity), across it the loss is curved. The direction across it is the stiffer eigenvector of ``H`` (the
     all-frames curvature of the pair, [2, 2], in the optimiser's coordinates of ``space``, a
     :class:`~.problem.ParamSpace`): on log scales, the power law ``b * a^p`` in SI units that stays constant
-    along the ridge. ``p`` is snapped to a quarter where the curvature across is at least 1 / 1.25^2 of the
+    along the ridge, with ``a`` and ``b`` swapped where that keeps ``|p|`` at most 1 (the parameter that weighs
+    most in it leads: the demo's slip gave "grip_friction*E^5" before, now "E*grip_friction^0.25"). ``p`` is snapped to a quarter where the curvature across is at least 1 / 1.25^2 of the
     stiffest (the interval at most a quarter wider), else rounded to two decimals. Each resample (gradients
     ``g_draws`` [m, 2] and curvatures ``H_draws`` [m, 2, 2], :func:`newton_bootstrap`'s, pooled over bodies)
     puts the loss's minimum along that direction from the fit ``z_fit`` somewhere: the ``level`` interval of the
     combination there (a resample with no curvature along it runs off: an open end).
 
     Returns ``{"value" (at the fit), "interval", "level", "unit", "of", "exponent", "correlation", "determined",
-    "note"}``; ``determined`` where the interval is closed and spans at most :data:`WIDE_INTERVAL` of ``b``'s
-    search box (log scale): the standard ``b`` alone would be held to if ``a`` were known. None where either
-    parameter is not on a log scale (nu, the stiffness slopes: no power law), the loss is not curved across
-    any direction, or the stiff direction runs along ``a`` (then ``b`` does not enter)."""
+    "note"}`` (``of``: [a, b] after the swap, the combination ``of[1] * of[0]^exponent``); ``determined`` where the
+    interval is closed and spans at most :data:`WIDE_INTERVAL` of the leading parameter's search box (log scale):
+    the standard it would be held to alone if the other were known. None where either parameter is not on a log
+    scale (nu, the stiffness slopes: no power law), the loss is not curved across any direction, or the other's
+    power rounds to 0 (then the leader is not correlated with it)."""
     from empm_gym.sim.effects import parameter
 
     if parameter(a).transform != "log" or parameter(b).transform != "log" or len(g_draws) < 3:
         return None
-    w, V = np.linalg.eigh(np.asarray(H, float))
-    if not w[1] > 0.0 or abs(V[1, 1]) < 1e-3:
+    H, g_draws, H_draws = (np.asarray(x, float) for x in (H, g_draws, H_draws))
+    w, V = np.linalg.eigh(H)
+    if not w[1] > 0.0:
         return None
+    if abs(V[0, 1]) > abs(V[1, 1]):  # the combination is mostly a's: a leads (power 1), b's power at most 1
+        a, b, z_fit = b, a, np.asarray(z_fit, float)[::-1]
+        H, g_draws, H_draws = H[::-1, ::-1], g_draws[:, ::-1], H_draws[:, ::-1, ::-1]
+        w, V = np.linalg.eigh(H)
     p_exact = float(V[0, 1] / V[1, 1])
     across = lambda p: float(np.array([p, 1.0]) @ H @ np.array([p, 1.0])) / (1.0 + p * p)
     p = round(4.0 * p_exact) / 4.0
@@ -661,8 +668,8 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
     # log of b * a^p in SI units at the fit; a step t along u moves it by t * |(p, 1)|
     c_fit = z_fit[1] + np.log(sb) + p * (z_fit[0] + np.log(sa))
     slope = float(np.hypot(p, 1.0))
-    gu = np.asarray(g_draws, float) @ u
-    hu = np.einsum("i,mij,j->m", u, np.asarray(H_draws, float), u)
+    gu = g_draws @ u
+    hu = np.einsum("i,mij,j->m", u, H_draws, u)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(hu > 0.0, -gu / np.where(hu > 0.0, hu, 1.0), np.where(gu > 0.0, -np.inf, np.inf))
     c = c_fit + slope * t

@@ -550,3 +550,18 @@ def test_far_members_are_the_best_of_the_search_away_from_the_fit_and_each_other
     assert U._far_members(types.SimpleNamespace(loss=1.0, extra={}), space, space.to_z({"E": 5e4})) == []
     assert U._far_members(types.SimpleNamespace(loss=float("nan"), extra=r.extra), space,
                           space.to_z({"E": 5e4})) == []
+
+
+def test_the_parameter_that_weighs_most_in_a_combination_leads_it():
+    """A ridge of constant grip_friction * E^4 is written E * grip_friction^0.25 (powers at most 1, the leading
+    parameter's box the standard), with the same value at the fit."""
+    from empm_gym.identification.problem import ParamSpace
+    from empm_gym.identification.uncertainty import pair_combination
+
+    space = ParamSpace(["E", "grip_friction"], {"E": (1e3, 1e7), "grip_friction": (0.1, 1e4)})
+    fit = [math.log(2e4 / 1e6), math.log(0.7)]
+    H, g, Hs = _ridge(4.0, 0.02, 2000)  # across the ridge: (4, 1), grip_friction * E^4 fixed
+    c = pair_combination(space, "E", "grip_friction", fit, H, g, Hs, -0.98)
+    assert c["of"] == ["grip_friction", "E"] and c["exponent"] == 0.25 and c["unit"] == "Pa", c
+    assert c["value"] == pytest.approx(2e4 * 0.7 ** 0.25, rel=1e-9) and c["determined"], c
+    assert "E*grip_friction^0.25" in c["note"]
