@@ -501,7 +501,8 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                 by_density = "density" in (names[i], names[j]) and {names[i], names[j]} & set(DENSITY_SCALED)
                 pc = None if by_density else pair_combination(
                     space, names[i], names[j], z0[[i, j]], nb["H"][np.ix_([i, j], [i, j])], G[:, [i, j]],
-                    Hs[:, [i, j]][:, :, [i, j]], r, level=level)
+                    Hs[:, [i, j]][:, :, [i, j]], r, level=level,
+                    rivals=[zm[[i, j]] for zm, test in far_tests if not test["significant"]])
                 if pc is not None:
                     combos[_power_name(*pc["of"], pc["exponent"])] = pc
                 what = (f"only the combination {_power_name(*pc['of'], pc['exponent'])} = "
@@ -623,7 +624,7 @@ def _power_unit(ua: str, ub: str, p: float) -> str:
 
 
 def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarray, g_draws: np.ndarray,
-                     H_draws: np.ndarray, r: float, *, level: float = 0.95) -> Optional[dict]:
+                     H_draws: np.ndarray, r: float, *, level: float = 0.95, rivals: Sequence = ()) -> Optional[dict]:
     """The combination of two correlated log-scale parameters ``a`` and ``b`` that the frames fix.
 
     Two correlated values lie on a ridge of the loss: along it the loss is flat (or falls: a yield stress and E
@@ -636,7 +637,11 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
     stiffest (the interval at most a quarter wider), else rounded to two decimals. Each resample (gradients
     ``g_draws`` [m, 2] and curvatures ``H_draws`` [m, 2, 2], :func:`newton_bootstrap`'s, pooled over bodies)
     puts the loss's minimum along that direction from the fit ``z_fit`` somewhere: the ``level`` interval of the
-    combination there (a resample with no curvature along it runs off: an open end).
+    combination there (a resample with no curvature along it runs off: an open end). ``rivals`` ([z_a, z_b] each):
+    values the frames cannot tell from the fit (:func:`_far_members` that :func:`paired_gain_test` could not set
+    apart); the interval reaches each one's combination too (the demo's slip had E*grip_friction^0.25 "determined"
+    at 10.0 to 16.0 kPa against a true 16.7, while its search's E = 23.2 kPa and grip friction 0.66, as good a
+    fit, put it at 20.9).
 
     Returns ``{"value" (at the fit), "interval", "level", "unit", "of", "exponent", "correlation", "determined",
     "note"}`` (``of``: [a, b] after the swap, the combination ``of[1] * of[0]^exponent``); ``determined`` where the
@@ -654,6 +659,7 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
         return None
     if abs(V[0, 1]) > abs(V[1, 1]):  # the combination is mostly a's: a leads (power 1), b's power at most 1
         a, b, z_fit = b, a, np.asarray(z_fit, float)[::-1]
+        rivals = [np.asarray(zr, float)[::-1] for zr in rivals]
         H, g_draws, H_draws = H[::-1, ::-1], g_draws[:, ::-1], H_draws[:, ::-1, ::-1]
         w, V = np.linalg.eigh(H)
     p_exact = float(V[0, 1] / V[1, 1])
@@ -675,19 +681,23 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
     c = c_fit + slope * t
     q = [(1.0 - level) / 2.0, 1.0 - (1.0 - level) / 2.0]
     lo, hi = (float(x) for x in _quantiles(c, q))
+    at_rivals = [zr[1] + np.log(sb) + p * (zr[0] + np.log(sa)) for zr in rivals]
+    lo, hi = min([lo] + at_rivals), max([hi] + at_rivals)
     ib = list(space.names).index(b)
     box = space.z_hi[ib] - space.z_lo[ib]  # held to b's own standard, as if a were known
     name = _power_name(a, b, p)
     determined = bool(np.isfinite(lo) and np.isfinite(hi) and hi - lo <= WIDE_INTERVAL * box)
     lvl = f"{100 * level:.0f} %"
+    also = (f" (its interval reaches {len(at_rivals)} value(s) of the fit's search that fit as well)"
+            if at_rivals else "")
     if determined:
-        note = f"{a} and {b} are correlated (r = {r:+.2f}): the frames fix {name}, not either alone"
+        note = f"{a} and {b} are correlated (r = {r:+.2f}): the frames fix {name}, not either alone" + also
     elif not (np.isfinite(lo) and np.isfinite(hi)):
         note = (f"{a} and {b} are correlated (r = {r:+.2f}), and the loss has no minimum along {name} in more than "
                 f"{(1.0 - level) / 2.0:.1%} of the resamples: not determined either")
     else:
         note = (f"{a} and {b} are correlated (r = {r:+.2f}), and even {name}'s {lvl} interval spans "
-                f"{(hi - lo) / box:.0%} of {b}'s search box (log scale): not determined either")
+                f"{(hi - lo) / box:.0%} of {b}'s search box (log scale): not determined either" + also)
     with np.errstate(over="ignore"):
         interval = [float(np.exp(lo)), float(np.exp(hi))]
     return {"value": float(np.exp(c_fit)), "interval": interval, "level": level,

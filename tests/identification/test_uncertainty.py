@@ -565,3 +565,20 @@ def test_the_parameter_that_weighs_most_in_a_combination_leads_it():
     assert c["of"] == ["grip_friction", "E"] and c["exponent"] == 0.25 and c["unit"] == "Pa", c
     assert c["value"] == pytest.approx(2e4 * 0.7 ** 0.25, rel=1e-9) and c["determined"], c
     assert "E*grip_friction^0.25" in c["note"]
+
+
+def test_a_combination_reaches_the_values_that_fit_as_well():
+    """A value of the fit's search that the frames cannot tell from the fit puts the combination elsewhere: its
+    interval reaches it, and the note says so."""
+    from empm_gym.identification.problem import ParamSpace
+    from empm_gym.identification.uncertainty import pair_combination
+
+    space = ParamSpace(["E", "grip_friction"], {"E": (1e3, 1e7), "grip_friction": (0.1, 1e4)})
+    fit = np.array([math.log(1.2e4 / 1e6), math.log(0.7)])
+    rival = np.array([math.log(2.32e4 / 1e6), math.log(0.66)])
+    ridge = _ridge(4.0, 0.02, 2000)
+    alone = pair_combination(space, "E", "grip_friction", fit, *ridge, -0.98)
+    both = pair_combination(space, "E", "grip_friction", fit, *ridge, -0.98, rivals=[rival])
+    at = 2.32e4 * 0.66 ** 0.25
+    assert alone["interval"][1] < at and both["interval"][1] == pytest.approx(at, rel=1e-9), (alone, both)
+    assert both["interval"][0] == alone["interval"][0] and "1 value(s) of the fit's search" in both["note"]
