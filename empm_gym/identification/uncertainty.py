@@ -382,11 +382,10 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     dz = _design(n, step)
     far = _far_members(result, space, z0)  # simulated beside the fitted body's probes: another basin?
     cand = [space.from_z(z0 + d) for d in dz]
-    far_mats = [space.material(m, result.material, result.friction if result.friction is not None
-                               else scene.table_friction) for m, _ in far]
     base = result.material
     mu0 = result.friction if result.friction is not None else scene.table_friction
     mats = [space.material(c, base, mu0) for c in cand]
+    far_worlds = mats[:1] + [space.material(m, base, mu0) for m, _ in far]  # the fit, then the far members
     rng = np.random.default_rng(seed)
     draws_all, curv_all, diverged, nbs, labels = [], [], [], [], []
     variants = [("fitted body", scene)] + [(f"lattice {b}", None) for b in range(1, 1 + int(resample_bodies))]
@@ -412,7 +411,7 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
         sims.append(_ForwardSim(sc, [m for m, _ in mats], [mu for _, mu in mats]))
         variants[b] = (label, sc)
     if far:  # the fit and the far members on the fitted body, apart (a stiffer member's time step is not the probes')
-        sims.append(_ForwardSim(scene, [m for m, _ in mats[:1] + far_mats], [mu for _, mu in mats[:1] + far_mats]))
+        sims.append(_ForwardSim(scene, [m for m, _ in far_worlds], [mu for _, mu in far_worlds]))
     # every body's and grid's probes advanced together (side by side on a GPU; one after the other on a CPU)
     runs = run_together([sim.steps(F, queued=True) for sim in sims])
     far_tests = []
@@ -503,11 +502,12 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                     space, names[i], names[j], z0[[i, j]], nb["H"][np.ix_([i, j], [i, j])], G[:, [i, j]],
                     Hs[:, [i, j]][:, :, [i, j]], r, level=level,
                     rivals=[zm[[i, j]] for zm, test in far_tests if not test["significant"]])
+                what = "at most a combination of the two is determined"
                 if pc is not None:
-                    combos[_power_name(*pc["of"], pc["exponent"])] = pc
-                what = (f"only the combination {_power_name(*pc['of'], pc['exponent'])} = "
-                        f"{pc['value']:.4g} is determined (see the combinations)" if pc and pc["determined"]
-                        else "at most a combination of the two is determined")
+                    name = _power_name(*pc["of"], pc["exponent"])
+                    combos[name] = pc
+                    if pc["determined"]:
+                        what = f"only the combination {name} = {pc['value']:.4g} is determined (see the combinations)"
                 for a, b in ((i, j), (j, i)):
                     reasons[names[a]].append(f"correlated with {names[b]} (r = {r:+.2f}): {what}")
     rho_fitted = "density" in names
