@@ -47,6 +47,11 @@ THIN_CELLS = 3.0
 """A body thinner than this many cells keeps its fill (particles across it decide its bending stiffness)."""
 PROBE_COST = 3.0
 """The intervals' probes (5 worlds, forward only) of one body variant cost this many one-world forwards."""
+SCAN_COST = 2.0
+"""The intervals' scan of an Adam fit across its search box (:data:`~.uncertainty.SCAN_POINTS` values of each
+fitted parameter beside the fit, one batch on the substeps of its stiffest value: E scanned up to 5.6 times the
+start takes 2.4 times its substeps) costs this many body variants' probes per fitted parameter (measured: a rope's
+intervals on 3 lattices took 2.0 s without it, 3.1 s with 5 values)."""
 
 
 @dataclass
@@ -122,17 +127,18 @@ def estimate_s(t_frame: float, fit_frames: int, iters: int, variants: int) -> fl
 
 def plan_fit(scene, material, *, fit_frames: int, iters: int, particles_per_cell: float, budget_s: Optional[float],
              fixed: Dict[str, bool], views: int, rebuild_body=None, lr: Optional[float] = None,
-             resample_bodies: int = 2, uncertainty: bool = True):
+             resample_bodies: int = 2, uncertainty: bool = True, fitted: int = 1):
     """``(FitPlan, scene)``: the fit's settings for ``budget_s`` seconds (None or 0: the defaults, with the
     estimate) and the scene to fit (``scene`` with the plan's grid margin and body).
 
     ``fixed`` names the options the user set (``particles_per_cell``, ``iters``, ``lr``, ``frames``,
     ``margin``): those are never changed. ``views`` is the count of extra bodies the intervals will probe (one
     per camera for more than one camera, two for a single-view completion's axis), ``rebuild_body(scene, ppc)`` returns ``scene`` with its frame-0 body
-    built at another fill (None: the fill is not changed). The estimate is measured on the scene itself.
+    built at another fill (None: the fill is not changed). ``fitted``: how many parameters the fit has (the
+    intervals scan each across its box, :data:`SCAN_COST`). The estimate is measured on the scene itself.
     """
     def variants():
-        return (1 + plan.resample_bodies + views) if uncertainty else 0
+        return (1 + plan.resample_bodies + views + SCAN_COST * fitted) if uncertainty else 0
 
     plan = FitPlan(particles_per_cell=particles_per_cell, fit_frames=fit_frames, iters=iters, lr=lr,
                    motion_margin=None, resample_bodies=resample_bodies, memory_budget_bytes=None,

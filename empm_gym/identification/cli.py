@@ -160,7 +160,7 @@ def _identify(args) -> int:
     try:
         cams = len(views.cameras)
         shape_bodies = (cams if cams > 1 else 0) + (2 if (body_info.get("symmetry") or {}).get("used") else 0)
-        plan, scene = _plan(args, scene, obs, resume, F, iters, ppc, shape_bodies)
+        plan, scene = _plan(args, scene, obs, resume, F, iters, ppc, shape_bodies, len(params))
     except (ValueError, OSError) as exc:
         print(f"empm identify: error: {exc}", file=sys.stderr)
         return 2
@@ -250,10 +250,11 @@ def _identify(args) -> int:
     return 0
 
 
-def _plan(args, scene, obs, resume, F: int, iters: int, ppc: float, shape_bodies: int):
+def _plan(args, scene, obs, resume, F: int, iters: int, ppc: float, shape_bodies: int, fitted: int):
     """``(FitPlan or None, scene)``: the Adam fit's settings for the time budget (:mod:`.budget`), said on stderr
     with the estimate; a resumed fit takes the plan recorded in the file it continues. ``shape_bodies``: how many
-    rebuilt frame-0 bodies the intervals will probe (:func:`.data.view_jackknife_bodies`)."""
+    rebuilt frame-0 bodies the intervals will probe (:func:`.data.view_jackknife_bodies`); ``fitted``: how many
+    parameters are fitted (the intervals scan each across its box)."""
     import dataclasses
 
     from .budget import FitPlan, default_budget_s, plan_fit
@@ -280,7 +281,7 @@ def _plan(args, scene, obs, resume, F: int, iters: int, ppc: float, shape_bodies
                            fixed=args.user_set, views=shape_bodies, lr=args.lr,
                            rebuild_body=lambda sc, q: rebuilt_scene(args.recording, sc, particles_per_cell=q,
                                                                     points=obs.points[0]),
-                           uncertainty=not args.no_uncertainty)
+                           uncertainty=not args.no_uncertainty, fitted=fitted)
     print(f"empm identify: {plan.describe()}", file=sys.stderr)
     return plan, scene
 

@@ -351,7 +351,10 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     (:func:`_far_members`) are simulated again on the fitted body and compared with the fit frame by frame
     (:func:`paired_gain_test`); one the frames cannot tell from the fit joins the interval, and says so (seed 25's
     dough squeezed and lifted with a tracker's and a segmenter's errors moved from E = 15.2 to 56.1 kPa when 1.3 %
-    of its track entries were left out, session 86, and was then reported "determined" within 9 %). It assumes
+    of its track entries were left out, session 86, and was then reported "determined" within 9 %). A fit without
+    such a search (Adam's descent from one start) is scanned across its box instead: :data:`SCAN_POINTS` values of
+    each parameter, the others at the fit (:func:`_scan_points`), simulated beside the probes; those within
+    :data:`FAR_LOSS` of the fit's loss are compared with it as the far members are. It assumes
     the model is right up to noise that is stationary and weakly dependent over frames (blocks of frames
     are resampled); the grid's resolution is checked separately.
 
@@ -381,11 +384,15 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
     z0 = space.to_z(result.params)
     dz = _design(n, step)
     far = _far_members(result, space, z0)  # simulated beside the fitted body's probes: another basin?
+    # a fit without a search population of its own (Adam's descent from one start) is looked at across its box
+    scan = [] if result.extra.get("population") else _scan_points(space, z0)
     cand = [space.from_z(z0 + d) for d in dz]
     base = result.material
     mu0 = result.friction if result.friction is not None else scene.table_friction
     mats = [space.material(c, base, mu0) for c in cand]
-    far_worlds = mats[:1] + [space.material(m, base, mu0) for m, _ in far]  # the fit, then the far members
+    # the fit, then the far members, then the scan's values
+    far_worlds = (mats[:1] + [space.material(m, base, mu0) for m, _ in far]
+                  + [space.material(space.from_z(z), base, mu0) for z in scan])
     rng = np.random.default_rng(seed)
     draws_all, curv_all, diverged, nbs, labels = [], [], [], [], []
     variants = [("fitted body", scene)] + [(f"lattice {b}", None) for b in range(1, 1 + int(resample_bodies))]
@@ -410,18 +417,21 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
         objs.append(obj)
         sims.append(_ForwardSim(sc, [m for m, _ in mats], [mu for _, mu in mats]))
         variants[b] = (label, sc)
-    if far:  # the fit and the far members on the fitted body, apart (a stiffer member's time step is not the probes')
+    if len(far_worlds) > 1:  # the fit and the far values on the fitted body, apart (a stiffer value's time step is
+        # not the probes')
         sims.append(_ForwardSim(scene, [m for m, _ in far_worlds], [mu for _, mu in far_worlds]))
     # every body's and grid's probes advanced together (side by side on a GPU; one after the other on a CPU)
     runs = run_together([sim.steps(F, queued=True) for sim in sims])
-    far_tests = []
-    if far:
+    far_tests = []  # (values in optimiser coordinates, the fit's gain over them, where they came from)
+    if len(far_worlds) > 1:
         Xf, _, _ = runs.pop()
         Lf = np.stack([objective.per_frame(Xf[:, w]) for w in range(Xf.shape[1])])[:, objective.seen[1:F]]
-        # each far member against the fit on the same frames: is the fit better? (a member that diverged, or
-        # whose loss is not finite, is no rival)
-        far_tests = [(space.to_z(m), paired_gain_test(Lm, Lf[0], added_params=0, seed=seed))
-                     for (m, _), Lm in zip(far, Lf[1:]) if np.all(np.isfinite(Lm))]
+        # each far value against the fit on the same frames: is the fit better? (one that diverged, or whose loss
+        # is not finite, is no rival; a scan's value whose loss is not within FAR_LOSS of the fit's is not tested)
+        zs = [(space.to_z(m), "search") for m, _ in far] + [(z, "scan") for z in scan]
+        far_tests = [(z, paired_gain_test(Lm, Lf[0], added_params=0, seed=seed), src)
+                     for (z, src), Lm in zip(zs, Lf[1:]) if np.all(np.isfinite(Lm))
+                     and (src == "search" or np.mean(Lm) <= (1.0 + FAR_LOSS) * np.mean(Lf[0]))]
     for b, ((label, sc), obj, (X, div, _)) in enumerate(zip(variants, objs, runs)):
         diverged += div
         terms = [obj.per_frame_terms(X[:, w]) for w in range(len(cand))]  # (depth, tracks or None) per world
@@ -466,11 +476,12 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
             hi_z = z0[i]
         if np.isposinf(lo_z):
             lo_z = z0[i]
-        for zm, test in far_tests:
+        for zm, test, src in far_tests:
             if not test["significant"] and not lo_z <= zm[i] <= hi_z:
-                # a value the search evaluated fits these frames within their noise as well as the fit: the loss
-                # has another basin (or a flat stretch) there that the quadratic about the fit does not see
-                disagree[k].append(_basin_words(space, k, zm, test, q))
+                # a value the search evaluated (or the scan) fits these frames within their noise as well as the
+                # fit: the loss has another basin (or a flat stretch) there that the quadratic about the fit does
+                # not see
+                disagree[k].append(_basin_words(space, k, zm, test, q, src))
                 lo_z, hi_z = min(lo_z, zm[i]), max(hi_z, zm[i])
         for split, halves in splits.items():
             apart = _halves_apart(space, k, i, z0, split, halves, q)
@@ -501,7 +512,9 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                 pc = None if by_density else pair_combination(
                     space, names[i], names[j], z0[[i, j]], nb["H"][np.ix_([i, j], [i, j])], G[:, [i, j]],
                     Hs[:, [i, j]][:, :, [i, j]], r, level=level,
-                    rivals=[zm[[i, j]] for zm, test in far_tests if not test["significant"]])
+                    rivals=[zm[[i, j]] for zm, test, _ in far_tests if not test["significant"]],
+                    halves={sp: {h: (m["g_draws"][:, [i, j]], m["H_draws"][:, [i, j]][:, :, [i, j]])
+                                 for h, m in hv.items()} for sp, hv in splits.items()})
                 what = "at most a combination of the two is determined"
                 if pc is not None:
                     name = _power_name(*pc["of"], pc["exponent"])
@@ -584,8 +597,11 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                            + (f", and on a coarser grid (dx = {coarser.dx:.3g} m)" if coarser is not None
                               and not coarse_dropped else "")
                            + "".join(f"; checked against {' and '.join(SPLITS[sp][0])} alone" for sp in splits)
-                           + (f"; {len(far_tests)} members of the fit's search far from it tested against it"
-                              if far_tests else "")
+                           + (f"; {len(far)} members of the fit's search far from it tested against it"
+                              if far else "")
+                           + (f"; each value scanned across its search box ({len(scan)} values, the others at "
+                              f"the fit), those within {FAR_LOSS:.0%} of the fit's loss tested against it"
+                              if scan else "")
                            + "; assumes the model is right up to stationary, weakly dependent noise"
                            + ("" if n_shape else " and the frame-0 body's shape")),
                 # per body: where the loss's local model puts the minimum (None: it has none, the loss runs on)
@@ -624,7 +640,8 @@ def _power_unit(ua: str, ub: str, p: float) -> str:
 
 
 def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarray, g_draws: np.ndarray,
-                     H_draws: np.ndarray, r: float, *, level: float = 0.95, rivals: Sequence = ()) -> Optional[dict]:
+                     H_draws: np.ndarray, r: float, *, level: float = 0.95, rivals: Sequence = (),
+                     halves: Optional[Dict[str, Dict[str, tuple]]] = None) -> Optional[dict]:
     """The combination of two correlated log-scale parameters ``a`` and ``b`` that the frames fix.
 
     Two correlated values lie on a ridge of the loss: along it the loss is flat (or falls: a yield stress and E
@@ -641,10 +658,14 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
     values the frames cannot tell from the fit (:func:`_far_members` that :func:`paired_gain_test` could not set
     apart); the interval reaches each one's combination too (the demo's slip had E*grip_friction^0.25 "determined"
     at 10.0 to 16.0 kPa against a true 16.7, while its search's E = 23.2 kPa and grip friction 0.66, as good a
-    fit, put it at 20.9).
+    fit, put it at 20.9). ``halves`` (``{split: {half: (g_draws, H_draws)}}``, the pair's resamples of each half of
+    the loss, :data:`SPLITS`) each put the combination somewhere the same way; where a split's two halves put it in
+    intervals that do not overlap (the ends that face each other closed and within the values the box spans), the
+    interval spans both and the note says why they may disagree, as for a value alone (:func:`_halves_apart`).
 
     Returns ``{"value" (at the fit), "interval", "level", "unit", "of", "exponent", "correlation", "determined",
-    "note"}`` (``of``: [a, b] after the swap, the combination ``of[1] * of[0]^exponent``); ``determined`` where the
+    "note", "splits"}`` (``of``: [a, b] after the swap, the combination ``of[1] * of[0]^exponent``; ``splits``:
+    ``{split: {half: interval}}``); ``determined`` where the
     interval is closed and spans at most :data:`WIDE_INTERVAL` of the leading parameter's search box (log scale):
     the standard it would be held to alone if the other were known. None where either parameter is not on a log
     scale (nu, the stiffness slopes: no power law), the loss is not curved across any direction, or the other's
@@ -657,10 +678,13 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
     w, V = np.linalg.eigh(H)
     if not w[1] > 0.0:
         return None
+    halves = {sp: {h: tuple(np.asarray(x, float) for x in gh) for h, gh in hv.items()}
+              for sp, hv in (halves or {}).items()}
     if abs(V[0, 1]) > abs(V[1, 1]):  # the combination is mostly a's: a leads (power 1), b's power at most 1
         a, b, z_fit = b, a, np.asarray(z_fit, float)[::-1]
         rivals = [np.asarray(zr, float)[::-1] for zr in rivals]
         H, g_draws, H_draws = H[::-1, ::-1], g_draws[:, ::-1], H_draws[:, ::-1, ::-1]
+        halves = {sp: {h: (g[:, ::-1], Hh[:, ::-1, ::-1]) for h, (g, Hh) in hv.items()} for sp, hv in halves.items()}
         w, V = np.linalg.eigh(H)
     p_exact = float(V[0, 1] / V[1, 1])
     across = lambda p: float(np.array([p, 1.0]) @ H @ np.array([p, 1.0])) / (1.0 + p * p)
@@ -674,18 +698,34 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
     # log of b * a^p in SI units at the fit; a step t along u moves it by t * |(p, 1)|
     c_fit = z_fit[1] + np.log(sb) + p * (z_fit[0] + np.log(sa))
     slope = float(np.hypot(p, 1.0))
-    gu = g_draws @ u
-    hu = np.einsum("i,mij,j->m", u, H_draws, u)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(hu > 0.0, -gu / np.where(hu > 0.0, hu, 1.0), np.where(gu > 0.0, -np.inf, np.inf))
-    c = c_fit + slope * t
+
+    def minima(g, Hh):  # each resample's minimum along u, as the combination's log (+-inf: none, it runs off)
+        gu, hu = g @ u, np.einsum("i,mij,j->m", u, Hh, u)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(hu > 0.0, -gu / np.where(hu > 0.0, hu, 1.0), np.where(gu > 0.0, -np.inf, np.inf))
+        return c_fit + slope * t
+
     q = [(1.0 - level) / 2.0, 1.0 - (1.0 - level) / 2.0]
-    lo, hi = (float(x) for x in _quantiles(c, q))
+    lo, hi = (float(x) for x in _quantiles(minima(g_draws, H_draws), q))
     at_rivals = [zr[1] + np.log(sb) + p * (zr[0] + np.log(sa)) for zr in rivals]
     lo, hi = min([lo] + at_rivals), max([hi] + at_rivals)
-    ib = list(space.names).index(b)
+    ia, ib = list(space.names).index(a), list(space.names).index(b)
     box = space.z_hi[ib] - space.z_lo[ib]  # held to b's own standard, as if a were known
     name = _power_name(a, b, p)
+    # the values the combination takes over the box's corners: a half's end outside them places nothing
+    corners = [zb + np.log(sb) + p * (za + np.log(sa)) for za in (space.z_lo[ia], space.z_hi[ia])
+               for zb in (space.z_lo[ib], space.z_hi[ib])]
+    split_iv, apart = {}, []
+    for sp, hv in halves.items():
+        (ha, lo_a, hi_a), (hb, lo_b, hi_b) = ((h, *(float(x) for x in _quantiles(minima(*gh), q)))
+                                              for h, gh in hv.items())
+        split_iv[sp] = {ha: [lo_a, hi_a], hb: [lo_b, hi_b]}
+        facing = (hi_a, lo_b) if hi_a < lo_b else (hi_b, lo_a) if hi_b < lo_a else None
+        if facing is not None and min(corners) <= facing[0] < facing[1] <= max(corners):
+            apart.append(f"{ha} alone puts {name} at {np.exp(lo_a):.4g} to {np.exp(hi_a):.4g} and {hb} alone at "
+                         f"{np.exp(lo_b):.4g} to {np.exp(hi_b):.4g} ({100 * level:.0f} % intervals): they disagree "
+                         f"beyond the frames' noise, so {SPLITS[sp][1]}; its interval spans both")
+            lo, hi = min(lo, lo_a, lo_b), max(hi, hi_a, hi_b)
     determined = bool(np.isfinite(lo) and np.isfinite(hi) and hi - lo <= WIDE_INTERVAL * box)
     lvl = f"{100 * level:.0f} %"
     also = (f" (its interval reaches {len(at_rivals)} value(s) of the fit's search that fit as well)"
@@ -698,11 +738,14 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
     else:
         note = (f"{a} and {b} are correlated (r = {r:+.2f}), and even {name}'s {lvl} interval spans "
                 f"{(hi - lo) / box:.0%} of {b}'s search box (log scale): not determined either" + also)
+    if apart:
+        note += "; " + "; ".join(apart)
     with np.errstate(over="ignore"):
         interval = [float(np.exp(lo)), float(np.exp(hi))]
+        split_iv = {sp: {h: [float(np.exp(x)) for x in iv] for h, iv in hv.items()} for sp, hv in split_iv.items()}
     return {"value": float(np.exp(c_fit)), "interval": interval, "level": level,
             "unit": _power_unit(parameter(a).unit, parameter(b).unit, p), "of": [a, b], "exponent": p,
-            "correlation": float(r), "determined": determined, "note": note}
+            "correlation": float(r), "determined": determined, "note": note, "splits": split_iv}
 
 
 #: The halves a fit's loss is split into to check that each alone puts the values where the other does
@@ -741,6 +784,11 @@ def _splits(obj, terms: list, seen: np.ndarray, dz: np.ndarray, *, n_boot: int, 
 MAX_FAR = 3
 FAR_LOSS = 0.25
 FAR_STEP = 0.1
+#: A fit without a population of its own (Adam's: one descent from one start, which ends in the basin it starts
+#: in) is looked at across its search box instead: this many values of each fitted parameter, the others at the
+#: fit (:func:`_scan_points`), simulated beside the probes; those within :data:`FAR_LOSS` of the fit's loss are
+#: compared with it as the far members are.
+SCAN_POINTS = 4
 
 
 def _far_members(result, space, z0: np.ndarray) -> List[tuple]:
@@ -767,12 +815,30 @@ def _far_members(result, space, z0: np.ndarray) -> List[tuple]:
     return out
 
 
-def _basin_words(space, k: str, zm: np.ndarray, test: dict, q) -> str:
-    """Why the value ``zm`` (optimiser coordinates) of the fit's search, that :func:`paired_gain_test` (``test``:
-    the fit's gain over it) cannot tell from the fit, leaves parameter ``k`` not determined."""
+def _scan_points(space, z0: np.ndarray) -> List[np.ndarray]:
+    """A coarse scan of each fitted value across its search box, the others at the fit ``z0``: :data:`SCAN_POINTS`
+    values of each parameter, the middles of as many equal parts of its box in optimiser coordinates (log scale,
+    logit for nu), but those within :data:`FAR_STEP` of the box from the fit; optimiser coordinates, parameter by
+    parameter, low to high."""
+    width = space.z_hi - space.z_lo
+    out = []
+    for i in range(len(z0)):
+        for f in (np.arange(SCAN_POINTS) + 0.5) / SCAN_POINTS:
+            z = np.array(z0, float)
+            z[i] = space.z_lo[i] + f * width[i]
+            if abs(z[i] - z0[i]) >= FAR_STEP * width[i]:
+                out.append(z)
+    return out
+
+
+def _basin_words(space, k: str, zm: np.ndarray, test: dict, q, source: str = "search") -> str:
+    """Why the value ``zm`` (optimiser coordinates) of the fit's search (``source`` "search") or of the scan across
+    the box (:func:`_scan_points`, "scan"), that :func:`paired_gain_test` (``test``: the fit's gain over it) cannot
+    tell from the fit, leaves parameter ``k`` not determined."""
     vals = ", ".join(f"{n} = {_from_z(space, n, z):.4g}" for n, z in zip(space.names, zm))
     lvl = f"{100 * (q[1] - q[0]):.0f} %"
-    return (f"the fit's own search evaluated {vals}, which fits these frames within their noise as well as the fit "
+    where = "the fit's own search evaluated" if source == "search" else "a scan across the search box found"
+    return (f"{where} {vals}, which fits these frames within their noise as well as the fit "
             f"(the fit's loss lower by {100 * test['gain']:+.1f} %, {lvl} interval {100 * test['lower']:+.1f} to "
             f"{100 * test['upper']:+.1f} %): the loss has another basin or a flat stretch there, which the interval "
             f"about the fit did not hold; {k}'s interval spans both")

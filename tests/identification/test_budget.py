@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from empm_gym.cli import main
-from empm_gym.identification.budget import estimate_s, plan_fit
+from empm_gym.identification.budget import SCAN_COST, estimate_s, plan_fit
 from empm_gym.sim import sample_box, sample_cylinder
 
 from . import scenes
@@ -33,12 +33,27 @@ def test_estimate_scales_with_frames_iterations_and_probes():
     assert estimate_s(1.0, 21, 10, 4) > estimate_s(1.0, 21, 10, 1) > estimate_s(1.0, 21, 10, 0)
 
 
-def test_plan_changes_only_what_the_user_left_open(rope):
+def test_plan_changes_only_what_the_user_left_open(rope, monkeypatch):
     m = rope.material
     free = dict(particles_per_cell=False, iters=False, lr=False, frames=False)
     plan, sc = plan_fit(rope, m, fit_frames=24, iters=30, particles_per_cell=27, budget_s=None, fixed=free, views=2,
                         rebuild_body=_thin_body)
     assert sc is rope and not plan.steps and plan.estimate_s == plan.default_estimate_s > 0
+    # the intervals scan each fitted value across its box: two values cost one scan more than one (one forward
+    # frame's measured seconds held fixed, so that the estimates compare)
+    import empm_gym.identification.budget as B
+
+    monkeypatch.setattr(B, "frame_seconds", lambda *a: 0.01)
+    plan, _ = plan_fit(rope, m, fit_frames=24, iters=30, particles_per_cell=27, budget_s=None, fixed=free, views=2,
+                       rebuild_body=_thin_body)
+    two, _ = plan_fit(rope, m, fit_frames=24, iters=30, particles_per_cell=27, budget_s=None, fixed=free, views=2,
+                      rebuild_body=_thin_body, fitted=2)
+    none, _ = plan_fit(rope, m, fit_frames=24, iters=30, particles_per_cell=27, budget_s=None, fixed=free, views=2,
+                       rebuild_body=_thin_body, uncertainty=False, fitted=2)
+    # the intervals: the fitted body, 2 lattices, 2 views and the scan; one more value, one more scan
+    per_body = (plan.estimate_s - none.estimate_s) / (1 + 2 + 2 + SCAN_COST)
+    assert per_body > 0 and two.estimate_s - plan.estimate_s == pytest.approx(SCAN_COST * per_body)
+    monkeypatch.undo()
     # a 4 cm rope at dx = 2 cm is under 2 cells thick (body_thickness: 1.7): its fill is kept, the rest reduced
     plan, sc = plan_fit(rope, m, fit_frames=24, iters=30, particles_per_cell=27, budget_s=1e-3, fixed=free, views=2,
                         rebuild_body=_thin_body)
