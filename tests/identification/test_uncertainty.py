@@ -437,6 +437,30 @@ def test_halves_of_the_loss_that_put_a_combination_apart_widen_its_interval():
     assert open_half["interval"] == alone["interval"]
 
 
+def test_a_body_left_out_of_the_values_intervals_joins_the_combination_where_it_places_it():
+    """A body whose loss has no minimum near the fit for the values alone (the coarser grid, on a ridge) is left
+    out of their intervals; along the combination it may still have one: then its resamples join the combination's
+    interval (its share: minima 0.3 higher in log widen it to hold them), else it stays out (no curvature across
+    the ridge there: the interval is the one without it)."""
+    from empm_gym.identification.problem import ParamSpace
+    from empm_gym.identification.uncertainty import pair_combination
+
+    space = ParamSpace(["E", "yield_stress"], {"E": (1e3, 1e7), "yield_stress": (50.0, 1e6)})
+    fit = [math.log(2e4 / 1e6), math.log(300.0 / 1e3)]
+    H, g, Hs = _ridge(-1.0, 0.02, 4000)
+    u = np.array([-1.0, 1.0]) / math.sqrt(2.0)
+    _, gd, Hd = _ridge(-1.0, 0.02, 4000, seed=5)
+    gd = gd - (H @ u)[None] * 0.3 / math.sqrt(2.0)  # that body's minima across the ridge 0.3 higher in log
+    alone = pair_combination(space, "E", "yield_stress", fit, H, g, Hs, 0.99)
+    assert not alone["dropped_pooled"]
+    held = pair_combination(space, "E", "yield_stress", fit, H, g, Hs, 0.99, dropped=(gd, Hd))
+    ratio = 300.0 / 2e4
+    assert held["dropped_pooled"] and held["interval"][0] == pytest.approx(alone["interval"][0], rel=0.02)
+    assert alone["interval"][1] < ratio * math.exp(0.2) and held["interval"][1] > ratio * math.exp(0.28), held
+    flat = pair_combination(space, "E", "yield_stress", fit, H, g, Hs, 0.99, dropped=(gd, -Hd))
+    assert not flat["dropped_pooled"] and flat["interval"] == alone["interval"]
+
+
 def test_correlated_values_name_the_combination_the_frames_fix(monkeypatch):
     """assess_fit on a real fit of E and the table's friction, whose loss is made a ridge of constant
     friction * E (resamples' minima spread along it and 0.01 across it): both values are not determined, the
@@ -466,6 +490,43 @@ def test_correlated_values_name_the_combination_the_frames_fix(monkeypatch):
     assert lo < c["value"] < hi and hi / lo < 1.1
     w = a["identifiability"]["warnings"]
     assert any(x.startswith("E: correlated with friction") and "only the combination friction*E" in x for x in w), w
+
+
+@pytest.mark.slow
+def test_the_coarser_grid_left_out_of_the_values_joins_their_combination(monkeypatch):
+    """assess_fit on a real fit of E and the table's friction on a rope four cells thick, whose loss is made a
+    ridge of constant friction * E on every body: on the coarser grid the values' Newton steps run off (that grid
+    is left out of their intervals, and said), but along the ridge's combination it places the minimum 0.3 higher
+    in log: the combination's interval holds that grid's share, and the warning says which combination does."""
+    import empm_gym.identification.uncertainty as U
+
+    p = scenes.rope_lift(E=E_TRUE, dx=0.01, frames=8, seed=1, same_body=True)
+    r = identify(p.obs, p.scene, params=("E", "friction"), method="cmaes", init={"E": E_TRUE}, iters=1, popsize=4,
+                 progress=False)
+    real = U.newton_bootstrap
+    u = np.array([1.0, 1.0]) / math.sqrt(2.0)
+
+    def ridge(per_frame, dz, *, seed=0, **kw):
+        nb = real(per_frame, dz, seed=seed, **kw)
+        n = len(nb["draws"])
+        H, g, Hs = _ridge(1.0, 0.01, n, seed=seed)
+        t = np.random.default_rng(3).normal(0.0, 0.5, n)
+        out = {**nb, "draws": np.c_[t, -t], "step": np.zeros(2), "H": H, "g_draws": g, "H_draws": Hs}
+        if seed == 1:  # the coarser grid (the second body: no extra lattices, no finer grid at 4 cells)
+            out.update(step=np.full(2, np.inf), draws=np.full((n, 2), np.inf),
+                       g_draws=g - (H @ u)[None] * 0.3 / math.sqrt(2.0))
+        return out
+
+    monkeypatch.setattr(U, "newton_bootstrap", ridge)
+    a = U.assess_fit(r, p.scene, p.obs, resample_bodies=0)
+    idf = a["identifiability"]
+    assert "coarser grid" not in idf["method"]  # left out of the values' intervals
+    c = idf["combinations"]["friction*E"]
+    assert "dropped_pooled" not in c
+    lo, hi = c["interval"]
+    assert lo < c["value"] and hi > c["value"] * math.exp(0.28), (c["value"], lo, hi)
+    w = [x for x in idf["warnings"] if x.startswith("on the coarser grid")]
+    assert len(w) == 1 and "along friction*E it has one: that combination's interval holds it" in w[0], w
 
 
 def test_identify_prints_a_combination_with_its_interval_and_unit(capsys):
