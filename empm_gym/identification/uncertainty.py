@@ -500,36 +500,50 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
         unc[k] = {"interval": interval, "level": level, "determined": True,
                   "bounded_only": one_sided_bound(space, k, lo_z, hi_z)}
     # correlations between fitted parameters (finite draws only)
-    corr, combos = {}, {}
+    corr, combos, curv_corr = {}, {}, {}
     fin = np.all(np.isfinite(pooled), 1)
-    if n > 1 and fin.sum() > 10:
-        C = np.corrcoef(pooled[fin].T)
-        for i in range(n):
-            for j in range(i + 1, n):
-                r = float(C[i, j]) if np.isfinite(C[i, j]) else 0.0
-                corr[f"{names[i]},{names[j]}"] = r
-                if abs(r) <= CORRELATED:
-                    continue
-                # E (or a yield stress, a viscosity) with the density: their ratio, below, is the combination
-                by_density = "density" in (names[i], names[j]) and {names[i], names[j]} & set(DENSITY_SCALED)
-                pc = None if by_density else pair_combination(
-                    space, names[i], names[j], z0[[i, j]], nb["H"][np.ix_([i, j], [i, j])], G[:, [i, j]],
-                    Hs[:, [i, j]][:, :, [i, j]], r, level=level,
-                    rivals=[zm[[i, j]] for zm, test, _ in far_tests if not test["significant"]],
-                    halves={sp: {h: (m["g_draws"][:, [i, j]], m["H_draws"][:, [i, j]][:, :, [i, j]])
-                                 for h, m in hv.items()} for sp, hv in splits.items()},
-                    dropped=None if coarse_curv is None else (coarse_curv[0][:, [i, j]],
-                                                              coarse_curv[1][:, [i, j]][:, :, [i, j]]))
-                what = "at most a combination of the two is determined"
-                if pc is not None:
-                    name = _power_name(*pc["of"], pc["exponent"])
-                    combos[name] = pc
-                    if pc.pop("dropped_pooled", False):
-                        coarse_in.append(name)
-                    if pc["determined"]:
-                        what = f"only the combination {name} = {pc['value']:.4g} is determined (see the combinations)"
-                for a, b in ((i, j), (j, i)):
-                    reasons[names[a]].append(f"correlated with {names[b]} (r = {r:+.2f}): {what}")
+    C = np.corrcoef(pooled[fin].T) if n > 1 and fin.sum() > 10 else None
+    for i in range(n):
+        for j in range(i + 1, n):
+            pair = f"{names[i]},{names[j]}"
+            if C is not None:
+                corr[pair] = float(C[i, j]) if np.isfinite(C[i, j]) else 0.0
+            r = corr.get(pair, 0.0)
+            # the loss's own curvature couples them as strongly (or is a saddle: no minimum of the two together):
+            # where most resamples' minima run off, the few finite ones give no steady correlation (the dough
+            # squeezed and lifted with a slip: r = 1.00 in one run, 0.75 in the next, the same fit)
+            hii, hjj, hij = nb["H"][i, i], nb["H"][j, j], nb["H"][i, j]
+            rc = float(-hij / np.sqrt(hii * hjj)) if hii > 0.0 and hjj > 0.0 else 0.0
+            curv_corr[pair] = rc
+            # the curvature decides where the draws cannot: a saddle, or most resamples' minima running off
+            if abs(r) <= CORRELATED and not (abs(rc) > CORRELATED and (abs(rc) > 1.0 or fin.mean() < 0.5)):
+                continue
+            said = (f"r = {r:+.2f}" if abs(r) > CORRELATED else
+                    (f"r = {r:+.2f} over the {fin.mean():.0%} of resamples that place a minimum" if pair in corr
+                     else "too few resamples place a minimum to correlate them")
+                    + f", {rc:+.2f} from the loss's curvature at the fit"
+                    + (" (a saddle: no minimum of the two together)" if abs(rc) > 1.0 else ""))
+            r_used = r if abs(r) > CORRELATED else float(np.clip(rc, -1.0, 1.0))
+            # E (or a yield stress, a viscosity) with the density: their ratio, below, is the combination
+            by_density = "density" in (names[i], names[j]) and {names[i], names[j]} & set(DENSITY_SCALED)
+            pc = None if by_density else pair_combination(
+                space, names[i], names[j], z0[[i, j]], nb["H"][np.ix_([i, j], [i, j])], G[:, [i, j]],
+                Hs[:, [i, j]][:, :, [i, j]], r_used, level=level,
+                rivals=[zm[[i, j]] for zm, test, _ in far_tests if not test["significant"]],
+                halves={sp: {h: (m["g_draws"][:, [i, j]], m["H_draws"][:, [i, j]][:, :, [i, j]])
+                             for h, m in hv.items()} for sp, hv in splits.items()},
+                dropped=None if coarse_curv is None else (coarse_curv[0][:, [i, j]],
+                                                          coarse_curv[1][:, [i, j]][:, :, [i, j]]))
+            what = "at most a combination of the two is determined"
+            if pc is not None:
+                name = _power_name(*pc["of"], pc["exponent"])
+                combos[name] = pc
+                if pc.pop("dropped_pooled", False):
+                    coarse_in.append(name)
+                if pc["determined"]:
+                    what = f"only the combination {name} = {pc['value']:.4g} is determined (see the combinations)"
+            for a, b in ((i, j), (j, i)):
+                reasons[names[a]].append(f"correlated with {names[b]} ({said}): {what}")
     rho_fitted = "density" in names
     for k in DENSITY_SCALED:
         if k not in names:
@@ -621,7 +635,10 @@ def assess_fit(result, scene, observations, *, level: float = 0.95, step: float 
                 "splits": {sp: {k: {h: [_from_z(space, k, z0[i] + v) for v in _quantiles(m["draws"][:, i], q)]
                                     for h, m in halves.items()} for i, k in enumerate(names)}
                            for sp, halves in splits.items()},
-                "warnings": warnings, "combinations": combos, "correlation": corr, "resolution": resolution,
+                "warnings": warnings, "combinations": combos, "correlation": corr,
+                # the same from the fitted body's curvature at the fit (Laplace: -H_ij / sqrt(H_ii H_jj); beyond +-1
+                # a saddle)
+                "curvature_correlation": curv_corr, "resolution": resolution,
                 "curvature": nb["H"].tolist(), "quadratic_misfit": nb["residual"]}}
 
 

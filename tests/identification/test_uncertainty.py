@@ -529,6 +529,47 @@ def test_the_coarser_grid_left_out_of_the_values_joins_their_combination(monkeyp
     assert len(w) == 1 and "along friction*E it has one: that combination's interval holds it" in w[0], w
 
 
+@pytest.mark.slow
+def test_a_saddle_of_two_values_names_their_combination_whatever_the_resamples_correlation(monkeypatch):
+    """Where the loss's curvature at the fit couples two values beyond what a minimum allows (a saddle), the
+    combination along its curved direction is reported even if the resamples' minima barely correlate (the few
+    that place one, on the dough squeezed and lifted with a slip, gave r = 1.00 in one run and 0.75 in the next);
+    a curvature that couples them weakly adds nothing."""
+    import empm_gym.identification.uncertainty as U
+
+    p = scenes.rope_lift(E=E_TRUE, frames=8, seed=1, same_body=True)
+    r = identify(p.obs, p.scene, params=("E", "friction"), method="cmaes", init={"E": E_TRUE}, iters=1, popsize=4,
+                 progress=False)
+    real = U.newton_bootstrap
+
+    def curved(coupling):
+        H = 100.0 * np.array([[1.0, -coupling], [-coupling, 1.0]])
+        u = np.array([1.0, -1.0]) / math.sqrt(2.0)  # the curved direction: friction / E constant across it
+
+        def nb_of(*args, **kw):
+            nb = real(*args, **kw)
+            n = len(nb["draws"])
+            rng = np.random.default_rng(kw.get("seed", 0))
+            d = rng.normal(0.0, 0.01, n)
+            return {**nb, "draws": rng.normal(0.0, 0.05, (n, 2)), "step": np.zeros(2), "H": H,
+                    "g_draws": -(H @ u)[None] * d[:, None], "H_draws": np.repeat(H[None], n, 0)}
+        return nb_of
+
+    monkeypatch.setattr(U, "newton_bootstrap", curved(1.5))
+    a = U.assess_fit(r, p.scene, p.obs, resample_bodies=0, refine_grid=False)
+    idf = a["identifiability"]
+    assert abs(idf["correlation"]["E,friction"]) < 0.2 and idf["curvature_correlation"]["E,friction"] == \
+        pytest.approx(1.5)
+    c = idf["combinations"]["friction/E"]
+    assert c["value"] == pytest.approx(r.params["friction"] / r.params["E"], rel=1e-9) and c["determined"], c
+    w = [x for x in idf["warnings"] if x.startswith("E: correlated with friction")]
+    assert w and "+1.50 from the loss's curvature at the fit (a saddle" in w[0], idf["warnings"]
+    monkeypatch.setattr(U, "newton_bootstrap", curved(0.5))
+    weak = U.assess_fit(r, p.scene, p.obs, resample_bodies=0, refine_grid=False)["identifiability"]
+    assert weak["curvature_correlation"]["E,friction"] == pytest.approx(0.5) and "friction/E" not in weak["combinations"]
+    assert not any("correlated with" in x for x in weak["warnings"])
+
+
 def test_identify_prints_a_combination_with_its_interval_and_unit(capsys):
     """`empm identify`'s lines for combinations: a dimensionless one without a unit, a ratio to the density with
     its unit, each with its interval where it has one."""
