@@ -695,9 +695,15 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
     (``"dropped_pooled"`` True in the result: the combination holds that body's share; the plastic rope pressed at
     full resolution had yield_stress/E "determined" at 0.0375 to 0.0909 without the grid's share, truth 0.0354).
 
+    Along the ridge the loss must not fall: where its curvature along the ridge (the softer direction of ``H``) is
+    negative in all but (1 - ``level``) / 2 of the resamples, the fit sits on a saddle short of the ridge's minimum,
+    and a bent ridge fixes another value there: not determined (``falls_along_ridge``: that share; the rope squeezed
+    and lifted with a slip at full resolution, a saddle with curvatures -0.30 and 1 of the stiffest, had
+    grip_friction/E^0.5 "determined" at 0.0068 to 0.0088 against a true 0.0034).
+
     Returns ``{"value" (at the fit), "interval", "level", "unit", "of", "exponent", "correlation", "determined",
-    "note", "splits"}`` (``of``: [a, b] after the swap, the combination ``of[1] * of[0]^exponent``; ``splits``:
-    ``{split: {half: interval}}``); ``determined`` where the
+    "note", "splits", "falls_along_ridge"}`` (``of``: [a, b] after the swap, the combination
+    ``of[1] * of[0]^exponent``; ``splits``: ``{split: {half: interval}}``); ``determined`` where the
     interval is closed and spans at most :data:`WIDE_INTERVAL` of the leading parameter's search box (log scale):
     the standard it would be held to alone if the other were known. None where either parameter is not on a log
     scale (nu, the stiffness slopes: no power law), the loss is not curved across any direction, or the other's
@@ -768,11 +774,21 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
                          f"{np.exp(lo_b):.4g} to {np.exp(hi_b):.4g} ({100 * level:.0f} % intervals): they disagree "
                          f"beyond the frames' noise, so {SPLITS[sp][1]}; its interval spans both")
             lo, hi = min(lo, lo_a, lo_b), max(hi, hi_a, hi_b)
-    determined = bool(np.isfinite(lo) and np.isfinite(hi) and hi - lo <= WIDE_INTERVAL * box)
+    # along the ridge (the softer direction) the loss must not fall beyond the frames' noise: where it does in all
+    # but (1 - level) / 2 of the resamples, the fit sits on a saddle, short of the ridge's minimum, and where the
+    # ridge bends (no power law holds it) the combination there is another
+    along = V[:, 0]
+    falls = float(np.mean(np.einsum("i,mij,j->m", along, H_draws, along) < 0.0))
+    saddle = falls > 1.0 - (1.0 - level) / 2.0
+    determined = bool(np.isfinite(lo) and np.isfinite(hi) and hi - lo <= WIDE_INTERVAL * box) and not saddle
     lvl = f"{100 * level:.0f} %"
     also = (f" (its interval reaches {len(at_rivals)} value(s) of the fit's search that fit as well)"
             if at_rivals else "")
-    if determined:
+    if saddle:
+        note = (f"{a} and {b} are correlated (r = {r:+.2f}), but along their ridge the loss falls away from the fit "
+                f"in {falls:.0%} of the resamples (a saddle): the fit is not the ridge's minimum, and where the ridge "
+                f"bends {name} is another there: not determined either")
+    elif determined:
         note = f"{a} and {b} are correlated (r = {r:+.2f}): the frames fix {name}, not either alone" + also
     elif not (np.isfinite(lo) and np.isfinite(hi)):
         note = (f"{a} and {b} are correlated (r = {r:+.2f}), and the loss has no minimum along {name} in more than "
@@ -788,7 +804,7 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
     return {"value": float(np.exp(c_fit)), "interval": interval, "level": level,
             "unit": _power_unit(parameter(a).unit, parameter(b).unit, p), "of": [a, b], "exponent": p,
             "correlation": float(r), "determined": determined, "note": note, "splits": split_iv,
-            "dropped_pooled": pooled_dropped}
+            "falls_along_ridge": falls, "dropped_pooled": pooled_dropped}
 
 
 #: The halves a fit's loss is split into to check that each alone puts the values where the other does
