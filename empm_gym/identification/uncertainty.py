@@ -897,10 +897,13 @@ def _basin_words(space, k: str, zm: np.ndarray, test: dict, q, source: str = "se
     vals = ", ".join(f"{n} = {_from_z(space, n, z):.4g}" for n, z in zip(space.names, zm))
     lvl = f"{100 * (q[1] - q[0]):.0f} %"
     where = "the fit's own search evaluated" if source == "search" else "a scan across the search box found"
-    return (f"{where} {vals}, which fits these frames within their noise as well as the fit "
+    better = test["upper"] < 0.0  # the fit's loss higher than there beyond the frames' noise
+    how = ("better than the fit, beyond their noise" if better else "within their noise as well as the fit")
+    return (f"{where} {vals}, which fits these frames {how} "
             f"(the fit's loss lower by {100 * test['gain']:+.1f} %, {lvl} interval {100 * test['lower']:+.1f} to "
             f"{100 * test['upper']:+.1f} %): the loss has another basin or a flat stretch there, which the interval "
-            f"about the fit did not hold; {k}'s interval spans both")
+            f"about the fit did not hold; {k}'s interval spans both"
+            + ("; the fit stopped in a worse basin: a fit started there may end lower" if better else ""))
 
 
 def _quantiles(v: np.ndarray, q) -> tuple:

@@ -784,4 +784,10 @@ def test_a_fit_without_a_search_population_is_scanned_across_its_box(exact_fits,
     assert not two["uncertainty"]["E"]["determined"]
     w = [x for x in two["identifiability"]["warnings"] if x.startswith("E: ")]
     assert w[0].startswith("E: a scan across the search box found E = ") and "another basin" in w[0], w
+    assert "within their noise as well as the fit" in w[0] and "worse basin" not in w[0], w
+    # a scanned value that fits better than the fit beyond the frames' noise says so, and where to start
+    monkeypatch.setattr(U, "paired_gain_test", lambda *a, **k: {**real(*a, **k), "significant": False,
+                                                                 "gain": -0.3, "lower": -0.4, "upper": -0.2})
+    w = [x for x in U.assess_fit(r, p.scene, p.obs, **kw)["identifiability"]["warnings"] if x.startswith("E: ")]
+    assert "fits these frames better than the fit, beyond their noise" in w[0] and "worse basin" in w[0], w
 
