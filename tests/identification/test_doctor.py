@@ -421,6 +421,11 @@ def test_a_refit_on_a_later_variant_starts_from_the_optima_found_on_earlier_ones
     tests = out["candidates"]["viscosity"]["tests"]
     assert [c[0] for c in calls] == ["viscosity", "viscosity"] and len(tests) == 2
     assert calls[0][1] == [] and calls[1][1] == [tests[0]["params"]]
+    # the stage's clock: each step's seconds, the refits of the first variant apart from the others'
+    clock = out["wall_s"]
+    assert {"base models", "refits, first variant", "refits, the other variants", "held-out simulations",
+            "parted refits scored"} <= set(clock) and all(v >= 0.0 for v in clock.values()), clock
+    assert clock["refits, first variant"] > 0.0 and clock["refits, the other variants"] > 0.0
 
 
 def test_a_winner_that_other_discretisations_rank_second_is_no_confident_verdict():

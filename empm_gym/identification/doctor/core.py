@@ -1990,8 +1990,19 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
     # where scaling E with the base model's lands in the wrong basin). Refitted one variant after the other, each
     # from the optima of all before it, the five variants of a recording took most of its wall time (session 41:
     # 126 s for a rope dragged on a slippery table on an H200).
+    # seconds of each step of this stage (``variants.wall_s``): where a slow recording's variants spend their time
+    t0 = time.perf_counter()
+    clock = out["wall_s"] = {}
+
+    def lap(step: str):
+        nonlocal t0
+        t = time.perf_counter()
+        clock[step] = round(clock.get(step, 0.0) + t - t0, 2)
+        t0 = t
+
     vbases = _fit_candidates([_candidate_spec("base", vs, base_fit.start_material, None, F, cfg, like=base_fit)
                               for _, _, vs in variants], obs, progress, "doctor: variants' base models")
+    lap("base models")
     found: Dict[str, List[Dict[str, float]]] = {f.name: [] for f in checked}  # each candidate's optima so far
     refits: List[Optional[List[_Fit]]] = [None] * len(variants)
     for wave in [[0], list(range(1, len(variants)))]:
@@ -2001,12 +2012,14 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
                                  starts=_variant_starts(f, base_fit, vbases[j], found[f.name])[:max(0, cfg.popsize - 2)])
                  for j in wave for f in checked]
         fitted = _fit_candidates(specs, obs, progress, f"doctor: variant refits ({len(wave)} variant(s))")
+        lap("refits, first variant" if wave == [0] else "refits, the other variants")
         items = []
         for k, j in enumerate(wave):
             vfits = [vbases[j]] + fitted[k * len(checked):(k + 1) * len(checked)]
             items += [(vf, variants[j][2], base_fit.start_material) for vf in vfits]
         if box is not None:
             items = [(vf, None, None) for vf in _widened(items, obs, box, F, cfg, progress, loose)]
+            lap("refits widened at a window's edge")
         n = len(checked) + 1
         for k, j in enumerate(wave):
             refits[j] = [vf for vf, _, _ in items[k * n:(k + 1) * n]]
@@ -2024,7 +2037,9 @@ def _check_variants(checked: List["_Fit"], scene: Scene, obs: Observations, base
         fit_loss = {w: float(np.mean(per[w][fitting])) for w in [0, *range(len(vfits), len(per))]}
         b = min(fit_loss, key=fit_loss.get)  # the refit (0) first: it keeps a tie
         scored.append((b, per, _last_pieces(X, heldout, [b, *untearing] if untearing else [])))
+    lap("held-out simulations")
     parted = _parted_refits(checked, refits, [(s[0], s[2]) for s in scored], obs, T, heldout, cfg)
+    lap("parted refits scored")
     for j, ((label, kind, _), vfits, alt, (b, per, _)) in enumerate(zip(variants, refits, alts, scored)):
         losses = [per[b][heldout]] + [per[w][heldout] for w in range(1, len(vfits))]
         base = {"variant": label, "kind": kind, "params": vfits[0].params, "heldout_loss": float(np.mean(losses[0]))}
