@@ -768,8 +768,7 @@ def pair_combination(space, a: str, b: str, z_fit: Sequence[float], H: np.ndarra
         (ha, lo_a, hi_a), (hb, lo_b, hi_b) = ((h, *(float(x) for x in _quantiles(minima(*gh), q)))
                                               for h, gh in hv.items())
         split_iv[sp] = {ha: [lo_a, hi_a], hb: [lo_b, hi_b]}
-        facing = (hi_a, lo_b) if hi_a < lo_b else (hi_b, lo_a) if hi_b < lo_a else None
-        if facing is not None and min(corners) <= facing[0] < facing[1] <= max(corners):
+        if _apart_within(lo_a, hi_a, lo_b, hi_b, min(corners), max(corners)):
             apart.append(f"{ha} alone puts {name} at {np.exp(lo_a):.4g} to {np.exp(hi_a):.4g} and {hb} alone at "
                          f"{np.exp(lo_b):.4g} to {np.exp(hi_b):.4g} ({100 * level:.0f} % intervals): they disagree "
                          f"beyond the frames' noise, so {SPLITS[sp][1]}; its interval spans both")
@@ -911,6 +910,13 @@ def _quantiles(v: np.ndarray, q) -> tuple:
     return tuple(np.quantile(v, q)) if np.all(np.isfinite(v)) else _inf_quantiles(v, q)
 
 
+def _apart_within(lo_a: float, hi_a: float, lo_b: float, hi_b: float, lo: float, hi: float) -> bool:
+    """Two intervals ``[lo_a, hi_a]`` and ``[lo_b, hi_b]`` that do not overlap, the ends that face each other
+    within ``[lo, hi]`` (an open end, or one beyond it, places nothing there)."""
+    facing = (hi_a, lo_b) if hi_a < lo_b else (hi_b, lo_a) if hi_b < lo_a else None
+    return facing is not None and lo <= facing[0] < facing[1] <= hi
+
+
 def _halves_apart(space, k: str, i: int, z0: np.ndarray, split: str, halves: dict, q) -> Optional[dict]:
     """Where the two ``halves`` of a :data:`SPLITS` entry ``split`` (:func:`_splits`) put parameter ``k``'s (index
     ``i``) minimum in intervals (quantiles ``q`` of their resamples) that do not overlap: ``{"warning", "lo_z",
@@ -921,8 +927,7 @@ def _halves_apart(space, k: str, i: int, z0: np.ndarray, split: str, halves: dic
     zl, zh = space.z_lo[i], space.z_hi[i]
     # the ends that face each other must lie in the box: a half whose minimum runs off that way, or lies beyond
     # the box, places nothing there
-    facing = (hi_a, lo_b) if hi_a < lo_b else (hi_b, lo_a) if hi_b < lo_a else None
-    if facing is None or not zl <= facing[0] < facing[1] <= zh:
+    if not _apart_within(lo_a, hi_a, lo_b, hi_b, zl, zh):
         return None
     words = [f"{_from_z(space, k, lo):.4g} to {_from_z(space, k, hi):.4g}" for lo, hi in ((lo_a, hi_a), (lo_b, hi_b))]
     lvl = f"{100 * (q[1] - q[0]):.0f} %"
